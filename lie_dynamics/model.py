@@ -1,0 +1,250 @@
+"""The constant robot model (screws S_i, home poses M_i, spatial inertias J_i, tree).
+
+Like Pinocchio's Model/Data split, a `Model` holds what does not change per call; each
+algorithm (rnea.py, ...) works on per-call arrays. The few things a running robot
+changes — locked joint values, gravity, payloads — are cheap setters, never a rebuild.
+
+Internally the tree has `nb` bodies, one per modelled movable joint (controlled, mimic
+or locked), numbered parents-first. Body coordinates are affine in q:
+    x_body = E q + L q_locked + c0
+which carries mimic joints (a row with the multiplier in the master's column) and
+locked joints (a row in L). Joint torques are tau = E^T tau_body: the master collects
+multiplier * tau_mimic.
+"""
+import numpy as np
+
+from .se3 import hat3, spatial_inertia
+
+
+def _vector(name, x, n):
+    a = np.asarray(x, dtype=float)
+    if a.shape != (n,):
+        raise ValueError(f'{name} must have shape ({n},), got {a.shape}')
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f'{name} contains non-finite values')
+    return a
+
+
+class Model:
+    """Fixed-base kinematic tree for the Lie-group dynamics algorithms."""
+
+    def __init__(self, *, name, joint_names, joint_types, locked_joint_names, lockable_joint_names,
+                 mimic_joints, body_joint_names, parent, M, S, J, E, L, c0, link_frames,
+                 effort_limits, velocity_limits, position_lower, position_upper, damping, friction,
+                 gravity=(0.0, 0.0, -9.81)):
+        self.name = name
+        self.joint_names = list(joint_names)
+        self.joint_types = list(joint_types)
+        self.n = len(self.joint_names)
+        self.locked_joint_names = list(locked_joint_names)
+        self.lockable_joint_names = list(lockable_joint_names)
+        self.mimic_joints = dict(mimic_joints)
+        self.body_joint_names = list(body_joint_names)
+        self.parent = np.asarray(parent, dtype=int)
+        self.nb = len(self.parent)
+        self.M = np.asarray(M, dtype=float)
+        self.S = np.asarray(S, dtype=float)
+        self.J_links = np.asarray(J, dtype=float)  # from the URDF, without payloads
+        self.E = np.asarray(E, dtype=float).reshape(self.nb, self.n)
+        self.L = np.asarray(L, dtype=float).reshape(self.nb, len(self.locked_joint_names))
+        self.c0 = np.asarray(c0, dtype=float)
+        self.link_frames = dict(link_frames)
+        self.effort_limits = np.asarray(effort_limits, dtype=float)
+        self.velocity_limits = np.asarray(velocity_limits, dtype=float)
+        self.position_lower = np.asarray(position_lower, dtype=float)
+        self.position_upper = np.asarray(position_upper, dtype=float)
+        self.damping = np.asarray(damping, dtype=float)
+        self.friction = np.asarray(friction, dtype=float)
+        self._payloads = {}
+        self._locked_values = np.zeros(len(self.locked_joint_names))
+        self._locked_index = {name: k for k, name in enumerate(self.locked_joint_names)}
+        self.gravity_vector = gravity
+        self._precompute()
+        self._update_inertia()
+        self._update_offsets()
+
+    # ------------------------------------------------------------------ structure
+    def _precompute(self):
+        nb = self.nb
+        # ancestor-or-self matrix: anc[i, j] = 1 when body j lies on the path root -> i
+        anc = np.eye(nb)
+        for i in range(nb):
+            if self.parent[i] >= 0:
+                anc[i] += anc[self.parent[i]]
+        self.ancestors = anc
+        self.depth = anc.sum(axis=1).astype(int)
+        # Pointer jumping: world poses in ceil(log2(depth)) batched products instead of nb.
+        jump = self.parent.copy()
+        self._jumps = []
+        while np.any(jump >= 0):
+            idx = np.flatnonzero(jump >= 0)
+            self._jumps.append((idx, jump[idx].copy()))
+            jump[idx] = jump[jump[idx]]
+            jump[idx[jump[idx] < 0]] = -1  # already reached the root
+        # f_i(x) = M_i exp([S_i] x) = M_i + sin x B1 + (1 - cos x) B2 + x B3 + (x - sin x) B4
+        # (paper eqs 10-12, unit rotation axis or pure translation). Written this way, a
+        # revolute joint has B3 = B4 = 0, so large angles lose no digits.
+        w, v = self.S[:, :3], self.S[:, 3:]
+        K = hat3(w)
+        K2 = K @ K
+        C = np.zeros((nb, 4, 4, 4))
+        C[:, 0, :3, :3] = K
+        C[:, 1, :3, :3] = K2
+        C[:, 1, :3, 3] = np.einsum('bij,bj->bi', K, v)
+        C[:, 2, :3, 3] = v
+        C[:, 3, :3, 3] = np.einsum('bij,bj->bi', K2, v)
+        self._B = np.einsum('bij,bkjl->bkil', self.M, C).reshape(nb, 4, 16)
+
+    # ------------------------------------------------------------------ settable state
+    @property
+    def gravity_vector(self):
+        """Gravity in the URDF root frame (m/s^2); enters as base acceleration (0, -g)."""
+        return self._g.copy()
+
+    @gravity_vector.setter
+    def gravity_vector(self, g):
+        self._g = _vector('gravity', g, 3)
+        self._a0 = np.concatenate([np.zeros(3), -self._g])
+
+    def set_gravity(self, g):
+        self.gravity_vector = g
+
+    def set_locked(self, values):
+        """Set locked joint values from {name: value}. Cheap; no rebuild.
+
+        Names of lockable joints the reduction dropped (they cannot influence the
+        controlled torques) are accepted and ignored.
+        """
+        changed = False
+        for name, value in dict(values).items():
+            if name in self._locked_index:
+                v = float(value)
+                if not np.isfinite(v):
+                    raise ValueError(f"locked joint '{name}': non-finite value {value}")
+                self._locked_values[self._locked_index[name]] = v
+                changed = True
+            elif name in self.lockable_joint_names:
+                continue
+            elif name in self.joint_names:
+                raise ValueError(f"joint '{name}' is controlled, not locked")
+            elif name in self.mimic_joints:
+                raise ValueError(f"joint '{name}' is a mimic joint: set its master "
+                                 f"'{self.mimic_joints[name][0]}' instead")
+            else:
+                raise ValueError(f"unknown joint '{name}'")
+        if changed:
+            self._update_offsets()
+
+    @property
+    def locked_values(self):
+        return dict(zip(self.locked_joint_names, self._locked_values.tolist()))
+
+    def _update_offsets(self):
+        self.e0 = self.L @ self._locked_values + self.c0
+
+    def set_payload(self, link, mass, com, inertia=None):
+        """Attach a rigid payload to `link` (replaces any previous one on that link).
+
+        com: CoM in the link frame (m). inertia: about the CoM in the link frame, a 3x3
+        matrix or (ixx, ixy, ixz, iyy, iyz, izz); None = point mass.
+        """
+        if link not in self.link_frames:
+            raise ValueError(f"unknown link '{link}' for payload")
+        m = float(mass)
+        if not np.isfinite(m) or m < 0:
+            raise ValueError(f'payload mass must be finite and >= 0, got {mass}')
+        c = _vector('payload com', com, 3)
+        if inertia is None:
+            I = np.zeros((3, 3))
+        else:
+            I = np.asarray(inertia, dtype=float)
+            if I.shape == (6,):
+                xx, xy, xz, yy, yz, zz = I
+                I = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+            if I.shape != (3, 3) or not np.all(np.isfinite(I)):
+                raise ValueError('payload inertia must be a finite 3x3 matrix or 6 values '
+                                 '(ixx, ixy, ixz, iyy, iyz, izz)')
+            ev = np.linalg.eigvalsh(0.5 * (I + I.T))
+            if ev[0] < -1e-12 * max(1.0, ev[-1]) or ev[0] + ev[1] < ev[2] - 1e-12 * max(1.0, ev[-1]):
+                raise ValueError(f'payload inertia is not physically valid (principal moments {ev.tolist()})')
+        b, T = self.link_frames[link]
+        R, p = T[:3, :3], T[:3, 3]
+        self._payloads[link] = (b, spatial_inertia(m, R @ c + p, R @ I @ R.T))
+        self._update_inertia()
+
+    def clear_payload(self, link=None):
+        """Remove the payload of `link`, or all payloads."""
+        if link is None:
+            self._payloads.clear()
+        else:
+            self._payloads.pop(link, None)
+        self._update_inertia()
+
+    def _update_inertia(self):
+        J = self.J_links.copy()
+        for b, Jp in self._payloads.values():
+            if b >= 0:  # payloads on the world or on dropped bodies change no controlled torque
+                J[b] += Jp
+        self.J = J
+
+    # ------------------------------------------------------------------ input checks
+    def _batch(self, name, x, N=None):
+        """(n,) or (N, n) -> (N, n) float array; raises ValueError naming the argument."""
+        a = np.asarray(x, dtype=float)
+        if a.ndim == 1 and a.shape[0] == self.n:
+            a = a[None]
+        elif not (a.ndim == 2 and a.shape[1] == self.n):
+            raise ValueError(f'{name} must have shape ({self.n},) or (N, {self.n}) for joints '
+                             f'{self.joint_names}, got {np.shape(x)}')
+        if N is not None and a.shape[0] != N:
+            raise ValueError(f'{name} has {a.shape[0]} states, expected {N}')
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f'{name} contains non-finite values')
+        return a
+
+    def body_coordinates(self, q):
+        """Body joint values x = E q + L q_locked + c0 for a batch q (N, n)."""
+        return q @ self.E.T + self.e0
+
+    # ------------------------------------------------------------------ algorithms
+    def inverse_dynamics(self, q, qd, qdd, wrenches=None):
+        """tau = M(q) qdd + C(q, qd) qd + g(q) - J^T F_ext: the Lie-group RNEA (paper eqs 16-21).
+
+        wrenches: optional {link: (m, f)} external wrench acting on the link, expressed in
+        the link frame. Single state (n,) or batch (N, n).
+        """
+        from . import rnea
+        return rnea.inverse_dynamics(self, q, qd, qdd, wrenches)
+
+    def gravity(self, q):
+        """Gravity compensation torques g(q) (RNEA with V = 0, Vdot_0 = (0, -g))."""
+        from . import rnea
+        return rnea.gravity(self, q)
+
+    def coriolis_term(self, q, qd):
+        """C(q, qd) qd = inverse_dynamics(q, qd, 0) without gravity."""
+        from . import rnea
+        return rnea.inverse_dynamics(self, q, qd, np.zeros_like(np.asarray(qd, dtype=float)), None,
+                                     with_gravity=False)
+
+    def forward_kinematics(self, q):
+        """World poses (N, nb, 4, 4) or (nb, 4, 4) of every modelled body frame."""
+        from . import kinematics
+        single = np.ndim(q) == 1
+        T = kinematics.world_poses(self, self.body_coordinates(self._batch('q', q)))
+        return T[0] if single else T
+
+    def link_pose(self, link, q):
+        """Pose of any URDF link in the root frame (fixed links included)."""
+        if link not in self.link_frames:
+            raise ValueError(f"unknown link '{link}'")
+        b, T = self.link_frames[link]
+        if b == -2:
+            raise ValueError(f"link '{link}' is not modelled (it cannot influence the controlled joints)")
+        if b == -1:
+            return T.copy() if np.ndim(q) == 1 else np.broadcast_to(T, (len(q), 4, 4)).copy()
+        return self.forward_kinematics(q)[..., b, :, :] @ T
+
+    def __repr__(self):
+        return (f'Model({self.name!r}, n={self.n}, bodies={self.nb}, joints={self.joint_names}, '
+                f'locked={self.locked_joint_names})')

@@ -1,0 +1,147 @@
+"""Parameters of the dynamics node: one table, plain Python (no rclpy import).
+
+The node turns each `ParamSpec` into a declared ROS parameter with a descriptor (range,
+read-only flag, description); `check_value` is the single place where a value is
+validated, used both at start-up and for live updates (`ros2 param set`).
+"""
+import math
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+STALE_ACTIONS = ('hold_gravity_at_last_state', 'zero')
+
+# kinds: 'bool', 'double', 'string', 'double_array', 'string_array'
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    name: str
+    kind: str
+    default: object          # None for arrays that default to "empty / from the URDF"
+    description: str
+    live: bool               # False: read-only after start-up
+    range: Optional[Tuple[float, float]] = None   # inclusive, doubles only
+    constraints: str = ''
+
+
+PARAMS = (
+    ParamSpec('robot_description', 'string', '',
+              'URDF XML. If non-empty it is loaded at start-up (before urdf_path); setting it later '
+              'loads it. The robot_description topic replaces the model whenever it publishes.', True),
+    ParamSpec('urdf_path', 'string', '',
+              'URDF file, used at start-up when robot_description is empty; setting it later loads it.',
+              True),
+    ParamSpec('joints', 'string_array', None,
+              'Controlled joints = the effort controller\'s joint list; order of the command array. '
+              'Empty: every movable non-mimic joint in URDF order.', False),
+    ParamSpec('command_topic', 'string', '/effort_controller/commands',
+              'std_msgs/Float64MultiArray effort command topic.', False),
+    ParamSpec('publish_joint_state', 'bool', False,
+              'Also publish the command as sensor_msgs/JointState (names + efforts) on ~/commanded_efforts.',
+              True),
+    ParamSpec('enabled', 'bool', True,
+              'Publish commands. Disabling publishes one all-zero command, then nothing.', True),
+    ParamSpec('gravity', 'double_array', [0.0, 0.0, -9.81],
+              'Gravity in the URDF root frame, m/s^2 (3 doubles; wall or ceiling mounts).', True,
+              constraints='3 finite doubles, norm <= 100'),
+    ParamSpec('gravity_scale', 'double', 1.0, 'Scale of the gravity torques.', True, (0.0, 1.0)),
+    ParamSpec('include_velocity_terms', 'bool', False,
+              'Add C(q, qd) qd computed with the measured velocities.', True),
+    ParamSpec('friction.viscous', 'double_array', None,
+              'Viscous friction compensation b*qd, N m s/rad per joint. Empty: URDF <dynamics damping>; '
+              'one value: every joint; [0.0]: off.', True, constraints='empty, 1 or n finite doubles >= 0'),
+    ParamSpec('friction.coulomb', 'double_array', None,
+              'Coulomb friction compensation fc*tanh(qd/eps), N m per joint. Empty: URDF <dynamics friction>; '
+              'one value: every joint; [0.0]: off.', True, constraints='empty, 1 or n finite doubles >= 0'),
+    ParamSpec('friction.coulomb_velocity_epsilon', 'double', 0.05,
+              'eps of the smooth Coulomb term tanh(qd/eps), rad/s (or m/s).', True, (1e-6, 10.0)),
+    ParamSpec('effort_limit_scale', 'double', 1.0,
+              'Commands are clamped to URDF effort limits times this factor.', True, (0.0, 1.0)),
+    ParamSpec('stale_timeout', 'double', 0.1,
+              'Seconds without a valid joint_states message before stale_action is applied.', True,
+              (0.005, 60.0)),
+    ParamSpec('stale_action', 'string', 'hold_gravity_at_last_state',
+              'On stale input publish once: gravity torques at the last valid state '
+              '(hold_gravity_at_last_state) or zeros (zero).', True, constraints=' or '.join(STALE_ACTIONS)),
+    ParamSpec('payload.link', 'string', '', 'Link the payload is rigidly attached to (empty: none).', True),
+    ParamSpec('payload.mass', 'double', 0.0, 'Payload mass, kg (0: no payload).', True, (0.0, 1000.0)),
+    ParamSpec('payload.com', 'double_array', [0.0, 0.0, 0.0],
+              'Payload centre of mass in the link frame, m (3 doubles).', True, constraints='3 finite doubles'),
+    ParamSpec('payload.inertia', 'double_array', None,
+              'Payload inertia about its CoM in link axes: ixx, ixy, ixz, iyy, iyz, izz (kg m^2). '
+              'Empty: point mass.', True, constraints='empty or 6 finite doubles'),
+    ParamSpec('diagnostics_period', 'double', 1.0, 'Period of /diagnostics, s.', False, (0.05, 60.0)),
+)
+
+SPECS = {p.name: p for p in PARAMS}
+
+
+def _finite_list(value, name):
+    try:
+        vals = [float(v) for v in value]
+    except (TypeError, ValueError):
+        raise ValueError(f'{name} must be a list of doubles') from None
+    if not all(math.isfinite(v) for v in vals):
+        raise ValueError(f'{name} must contain finite values, got {vals}')
+    return vals
+
+
+def check_value(name, value):
+    """Validate one parameter value independently of the model; return it normalised.
+
+    Arrays come back as lists ([] for unset). Raises ValueError with the reason.
+    """
+    spec = SPECS.get(name)
+    if spec is None:
+        raise ValueError(f'unknown parameter {name!r}')
+    if spec.kind == 'bool':
+        if not isinstance(value, bool):
+            raise ValueError(f'{name} must be a bool')
+        return value
+    if spec.kind == 'string':
+        if not isinstance(value, str):
+            raise ValueError(f'{name} must be a string')
+        if name == 'stale_action' and value not in STALE_ACTIONS:
+            raise ValueError(f'stale_action must be one of {list(STALE_ACTIONS)}, got {value!r}')
+        if name == 'command_topic' and not value.strip():
+            raise ValueError('command_topic must not be empty')
+        return value
+    if spec.kind == 'double':
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f'{name} must be a double')
+        v = float(value)
+        if not math.isfinite(v):
+            raise ValueError(f'{name} must be finite')
+        if spec.range and not spec.range[0] <= v <= spec.range[1]:
+            raise ValueError(f'{name} must be in [{spec.range[0]}, {spec.range[1]}], got {v}')
+        return v
+    if value is None:
+        return []
+    if spec.kind == 'string_array':
+        vals = list(value)
+        if not all(isinstance(v, str) and v for v in vals):
+            raise ValueError(f'{name} must be a list of non-empty strings')
+        if len(set(vals)) != len(vals):
+            raise ValueError(f'{name} lists a name twice: {vals}')
+        return vals
+    vals = _finite_list(value, name)
+    if name == 'gravity':
+        if len(vals) != 3:
+            raise ValueError(f'gravity must have 3 values, got {len(vals)}')
+        if math.sqrt(sum(v * v for v in vals)) > 100.0:
+            raise ValueError(f'gravity norm must be <= 100 m/s^2 (units?), got {vals}')
+    elif name == 'payload.com':
+        if len(vals) != 3:
+            raise ValueError(f'payload.com must have 3 values, got {len(vals)}')
+    elif name == 'payload.inertia':
+        if len(vals) not in (0, 6):
+            raise ValueError(f'payload.inertia must be empty or have 6 values, got {len(vals)}')
+    elif name.startswith('friction.'):
+        if any(v < 0 for v in vals):
+            raise ValueError(f'{name} must be >= 0, got {vals}')
+    return vals
+
+
+def defaults():
+    """{name: normalised default value}."""
+    return {p.name: check_value(p.name, p.default) for p in PARAMS}
