@@ -325,7 +325,8 @@ def random_urdf(seed, n_joints, tree=False, joint_types=MOVABLE, fixed_links=Tru
         if lim is not None:
             ev = f'effort="{_f(lim["effort"])}" velocity="{_f(lim["velocity"])}"'
             if "lower" in lim:
-                s.append(f'    <limit {ev} lower="{_f(lim["lower"])}" upper="{_f(lim["upper"])}"/>')
+                lu = f'lower="{_f(lim["lower"])}" upper="{_f(lim["upper"])}"'
+                s.append(f'    <limit {ev} {lu}/>')
             else:
                 s.append(f'    <limit {ev}/>')
         if j["dynamics"] is not None:

@@ -1,0 +1,149 @@
+"""Feedforward efforts for whole trajectories: one batched inverse-dynamics call.
+
+`fill_trajectory_efforts(model, traj)` takes a trajectory as arrays (the shape of a
+trajectory_msgs/JointTrajectory: times, joint names, positions, optional velocities and
+accelerations), validates it, derives what is missing and returns the efforts
+tau_k = ID(q_k, qd_k, qdd_k) for every point at once (the batch is vectorised: no
+Python loop over points).
+
+Missing derivatives: velocities from positions, and accelerations from velocities, by
+np.gradient over the (possibly non-uniform) times: second-order central differences
+inside, second-order one-sided differences at the two ends (first order when the
+trajectory has only two points). A single point without accelerations gets zero.
+
+CSV form (offline use): a header `time, pos.<joint>..., [vel.<joint>...], [acc.<joint>...]`;
+`python -m lie_dynamics.trajectory robot.urdf traj.csv -o out.csv` adds `eff.<joint>` columns.
+"""
+import argparse
+import csv
+
+import numpy as np
+
+
+def _derivative(y, t):
+    if len(t) == 1:
+        return np.zeros_like(y)
+    return np.gradient(y, t, axis=0, edge_order=2 if len(t) > 2 else 1)
+
+
+def fill_trajectory_efforts(model, traj, friction=False):
+    """Efforts (N, n) in the model's joint order for a trajectory given as arrays.
+
+    traj: mapping with 'positions' (N, k) and, optionally, 'time_from_start' (N,)
+    (needed to derive missing derivatives), 'velocities' (N, k), 'accelerations' (N, k)
+    and 'joint_names' (k names; default: the model's joint order). Joints the model
+    does not control are ignored; every controlled joint must be present.
+    friction: also add the URDF viscous damping and Coulomb friction (sign of velocity).
+    Returns a dict with 'efforts', 'positions', 'velocities', 'accelerations' (model order).
+    Raises ValueError naming the problem for any malformed trajectory.
+    """
+    names = list(traj.get('joint_names') or model.joint_names)
+    if len(set(names)) != len(names):
+        raise ValueError(f'trajectory joint_names has duplicates: {names}')
+    missing = [j for j in model.joint_names if j not in names]
+    if missing:
+        raise ValueError(f'trajectory lacks controlled joints {missing}')
+    cols = np.array([names.index(j) for j in model.joint_names])
+
+    def field(key, required):
+        if traj.get(key) is None or (np.size(traj.get(key)) == 0 and not required):
+            if required:
+                raise ValueError(f'trajectory has no {key}')
+            return None
+        a = np.asarray(traj[key], dtype=float)
+        if a.ndim == 1 and len(names) == 1:
+            a = a[:, None]
+        if a.ndim != 2 or a.shape[1] != len(names):
+            raise ValueError(f'trajectory {key} must have shape (points, {len(names)}), got {a.shape}')
+        if not np.all(np.isfinite(a)):
+            bad = np.argwhere(~np.isfinite(a))[0]
+            raise ValueError(f'trajectory {key} has a non-finite value at point {bad[0]}, joint {names[bad[1]]!r}')
+        return a[:, cols]
+
+    q = field('positions', True)
+    N = q.shape[0]
+    if N == 0:
+        raise ValueError('trajectory has no points')
+    qd = field('velocities', False)
+    qdd = field('accelerations', False)
+    for key, a in (('velocities', qd), ('accelerations', qdd)):
+        if a is not None and a.shape[0] != N:
+            raise ValueError(f'trajectory {key} has {a.shape[0]} points, positions have {N}')
+    t = traj.get('time_from_start')
+    if t is not None:
+        t = np.asarray(t, dtype=float).reshape(-1)
+        if t.shape[0] != N:
+            raise ValueError(f'trajectory time_from_start has {t.shape[0]} entries, positions have {N} points')
+        if not np.all(np.isfinite(t)):
+            raise ValueError('trajectory time_from_start has non-finite values')
+        if N > 1 and np.any(np.diff(t) <= 0):
+            k = int(np.argmax(np.diff(t) <= 0))
+            raise ValueError(f'trajectory times must increase strictly (point {k + 1}: {t[k + 1]} after {t[k]})')
+    if (qd is None or qdd is None) and t is None and N > 1:
+        raise ValueError('trajectory needs time_from_start to derive missing velocities/accelerations')
+    if qd is None:
+        qd = _derivative(q, t) if N > 1 else np.zeros_like(q)
+    if qdd is None:
+        qdd = _derivative(qd, t) if N > 1 else np.zeros_like(q)
+    tau = model.inverse_dynamics(q, qd, qdd)
+    if friction:
+        tau = tau + model.damping * qd + model.friction * np.sign(qd)
+    return {'efforts': tau, 'positions': q, 'velocities': qd, 'accelerations': qdd}
+
+
+def read_csv(path):
+    """Trajectory arrays from a CSV with columns time, pos.<j>, [vel.<j>], [acc.<j>]."""
+    with open(path, newline='') as fh:
+        rows = list(csv.reader(fh))
+    if not rows:
+        raise ValueError(f'{path}: empty CSV')
+    header, body = [h.strip() for h in rows[0]], rows[1:]
+    try:
+        data = np.array([[float(x) for x in r] for r in body if r], dtype=float).reshape(-1, len(header))
+    except ValueError as exc:
+        raise ValueError(f'{path}: non-numeric or ragged row ({exc})') from None
+    if 'time' not in header:
+        raise ValueError(f"{path}: no 'time' column")
+    joints = [h[4:] for h in header if h.startswith('pos.')]
+    if not joints:
+        raise ValueError(f"{path}: no 'pos.<joint>' columns")
+    out = {'joint_names': joints, 'time_from_start': data[:, header.index('time')]}
+    for prefix, key in (('pos.', 'positions'), ('vel.', 'velocities'), ('acc.', 'accelerations')):
+        idx = [header.index(prefix + j) for j in joints if prefix + j in header]
+        if idx and len(idx) != len(joints):
+            raise ValueError(f'{path}: {prefix}* columns do not cover every joint')
+        if idx:
+            out[key] = data[:, idx]
+    return out
+
+
+def write_csv(path, traj, result, joint_names):
+    header = ['time'] + [f'{p}.{j}' for p in ('pos', 'vel', 'acc', 'eff') for j in joint_names]
+    t = traj.get('time_from_start')
+    t = np.zeros(len(result['efforts'])) if t is None else np.asarray(t, dtype=float)
+    table = np.column_stack([t, result['positions'], result['velocities'], result['accelerations'],
+                             result['efforts']])
+    with open(path, 'w', newline='') as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        w.writerows(table.tolist())
+
+
+def main(argv=None):
+    from .urdf import load_urdf
+
+    ap = argparse.ArgumentParser(description='Fill a trajectory CSV with inverse-dynamics efforts.')
+    ap.add_argument('urdf')
+    ap.add_argument('csv')
+    ap.add_argument('-o', '--output', required=True)
+    ap.add_argument('--friction', action='store_true', help='add URDF damping and Coulomb friction')
+    args = ap.parse_args(argv)
+    traj = read_csv(args.csv)
+    model = load_urdf(args.urdf, joints=traj['joint_names'])
+    result = fill_trajectory_efforts(model, traj, friction=args.friction)
+    write_csv(args.output, traj, result, model.joint_names)
+    print(f'{len(result["efforts"])} points -> {args.output}')
+
+
+if __name__ == '__main__':
+    main()
