@@ -1,0 +1,75 @@
+"""A simulated fixed-base arm: forward dynamics integrated at a fixed step (no ROS here).
+
+Per step of length dt (semi-implicit, i.e. symplectic, Euler):
+    tau   = clip(command, -effort_limit, effort_limit) - damping * qd
+    qdd   = forward_dynamics(q, qd, tau)
+    qd   += dt * qdd ;  q += dt * qd
+Joint position limits act as hard stops (position clamped, velocity into the stop zeroed).
+Coulomb friction is not simulated (it would make "the arm holds" depend on stiction);
+URDF damping is, and can be switched off (damping=False) for energy checks.
+"""
+import numpy as np
+
+
+class ArmSim:
+    """State (q, qd, t) of a model integrated under held effort commands."""
+
+    def __init__(self, model, dt=1e-3, q0=None, qd0=None, damping=True, limits=True):
+        if not (np.isfinite(dt) and dt > 0):
+            raise ValueError(f'dt must be a positive number, got {dt}')
+        self.model = model
+        self.dt = float(dt)
+        self.q = np.zeros(model.n) if q0 is None else np.array(q0, dtype=float).reshape(model.n)
+        self.qd = np.zeros(model.n) if qd0 is None else np.array(qd0, dtype=float).reshape(model.n)
+        self.t = 0.0
+        self.damping = model.damping.copy() if damping else np.zeros(model.n)
+        self.limits = limits
+        self.command = np.zeros(model.n)
+        self.last_qdd = np.zeros(model.n)
+        self.applied = np.zeros(model.n)
+
+    def set_command(self, tau):
+        """Hold a new effort command (like ros2_control's JointGroupEffortController)."""
+        tau = np.asarray(tau, dtype=float)
+        if tau.shape != (self.model.n,):
+            raise ValueError(f'command must have {self.model.n} values, got {tau.shape}')
+        if not np.all(np.isfinite(tau)):
+            raise ValueError('command contains non-finite values')
+        self.command = tau.copy()
+
+    def step(self, n=1):
+        m = self.model
+        lim = m.effort_limits
+        for _ in range(n):
+            tau = np.clip(self.command, -lim, lim) - self.damping * self.qd
+            qdd = m.forward_dynamics(self.q, self.qd, tau)
+            self.qd = self.qd + self.dt * qdd
+            self.q = self.q + self.dt * self.qd
+            if self.limits:
+                lo, hi = m.position_lower, m.position_upper
+                below, above = self.q < lo, self.q > hi
+                if below.any() or above.any():
+                    self.q = np.clip(self.q, lo, hi)
+                    self.qd = np.where((below & (self.qd < 0)) | (above & (self.qd > 0)), 0.0, self.qd)
+            self.t += self.dt
+            self.last_qdd = qdd
+            self.applied = tau
+        return self.q
+
+    def energy(self):
+        """Kinetic + potential energy of the current state."""
+        return kinetic_energy(self.model, self.q, self.qd) + potential_energy(self.model, self.q)
+
+
+def kinetic_energy(model, q, qd):
+    """1/2 qd^T M(q) qd, with M qd = ID(q, 0, qd) - g(q) (one RNEA, no mass matrix)."""
+    return 0.5 * qd @ (model.inverse_dynamics(q, np.zeros_like(qd), qd) - model.gravity(q))
+
+
+def potential_energy(model, q):
+    """U = -sum_i m_i g . c_i (paper eq 43), CoMs c_i read off the spatial inertias J_i."""
+    T = model.forward_kinematics(np.asarray(q, dtype=float))
+    m = model.J[:, 3, 3]
+    mc = np.stack([model.J[:, 2, 4], model.J[:, 0, 5], model.J[:, 1, 3]], axis=-1)  # m[c] block
+    world_mc = np.einsum('bij,bj->bi', T[:, :3, :3], mc) + m[:, None] * T[:, :3, 3]
+    return -float(np.sum(world_mc @ model.gravity_vector))

@@ -1,0 +1,131 @@
+"""ROS 2 node: a simulated arm standing in for a ros2_control robot with an effort controller.
+
+    ros2 run lie_dynamics sim_node
+    python -m lie_dynamics.sim_node --ros-args -p rate:=1000.0
+
+Publishes   robot_description (std_msgs/String, reliable, transient local, depth 1),
+            joint_states (sensor_msgs/JointState: position, velocity, effort = applied torque;
+            header.stamp = simulated time)
+Subscribes  <command_topic> (std_msgs/Float64MultiArray, ordered as `joints`), held until the
+            next one like JointGroupEffortController; a message of the wrong length or with a
+            non-finite value is dropped with a log line (recent controllers drop them too).
+
+Parameters  urdf_path (default: the bundled arm), joints (default: all), rate (Hz, 1000),
+            initial_positions, damping (URDF joint damping on/off), command_topic,
+            lockstep (wait for the command answering each published state, up to
+            lockstep_timeout s, while a command publisher exists: results then do not depend
+            on machine load), max_steps (0 = run until shut down).
+"""
+import sys
+
+import numpy as np
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.time import Time
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, String
+
+from . import default_urdf_path
+from .sim import ArmSim
+from .urdf import load_urdf
+
+DESCRIPTION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class SimNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__('sim_node', **kwargs)
+        p = self.declare_parameter
+        urdf_path = p('urdf_path', default_urdf_path()).value or default_urdf_path()
+        joints = list(p('joints', ['']).value)
+        rate = float(p('rate', 1000.0).value)
+        q0 = list(p('initial_positions', [0.0]).value)
+        damping = bool(p('damping', True).value)
+        self.command_topic = p('command_topic', '/effort_controller/commands').value
+        self.lockstep = bool(p('lockstep', False).value)
+        self.lockstep_timeout = float(p('lockstep_timeout', 0.05).value)
+        self.max_steps = int(p('max_steps', 0).value)
+        with open(urdf_path, encoding='utf-8') as fh:
+            self.xml = fh.read()
+        model = load_urdf(self.xml, joints=[j for j in joints if j] or None)
+        if len(q0) == 1 and model.n != 1:
+            q0 = q0 * model.n
+        if len(q0) != model.n:
+            raise ValueError(f'initial_positions needs {model.n} values, got {len(q0)}')
+        if rate <= 0:
+            raise ValueError(f'rate must be positive, got {rate}')
+        self.sim = ArmSim(model, dt=1.0 / rate, q0=q0, damping=damping)
+        self.names = model.joint_names
+        self.desc_pub = self.create_publisher(String, 'robot_description', DESCRIPTION_QOS)
+        self.desc_pub.publish(String(data=self.xml))
+        self.state_pub = self.create_publisher(JointState, 'joint_states', 10)
+        self.create_subscription(Float64MultiArray, self.command_topic, self._on_command, 10)
+        self.fresh_command = True
+        self.waited = 0.0
+        self.steps = 0
+        self.bad_commands = 0
+        self.timer = self.create_timer(1.0 / rate, self._tick)
+        self._publish_state()
+        self.get_logger().info(f'simulating {model.name} ({model.n} joints) at {rate:g} Hz'
+                               f"{', lockstep' if self.lockstep else ''}; commands on {self.command_topic}")
+
+    def _on_command(self, msg):
+        data = np.asarray(msg.data, dtype=float)
+        if data.shape != (len(self.names),) or not np.all(np.isfinite(data)):
+            self.bad_commands += 1
+            self.get_logger().warn(f'dropping command: need {len(self.names)} finite values, got {list(msg.data)}',
+                                   throttle_duration_sec=2.0)
+            return
+        self.sim.set_command(data)
+        self.fresh_command = True
+
+    def _tick(self):
+        if self.max_steps and self.steps >= self.max_steps:
+            return
+        if self.lockstep and not self.fresh_command and self.count_publishers(self.command_topic) > 0:
+            self.waited += self.timer.timer_period_ns * 1e-9
+            if self.waited < self.lockstep_timeout:
+                return
+        self.waited = 0.0
+        self.fresh_command = False
+        self.sim.step()
+        self.steps += 1
+        self._publish_state()
+
+    def _publish_state(self):
+        msg = JointState()
+        msg.header.stamp = Time(nanoseconds=int(round(self.sim.t * 1e9))).to_msg()
+        msg.name = self.names
+        msg.position = self.sim.q.tolist()
+        msg.velocity = self.sim.qd.tolist()
+        msg.effort = self.sim.applied.tolist()
+        self.state_pub.publish(msg)
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    executor = SingleThreadedExecutor()
+    node = None
+    try:
+        node = SimNode()
+        executor.add_node(node)
+        while rclpy.ok() and not (node.max_steps and node.steps >= node.max_steps):
+            executor.spin_once(timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as exc:
+        print(f'sim_node: {exc}', file=sys.stderr)
+        return 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
