@@ -144,15 +144,15 @@ def load_urdf(source, joints=None, gravity=(0.0, 0.0, -9.81)):
     # body's frame); body -1 is the world (root link and everything fixed to it).
     link_body = {root: (-1, np.eye(4))}
     bodies = []  # dicts: joint, parent body, M (pose in parent body at q=0), axis, type
-    order, stack, seen = [], [root], set()
-    while stack:
-        name = stack.pop()
+    order, stack, seen = [], [(root, None)], set()
+    while stack:  # depth-first: a joint's subtree comes before its next sibling
+        name, j = stack.pop()
         if name in seen:
             raise ValueError(f"URDF kinematic graph has a cycle through link '{name}'")
         seen.add(name)
         order.append(name)
-        b, T = link_body[name]
-        for j in children[name]:
+        if j is not None:
+            b, T = link_body[j.parent]
             X = T @ _origin(j.origin)
             if j.type in MOVABLE or j.type in ('floating', 'planar'):
                 axis = np.array([1.0, 0.0, 0.0]) if j.axis is None else np.asarray(j.axis, dtype=float)
@@ -160,10 +160,10 @@ def load_urdf(source, joints=None, gravity=(0.0, 0.0, -9.81)):
                 if j.type in MOVABLE and (not np.isfinite(na) or na < 1e-12):
                     raise ValueError(f"joint '{j.name}': axis must be a non-zero finite vector")
                 bodies.append(dict(joint=j, parent=b, M=X, axis=axis / na if na > 0 else axis))
-                link_body[j.child] = (len(bodies) - 1, np.eye(4))
+                link_body[name] = (len(bodies) - 1, np.eye(4))
             else:
-                link_body[j.child] = (b, X)
-        stack.extend(j.child for j in reversed(children[name]))
+                link_body[name] = (b, X)
+        stack.extend((c.child, c) for c in reversed(children[name]))
     if len(seen) != len(links):
         raise ValueError(f'URDF links not connected to the root: {sorted(set(links) - seen)}')
 

@@ -162,3 +162,13 @@ def test_named_cases_load():
     for name in ('tree20_mimic', 'fixed_heavy', 'chain30'):
         m = load_urdf(named_urdf(name))
         assert m.n >= 1 and np.all(np.linalg.eigvalsh(m.J[:, 3:, 3:]) >= 0)
+
+
+def test_default_joint_order_is_depth_first_in_file_order():
+    """base -> (jb -> b -> jc -> c), (ja -> a): a joint's subtree precedes its next sibling,
+    siblings keep file order (not Pinocchio's alphabetical order)."""
+    xml = robot(link('base'), link('a'), link('b'), link('c'),
+                joint('jb', 'base', 'b'), joint('ja', 'base', 'a'), joint('jc', 'b', 'c'))
+    m = load_urdf(xml)
+    assert m.joint_names == ['jb', 'jc', 'ja']
+    assert list(m.parent) == [-1, 0, -1]
