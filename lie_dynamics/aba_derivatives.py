@@ -1,0 +1,43 @@
+"""Derivatives of forward dynamics from those of inverse dynamics.
+
+Forward dynamics qdd = FD(q, qd, tau) solves ID(q, qd, qdd) = tau. Differentiating the
+identity ID(q, qd, FD(q, qd, tau)) = tau gives, with M = dID/dqdd,
+
+    dqdd/dq = -M^-1 dID/dq,   dqdd/dqd = -M^-1 dID/dqd,   dqdd/dtau = M^-1,
+
+the partials of ID evaluated at qdd = FD(q, qd, tau) (rnea_derivatives.py). M^-1 is
+applied by Cholesky solves, and returned as dqdd/dtau (it is that derivative).
+"""
+import numpy as np
+
+from . import crba, rnea
+from .aba import cho_solve, cholesky
+from .rnea_derivatives import inverse_dynamics_derivatives
+
+
+def forward_dynamics_derivatives(model, q, qd, tau, wrenches=None):
+    """(dqdd/dq, dqdd/dqd, dqdd/dtau) at qdd = forward_dynamics(q, qd, tau, wrenches).
+
+    Single state (n,) -> three (n, n) arrays; batch (N, n) -> three (N, n, n) arrays
+    (Pinocchio's computeABADerivatives: ddq_dq, ddq_dv, Minv).
+    """
+    single = np.ndim(q) == 1
+    q = model._batch('q', q)
+    N = q.shape[0]
+    qd = model._batch('qd', qd, N)
+    tau = model._batch('tau', tau, N)
+    n = model.n
+    if single:   # single-state calls below take the fast (kernel) paths
+        q, qd, tau = q[0], qd[0], tau[0]
+        M = crba.mass_matrix(model, q)[None]
+    else:
+        M = crba.mass_matrix(model, q)
+    L = cholesky(M)
+    h = rnea.inverse_dynamics(model, q, qd, np.zeros_like(qd), wrenches)
+    qdd = cho_solve(L, np.reshape(tau - h, (N, n)))
+    dq, dv = inverse_dynamics_derivatives(model, q, qd, qdd[0] if single else qdd, wrenches)
+    rhs = np.concatenate([np.reshape(dq, (N, n, n)), np.reshape(dv, (N, n, n)),
+                          np.broadcast_to(np.eye(n), (N, n, n))], axis=-1)
+    sol = cho_solve(L, rhs)
+    out = (-sol[..., :n], -sol[..., n:2 * n], sol[..., 2 * n:])
+    return tuple(o[0] for o in out) if single else out

@@ -1,0 +1,153 @@
+"""Composite rigid body algorithm: the mass matrix in O(n^2).
+
+The recursive counterpart of the closed form M = S^T G^T J G S (lagrangian.py, eq 39).
+Grouping the sum over bodies in eq 29 by the deepest body involved,
+
+    m_kj = A_k^T Jc_j A_j        for k <= j (k is j or an ancestor of j), m_jk = m_kj,
+    m_kj = 0                      when neither is an ancestor of the other,
+
+where A_j = Ad_{T_j} S_j is joint j's screw in the root frame and
+Jc_j = sum_{j <= p} Ad_{T_p}^-T J_p Ad_{T_p}^-1 is the composite inertia of the subtree of
+body j about the root frame. The backward recursion Jc_parent += Jc_child is one product
+with the constant ancestor matrix (subtree sums), then M is a masked product of the
+screws with the composite momenta Jc_j A_j: O(n^2) work, vectorised over bodies and states.
+
+For models of up to KERNEL_MAX_BODIES bodies the same algorithm also exists as generated
+straight-line code (codegen.py), in body frames: composite inertias carried to the parent
+as 10 parameters, the joint wrench F = Jc_j S_j carried to every ancestor. That kernel runs
+on Python floats for one state (no numpy call) and on numpy rows for large batches; it is
+what `mass_matrix` uses where the measured crossovers say it is faster.
+"""
+import math
+
+import numpy as np
+
+from . import codegen as cg
+from .lagrangian import _chunks, _constants, _swap, _to_joints_mat, kinematic_state, subtree_sum, \
+    world_inertias
+
+
+def _crba(model, x):
+    _, AdinvT, A = kinematic_state(model, x)
+    Jc = subtree_sum(model, world_inertias(model, AdinvT))      # backward recursion
+    F = (Jc @ A[..., None])[..., 0]                              # Jc_j A_j
+    U = (A @ _swap(F)) * model.ancestors.T                       # m_kj for k <= j
+    return U + _swap(U) - U * np.eye(model.nb)
+
+
+def mass_matrix(model, q):
+    """M(q) by the composite rigid body algorithm. q: (n,) or (N, n) -> (n, n) or (N, n, n).
+
+    Runs the generated kernel (below) for models of up to KERNEL_MAX_BODIES bodies, else the
+    vectorised form.
+    """
+    if _kernel(model):
+        N = 1 if np.ndim(q) == 1 else len(q)
+        if N < _LOOP_BELOW or N >= _ROWS_FROM:
+            return mass_matrix_kernel(model, q)
+    return mass_matrix_vectorized(model, q)
+
+
+def mass_matrix_vectorized(model, q):
+    """M(q) by the vectorised composite rigid body algorithm (numpy over bodies and states)."""
+    single = np.ndim(q) == 1
+    q = model._batch('q', q)
+    c = _constants(model)
+    x = model.body_coordinates(q)
+    N, nb = x.shape
+    out = np.empty((N, nb, nb))
+    for sl in _chunks(N, 150 * nb + nb * nb):
+        out[sl] = _crba(model, x[sl])
+    out = _to_joints_mat(model, c, out)
+    return out[0] if single else out
+
+
+# ---------------------------------------------------------------------------- generated kernel
+# Above this many bodies the straight-line source (O(n^2) lines) takes long to compile and the
+# vectorised path above is used instead.
+KERNEL_MAX_BODIES = 24
+# Batches: the float kernel state by state below _LOOP_BELOW states, the kernel on numpy rows
+# from _ROWS_FROM states, the vectorised form in between (measured crossovers, 7-20 bodies).
+_LOOP_BELOW = 16
+_ROWS_FROM = 48
+
+
+def trace_mass_matrix(fr, g, params, X):
+    """Traced joint-space M (nested n x n lists) by the composite rigid body algorithm.
+
+    In the primed body frames (see codegen.Frames), with X the traced joint transforms:
+    backward, Jc_parent += (inertia of the subtree of b, moved to the parent frame); then for
+    each joint b: F = Jc_b S_b, m_bb = S_b^T F, and F carried to every ancestor j
+    (F <- Ad*_{f^-1} F) gives m_jb = S_j^T F.
+    """
+    nb = fr.nb
+    ic = list(params)
+    for b in reversed(range(nb)):
+        p = fr.parent[b]
+        if p >= 0:
+            m, h, I = cg.inertia_to_parent(ic[b], *X[b])
+            mp, hp, Ip = ic[p]
+            ic[p] = (mp + m, cg.vadd(hp, h), cg.vadd(Ip, I))
+
+    def s_dot(b, F):
+        return F[0][2] if fr.revolute[b] else F[1][2]
+
+    Mx = [[0.0] * nb for _ in range(nb)]
+    for b in range(nb):
+        m, h, I = ic[b]
+        if fr.revolute[b]:
+            F = ((I[2], I[4], I[5]), (-h[1], h[0], 0.0))
+        else:
+            F = ((h[1], -h[0], 0.0), (0.0, 0.0, m))
+        Mx[b][b] = s_dot(b, F)
+        j = b
+        while fr.parent[j] >= 0:
+            F = cg.wrench_to_parent(F, *X[j])
+            j = fr.parent[j]
+            Mx[j][b] = Mx[b][j] = s_dot(j, F)
+    Mq = fr.project(Mx)
+    n = fr.n
+    return [[Mq[min(a, c)][max(a, c)] for c in range(n)] for a in range(n)]
+
+
+def _build_kernel(fr):
+    g = cg.Graph()
+    co = fr.trace_coordinates(g)
+    parg, params = fr.trace_params(g)
+    X = [fr.joint_transform(g, b, co['x'][b]) for b in range(fr.nb)]
+    M = trace_mass_matrix(fr, g, params, X)
+    outputs = [v for row in M for v in row]
+    src = cg.emit(g, 'mass_kernel', co['args'] + [parg, co['offset_args']], outputs)
+    return cg.compile_function(src, 'mass_kernel'), src
+
+
+def _kernel(model):
+    if model.nb > KERNEL_MAX_BODIES:
+        return False
+    return cg.compiled(model, 'crba', _build_kernel)
+
+
+def mass_matrix_kernel(model, q):
+    """M(q) from the generated CRBA kernel, or None when the model has none (too large).
+
+    One state runs on Python floats; batches state by state below 24 states, else on rows.
+    """
+    k = _kernel(model)
+    if not k:
+        return None
+    fr, fn, _ = k
+    P, E0 = cg.model_params(model, fr)
+    n = model.n
+    lst = cg.is_fast_single(q, n)
+    if lst is not None:
+        return np.array(fn(lst, P, E0, sin=math.sin, cos=math.cos)).reshape(n, n)
+    single = np.ndim(q) == 1
+    qb = model._batch('q', q)
+    if single:
+        return np.array(fn(qb[0].tolist(), P, E0, sin=math.sin, cos=math.cos)).reshape(n, n)
+    N = qb.shape[0]
+    if N < 24:
+        vals = np.array([fn(row, P, E0, sin=math.sin, cos=math.cos) for row in qb.tolist()])
+    else:
+        vals = cg.run_rows(fn, [qb], (P, E0), n * n)
+    return vals.reshape(N, n, n)

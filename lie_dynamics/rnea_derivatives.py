@@ -1,0 +1,284 @@
+"""Analytic derivatives of inverse dynamics, dtau/dq and dtau/dqd, in O(n^2).
+
+The recursion of rnea.py (paper eqs 16-21) written in the root frame is
+
+    V_i = sum_{j <= i} A_j xd_j,             a_i = a_0 + sum_{j <= i} (A_j xdd_j + [V_j, A_j xd_j]),
+    F_i = Js_i a_i - ad_{V_i}^T Js_i V_i,     tau_k = A_k^T sum_{k <= i} F_i,
+
+with A_j = Ad_{T_j} S_j, Js_i = Ad_{T_i}^-T J_i Ad_{T_i}^-1 and a_0 = (0, -g). It is
+differentiated with Proposition 1 (eq 41): for m <= i, d/dx_m moves everything beyond
+joint m by the screw A_m, so dA_i = ad_{A_m} A_i and dJs_i = -(ad_{A_m}^T Js_i +
+Js_i ad_{A_m}), while the motion of the parent of m is unchanged. The Jacobi identity
+[A, [V, W]] = [[A, V], W] + [V, [A, W]] collapses the sums over the path, and with
+the subtree sums (composite quantities)
+
+    Jc_k = sum Js_i,   Bc_k = sum (Js_i ad_{V_i} + ad_{V_i}^T Js_i) = -d/dt Jc_k,
+    Hc_k = sum Js_i V_i (momentum),   Fc_k = sum F_i        (sums over i with k <= i)
+
+and per-joint twists Z_m = [A_m, V_m], Y_m = [A_m, a_m] + [V_m, Z_m]:
+
+    dtau_k/dx_m  = A_k^T (-Jc_m Y_m + Bc_m Z_m + ad_{Z_m}^T Hc_m - ad_{A_m}^T Fc_m)     k <= m
+                 = -Y_m^T Jc_k A_k + Z_m^T (Bc_k^T A_k - ad_{A_k}^T Hc_k)               m < k
+    dtau_k/dxd_m = -A_k^T (Bc_m A_m + 2 Jc_m Z_m + ad_{A_m}^T Hc_m)                      k <= m
+                 = A_m^T (ad_{A_k}^T Hc_k - Bc_k^T A_k) - 2 Z_m^T Jc_k A_k               m < k
+
+and 0 between bodies on different branches. External wrenches are fixed in their
+link frames, so they move with the body and only enter through Fc. A consequence used
+in the tests: dtau/dqd = 2 C(q, qd) with C the Christoffel Coriolis matrix (eq 40).
+Joint coordinates: dtau_q/dq = E^T (dtau/dx) E (the mimic map x = E q + e0 is affine).
+
+Two evaluations of the same formulas: vectorised numpy over bodies and states, and generated
+straight-line code (codegen.py) for models of up to KERNEL_MAX_BODIES bodies, used for one
+state, small batches (state by state) and large batches (numpy rows) where it is faster.
+"""
+import math
+
+import numpy as np
+
+from . import codegen as cg
+from .kinematics import ad_matrices
+from .lagrangian import _chunks, _constants, _swap, _to_joints_mat, external_body_wrenches, \
+    kinematic_state, subtree_sum, world_inertias
+
+
+def _mv(M, v):
+    return (M @ v[..., None])[..., 0]
+
+
+def _derivatives(model, x, xd, xdd, a0, fext):
+    _, AdinvT, A = kinematic_state(model, x)
+    anc = model.ancestors
+    Js = world_inertias(model, AdinvT)
+    Axd = A * xd[..., None]
+    V = anc @ Axd
+    adV = ad_matrices(V)
+    a = anc @ (A * xdd[..., None] + _mv(adV, Axd)) + a0
+    H = _mv(Js, V)
+    F = _mv(Js, a) - _mv(_swap(adV), H)
+    if fext is not None:
+        F = F - _mv(AdinvT, fext)
+    X = Js @ adV
+    pack = subtree_sum(model, np.concatenate([Js, X + _swap(X), H[..., None], F[..., None]], axis=-1))
+    Jc, Bc, Hc, Fc = pack[..., :6], pack[..., 6:12], pack[..., 12], pack[..., 13]
+    adA = ad_matrices(A)
+    Z = _mv(adA, V)
+    Y = _mv(adA, a) + _mv(adV, Z)
+    adAT = _swap(adA)
+    JcAZY = Jc @ np.stack([A, Z, Y], axis=-1)              # Jc A, Jc Z, Jc Y
+    JcA, JcZ, JcY = JcAZY[..., 0], JcAZY[..., 1], JcAZY[..., 2]
+    BcAZ = Bc @ np.stack([A, Z], axis=-1)
+    BcTA = _mv(_swap(Bc), A)
+    adATH = _mv(adAT, Hc)
+    le = anc.T
+    lt = anc - np.eye(model.nb)
+    # dtau/dx
+    P = -JcY + BcAZ[..., 1] + _mv(_swap(ad_matrices(Z)), Hc) - _mv(adAT, Fc)
+    R = np.concatenate([-JcA, BcTA - adATH], axis=-1)
+    Q = np.concatenate([Y, Z], axis=-1)
+    dq = (A @ _swap(P)) * le + (R @ _swap(Q)) * lt
+    # dtau/dxd
+    Pv = -(BcAZ[..., 0] + 2.0 * JcZ + adATH)
+    Rv = np.concatenate([adATH - BcTA, -2.0 * JcA], axis=-1)
+    Qv = np.concatenate([A, Z], axis=-1)
+    dv = (A @ _swap(Pv)) * le + (Rv @ _swap(Qv)) * lt
+    return dq, dv
+
+
+def inverse_dynamics_derivatives(model, q, qd, qdd, wrenches=None):
+    """(dtau/dq, dtau/dqd) of tau = inverse_dynamics(q, qd, qdd, wrenches), analytic.
+
+    Single state (n,) -> two (n, n) arrays; batch (N, n) -> two (N, n, n) arrays.
+    dtau[k, m] = d tau_k / d q_m (Pinocchio's computeRNEADerivatives layout).
+    wrenches: {link: (m, f)} in the link frame, as for inverse_dynamics.
+    Runs the generated kernel (below) for models of up to KERNEL_MAX_BODIES bodies, else
+    the vectorised form.
+    """
+    n = model.n
+    if not wrenches:
+        a, b, c = cg.is_fast_single(q, n), cg.is_fast_single(qd, n), cg.is_fast_single(qdd, n)
+        if a is not None and b is not None and c is not None:
+            k = _kernel(model, False)
+            if k:
+                fr, fn, _ = k
+                P, E0, A0 = cg.model_params(model, fr, gravity=True)
+                out = np.array(fn(a, b, c, P, A0, E0, sin=math.sin, cos=math.cos)).reshape(2, n, n)
+                return out[0], out[1]
+    single = np.ndim(q) == 1
+    q = model._batch('q', q)
+    N = q.shape[0]
+    qd = model._batch('qd', qd, N)
+    qdd = model._batch('qdd', qdd, N)
+    fext = external_body_wrenches(model, wrenches, N)
+    res = _kernel_derivatives(model, q, qd, qdd, fext)
+    if res is None:
+        return inverse_dynamics_derivatives_vectorized(model, q[0] if single else q, qd[0] if single else qd,
+                                                       qdd[0] if single else qdd, wrenches)
+    dq, dv = res
+    return (dq[0], dv[0]) if single else (dq, dv)
+
+
+def inverse_dynamics_derivatives_vectorized(model, q, qd, qdd, wrenches=None):
+    """inverse_dynamics_derivatives by the vectorised form (numpy over bodies and states)."""
+    single = np.ndim(q) == 1
+    q = model._batch('q', q)
+    N = q.shape[0]
+    qd = model._batch('qd', qd, N)
+    qdd = model._batch('qdd', qdd, N)
+    c = _constants(model)
+    fext = external_body_wrenches(model, wrenches, N)
+    x = model.body_coordinates(q)
+    E = model.E
+    xd, xdd = qd @ E.T, qdd @ E.T
+    nb = model.nb
+    dq = np.empty((N, nb, nb))
+    dv = np.empty((N, nb, nb))
+    for sl in _chunks(N, 400 * nb + 8 * nb * nb):
+        dq[sl], dv[sl] = _derivatives(model, x[sl], xd[sl], xdd[sl], model._a0,
+                                      None if fext is None else fext[sl])
+    dq, dv = _to_joints_mat(model, c, dq), _to_joints_mat(model, c, dv)
+    return (dq[0], dv[0]) if single else (dq, dv)
+
+
+# ---------------------------------------------------------------------------- generated kernel
+# Above this many bodies one state is faster through the vectorised form (measured).
+KERNEL_MAX_BODIES = 16
+# Batches: the float kernel state by state below _LOOP_BELOW states, the kernel on numpy rows
+# from _ROWS_FROM states, the vectorised form in between (measured crossovers, 7-20 bodies).
+_LOOP_BELOW = 4
+_ROWS_FROM = 160
+
+
+def _build_kernel(fr, wrench):
+    """Trace the O(n^2) derivative formulas of the module docstring in the root frame.
+
+    The 6x6 composite Bc_k = -d/dt Jc_k is carried as the rate of the 10 inertia
+    parameters (codegen.inertia_rate), which is all Bc is applied through.
+    """
+    g = cg.Graph()
+    co = fr.trace_coordinates(g, rates=2)
+    parg, params = fr.trace_params(g)
+    ga = [g.input(f'g{k}') for k in range(3)]
+    args = co['args'] + [parg, ('A0', [f'g{k}' for k in range(3)]), co['offset_args']]
+    fext = None
+    if wrench:
+        names = [f'f{b}_{k}' for b in range(fr.nb) for k in range(6)]
+        args.append(('FX', names))
+        fs = [g.input(nm) for nm in names]
+        fext = [(tuple(fs[6 * b:6 * b + 3]), tuple(fs[6 * b + 3:6 * b + 6])) for b in range(fr.nb)]
+    nb = fr.nb
+    x, xd, xdd = co['x'], co['xd'], co['xdd']
+    zero3 = (0.0, 0.0, 0.0)
+    Rw, pw, A, V, a, Js, H, F, dJ = ([None] * nb for _ in range(9))
+    for b in range(nb):
+        p = fr.parent[b]
+        R, t = fr.joint_transform(g, b, x[b])
+        if p >= 0:
+            Rw[b] = cg.mat_mat(Rw[p], R)
+            pw[b] = cg.vadd(pw[p], cg.mat_vec(Rw[p], t))
+            Vp, ap = V[p], a[p]
+        else:
+            Rw[b], pw[b] = R, t
+            Vp, ap = (zero3, zero3), (zero3, tuple(ga))
+        axis = (Rw[b][0][2], Rw[b][1][2], Rw[b][2][2])
+        A[b] = (axis, cg.cross(pw[b], axis)) if fr.revolute[b] else (zero3, axis)
+        Axd = cg.twist_scale(xd[b], A[b])
+        V[b] = cg.twist_add(Vp, Axd)
+        a[b] = cg.twist_add(cg.twist_add(ap, cg.twist_scale(xdd[b], A[b])), cg.bracket(V[b], Axd))
+        # body inertia about the root frame (f_{0,b'} = (Rw, pw))
+        Js[b] = cg.inertia_to_parent(params[b], Rw[b], pw[b])
+        H[b] = cg.inertia_times(Js[b], V[b])
+        Ja = cg.inertia_times(Js[b], a[b])
+        F[b] = cg.twist_add(Ja, cg.twist_scale(-1.0, cg.ad_t(V[b], H[b])))
+        if fext is not None:
+            # body-frame wrench (in frame b') to the root frame
+            F[b] = cg.twist_add(F[b], cg.twist_scale(-1.0, cg.wrench_to_parent(fext[b], Rw[b], pw[b])))
+        dJ[b] = cg.inertia_rate(Js[b], V[b])
+    # subtree sums
+    Jc, Dc, Hc, Fc = list(Js), list(dJ), list(H), list(F)
+    for b in reversed(range(nb)):
+        p = fr.parent[b]
+        if p >= 0:
+            Jc[p] = cg.inertia_add(Jc[p], Jc[b])
+            Dc[p] = cg.inertia_add(Dc[p], Dc[b])
+            Hc[p] = cg.twist_add(Hc[p], Hc[b])
+            Fc[p] = cg.twist_add(Fc[p], Fc[b])
+
+    def Bc(k, y):  # Bc_k y = -(d/dt Jc_k) y
+        return cg.twist_scale(-1.0, cg.inertia_times(Dc[k], y))
+
+    P, Pv, R_, Rv, Q, Qv = ([None] * nb for _ in range(6))
+    for m in range(nb):
+        Z = cg.bracket(A[m], V[m])
+        Y = cg.twist_add(cg.bracket(A[m], a[m]), cg.bracket(V[m], Z))
+        JcA = cg.inertia_times(Jc[m], A[m])
+        BcA = Bc(m, A[m])
+        adAH = cg.ad_t(A[m], Hc[m])
+        P[m] = cg.twist_add(cg.twist_add(cg.twist_scale(-1.0, cg.inertia_times(Jc[m], Y)), Bc(m, Z)),
+                            cg.twist_add(cg.ad_t(Z, Hc[m]), cg.twist_scale(-1.0, cg.ad_t(A[m], Fc[m]))))
+        Pv[m] = cg.twist_scale(-1.0, cg.twist_add(cg.twist_add(BcA, cg.twist_scale(2.0, cg.inertia_times(Jc[m], Z))),
+                                                  adAH))
+        R_[m] = (cg.twist_scale(-1.0, JcA), cg.twist_add(BcA, cg.twist_scale(-1.0, adAH)))
+        Rv[m] = (cg.twist_add(adAH, cg.twist_scale(-1.0, BcA)), cg.twist_scale(-2.0, JcA))
+        Q[m], Qv[m] = (Y, Z), (A[m], Z)
+    anc = [[False] * nb for _ in range(nb)]   # anc[i][j]: j <= i
+    for i in range(nb):
+        j = i
+        while j >= 0:
+            anc[i][j] = True
+            j = fr.parent[j]
+    dq = [[0.0] * nb for _ in range(nb)]
+    dv = [[0.0] * nb for _ in range(nb)]
+    for k in range(nb):
+        for m in range(nb):
+            if anc[m][k]:          # k <= m
+                dq[k][m] = cg.dot6(A[k], P[m])
+                dv[k][m] = cg.dot6(A[k], Pv[m])
+            elif anc[k][m]:        # m < k
+                dq[k][m] = cg.dot6(R_[k][0], Q[m][0]) + cg.dot6(R_[k][1], Q[m][1])
+                dv[k][m] = cg.dot6(Rv[k][0], Qv[m][0]) + cg.dot6(Rv[k][1], Qv[m][1])
+    dq, dv = fr.project(dq), fr.project(dv)
+    n = fr.n
+    outputs = [dq[r][c] for r in range(n) for c in range(n)] + [dv[r][c] for r in range(n) for c in range(n)]
+    src = cg.emit(g, 'rnea_derivatives_kernel', args, outputs)
+    return cg.compile_function(src, 'rnea_derivatives_kernel'), src
+
+
+def _kernel(model, wrench):
+    if model.nb > KERNEL_MAX_BODIES:
+        return False
+    return cg.compiled(model, 'rnea_derivatives_wrench' if wrench else 'rnea_derivatives',
+                       lambda fr: _build_kernel(fr, wrench))
+
+
+def _kernel_derivatives(model, q, qd, qdd, fext, mode=None):
+    """Kernel path on validated (N, n) arrays; fext: (N, nb, 6) body-frame wrenches or None.
+
+    mode: 'loop' (Python floats, state by state), 'rows' (numpy rows) or None (by batch size;
+    returns None where the vectorised form is faster or the model has no kernel).
+    """
+    N = q.shape[0]
+    if mode is None:
+        mode = 'loop' if N < _LOOP_BELOW else 'rows' if N >= _ROWS_FROM else None
+    k = _kernel(model, fext is not None) if mode else False
+    if not k:
+        return None
+    fr, fn, _ = k
+    P, E0, A0 = cg.model_params(model, fr, gravity=True)
+    N, n = q.shape
+    extra = ()
+    if fext is not None:
+        fx = np.empty_like(fext)   # to the primed frames: Q^T n, Q^T f
+        fx[..., :3] = np.einsum('bji,nbj->nbi', fr.Q, fext[..., :3])
+        fx[..., 3:] = np.einsum('bji,nbj->nbi', fr.Q, fext[..., 3:])
+        extra = (fx.reshape(N, -1),)
+    if mode == 'loop':
+        rows = zip(q.tolist(), qd.tolist(), qdd.tolist(), *[e.tolist() for e in extra])
+        vals = np.array([fn(*r[:3], P, A0, E0, *r[3:], sin=math.sin, cos=math.cos) for r in rows])
+    else:
+        def f(Q, QD, QDD, *rest, sin, cos, sqrt=None):
+            if extra:
+                return fn(Q, QD, QDD, P, A0, E0, rest[0], sin=sin, cos=cos)
+            return fn(Q, QD, QDD, P, A0, E0, sin=sin, cos=cos)
+        vals = cg.run_rows(f, [q, qd, qdd] + list(extra), (), 2 * n * n)
+    vals = vals.reshape(N, 2, n, n)
+    return vals[:, 0], vals[:, 1]

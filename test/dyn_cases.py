@@ -1,0 +1,59 @@
+"""Shared robots, random states and comparison helpers for the Lagrangian/derivative tests."""
+import functools
+import os
+
+import numpy as np
+
+from lie_dynamics import load_urdf
+from oracle import Oracle
+from robots import NAMED_CASES, named_urdf
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ARM = os.path.join(ROOT, 'config', 'arm7.urdf')
+CASES = list(NAMED_CASES) + ['arm7']
+N_STATES = 100
+
+
+@functools.lru_cache(maxsize=None)
+def xml_of(name):
+    if name == 'arm7':
+        with open(ARM, encoding='utf-8') as fh:
+            return fh.read()
+    return named_urdf(name)
+
+
+@functools.lru_cache(maxsize=None)
+def case(name):
+    """(model, oracle) for a named robot, joints in the same order."""
+    xml = xml_of(name)
+    model = load_urdf(xml)
+    return model, Oracle(xml, joints=model.joint_names)
+
+
+def states(model, N=N_STATES, seed=0):
+    """N random (q, qd, qdd): angles over a full turn, prismatic within +-0.5 m."""
+    rng = np.random.default_rng(seed)
+    span = np.array([0.5 if t == 'prismatic' else np.pi for t in model.joint_types])
+    q = rng.uniform(-1, 1, size=(N, model.n)) * span
+    qd = rng.normal(size=(N, model.n))
+    qdd = rng.normal(size=(N, model.n))
+    return q, qd, qdd
+
+
+def rel_err(a, b, floor=1e-6):
+    """max |a - b| / max(|b|, floor) per state (leading axis), worst state."""
+    a, b = np.asarray(a), np.asarray(b)
+    axes = tuple(range(1, a.ndim))
+    num = np.max(np.abs(a - b), axis=axes)
+    den = np.maximum(np.max(np.abs(b), axis=axes), floor)
+    return float(np.max(num / den))
+
+
+def oracle_stack(fn, *args):
+    return np.array([fn(*row) for row in zip(*args)])
+
+
+def pin_body_permutation(model, oracle):
+    """Column permutation from Pinocchio's dynamic parameters to ours."""
+    names = oracle.body_names()
+    return np.concatenate([np.arange(10) + 10 * names.index(b) for b in model.body_joint_names])
