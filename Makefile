@@ -11,6 +11,8 @@ venv: $(STAMP)
 $(STAMP): requirements.txt requirements-dev.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --disable-pip-version-check -r requirements-dev.txt
+	# the source tree on the venv's path, so `python -m lie_dynamics...` works from any folder
+	$(PY) -c "import os, site; open(os.path.join(site.getsitepackages()[0], 'lie_dynamics_src.pth'), 'w').write(os.getcwd() + chr(10))"
 	touch $(STAMP)
 
 test: $(STAMP)

@@ -1,0 +1,19 @@
+"""Start the dynamics node with a parameter file (needs a full ROS 2 install: launch, launch_ros).
+
+    ros2 launch lie_dynamics dynamics.launch.py params_file:=/path/to/params.yaml
+"""
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument
+from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
+from launch_ros.actions import Node
+from launch_ros.substitutions import FindPackageShare
+
+
+def generate_launch_description():
+    default_params = PathJoinSubstitution([FindPackageShare('lie_dynamics'), 'config', 'arm7_gravity.yaml'])
+    return LaunchDescription([
+        DeclareLaunchArgument('params_file', default_value=default_params,
+                              description='Parameter file of the dynamics node'),
+        Node(package='lie_dynamics', executable='dynamics_node', name='dynamics_node', output='screen',
+             parameters=[LaunchConfiguration('params_file')]),
+    ])

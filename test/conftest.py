@@ -1,0 +1,32 @@
+"""Test-session setup shared by all tests.
+
+ROS 2 environment for tests that start rclpy (set at import, before any `rclpy.init`):
+a private log/home directory, discovery limited to this machine, and a DDS domain of
+our own per pytest-xdist worker, so parallel workers and other runs on the machine do not
+see each other's topics.
+"""
+import os
+import tempfile
+import time
+import zlib
+
+
+def _ros_test_environment():
+    tmp = tempfile.mkdtemp(prefix='lie_dynamics_ros_')
+    os.environ['ROS_LOG_DIR'] = os.path.join(tmp, 'log')
+    os.environ['ROS_HOME'] = os.path.join(tmp, 'ros_home')
+    home = os.environ.get('HOME', '')
+    if not home or not os.access(home, os.W_OK):
+        os.environ['HOME'] = tmp
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    os.environ.pop('ROS_STATIC_PEERS', None)
+    os.environ.pop('ROS_LOCALHOST_ONLY', None)  # deprecated; conflicts with the range above
+    worker = os.environ.get('PYTEST_XDIST_WORKER', 'gw0')
+    index = int(worker[2:]) if worker[2:].isdigit() else 0
+    # Same base for all workers of one run (shared run id), a different one for other runs.
+    run = os.environ.get('PYTEST_XDIST_TESTRUNUID') or f'{os.getpid()}-{time.time_ns()}'
+    base = zlib.crc32(run.encode())
+    os.environ['ROS_DOMAIN_ID'] = str(1 + (base + index) % 100)  # 1..100: valid UDP port range
+
+
+_ros_test_environment()

@@ -1,0 +1,431 @@
+"""The dynamics node with real rclpy and DDS on localhost (own ROS_DOMAIN_ID, see conftest.py).
+
+Each test starts the node in-process with its own Context and a SingleThreadedExecutor
+spinning in a background thread, next to a tester node that plays robot_state_publisher,
+joint_state_broadcaster and the effort controller. Torques are checked against Pinocchio.
+"""
+import math
+import os
+import re
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy')
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from rcl_interfaces.msg import Log  # noqa: E402
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from std_msgs.msg import Float64MultiArray, String  # noqa: E402
+from std_srvs.srv import SetBool, Trigger  # noqa: E402
+
+from lie_dynamics import load_urdf  # noqa: E402
+from lie_dynamics.dynamics_node import DESCRIPTION_QOS, DynamicsNode  # noqa: E402
+from oracle import Oracle  # noqa: E402
+from robots import random_urdf  # noqa: E402
+
+TOL = 1e-9
+CMD = '/effort_controller/commands'
+TIMEOUT = 10.0
+
+
+def big_limits(xml, effort='1e6'):
+    return re.sub(r'effort="[^"]*"', f'effort="{effort}"', xml)
+
+
+_current = None
+
+
+def wait_until(pred, timeout=TIMEOUT, what='condition'):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return
+        time.sleep(0.002)
+    raise AssertionError(f'timed out waiting for {what}')
+
+
+class Harness:
+    """Tester node + the node under test in one context, spun by one background thread."""
+
+    def __init__(self):
+        self.ctx = Context()
+        rclpy.init(context=self.ctx)
+        self.ex = SingleThreadedExecutor(context=self.ctx)
+        t = self.t = rclpy.create_node('node_tester', context=self.ctx)
+        self.desc_pub = t.create_publisher(String, 'robot_description', DESCRIPTION_QOS)
+        self.js_pub = t.create_publisher(JointState, 'joint_states', 10)
+        self.cmds, self.efforts, self.logs = [], [], []
+        self.diag = None
+        t.create_subscription(Float64MultiArray, CMD, lambda m: self.cmds.append(np.array(m.data)), 100)
+        t.create_subscription(JointState, '/dynamics_node/commanded_efforts', self.efforts.append, 100)
+        t.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
+        t.create_subscription(Log, '/rosout', self._on_log, 100)
+        self.node = None
+        self.spin_error = None
+        self.closing = False
+        self.ex.add_node(t)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self):
+        try:
+            self.ex.spin()
+        except Exception as exc:  # executor shut down during close(), or a callback raised
+            self.spin_error = exc
+            if not self.closing:
+                raise
+
+    def _on_diag(self, msg):
+        for st in msg.status:
+            if st.name.startswith('dynamics_node'):
+                self.diag = st
+
+    def _on_log(self, msg):
+        if msg.name == 'dynamics_node':
+            self.logs.append(msg.msg)
+
+    def diag_values(self):
+        return {} if self.diag is None else {kv.key: kv.value for kv in self.diag.values}
+
+    def diag_level(self):
+        return None if self.diag is None else self.diag.level[0]
+
+    def start(self, wait_model=True, params_file=None, **params):
+        params.setdefault('stale_timeout', 60.0)
+        if params_file is None:
+            params.setdefault('friction.viscous', [0.0])
+            params.setdefault('friction.coulomb', [0.0])
+        overrides = [Parameter(k, value=v) for k, v in params.items()]
+        cli = ['--ros-args', '--params-file', str(params_file)] if params_file else None
+        self.node = DynamicsNode(context=self.ctx, parameter_overrides=overrides, cli_args=cli)
+        self.ex.add_node(self.node)
+        wait_until(lambda: self.js_pub.get_subscription_count() >= 1 and self.t.count_publishers(CMD) >= 1,
+                   what='discovery')
+        if wait_model:
+            wait_until(lambda: self.node.core.model is not None, what='model')
+        return self.node
+
+    def publish(self, names, position, velocity=(), effort=()):
+        self.js_pub.publish(JointState(name=list(names), position=[float(x) for x in position],
+                                       velocity=[float(x) for x in velocity], effort=[float(x) for x in effort]))
+
+    def send(self, names, position, velocity=(), effort=()):
+        """Publish one joint_states message and return the command it produced."""
+        n0 = len(self.cmds)
+        self.publish(names, position, velocity, effort)
+        wait_until(lambda: len(self.cmds) > n0, what='a command')
+        assert len(self.cmds) == n0 + 1
+        return self.cmds[n0]
+
+    def send_rejected(self, good, names, position, velocity=(), effort=()):
+        """Publish a bad message, then a good one: exactly one command (the good one's) must come."""
+        n0, r0 = len(self.cmds), self.node.core.rejected
+        self.publish(names, position, velocity, effort)
+        out = self.send(*good)
+        assert len(self.cmds) == n0 + 1 and self.node.core.rejected == r0 + 1
+        return out
+
+    def set_params(self, **params):
+        return self.node.set_parameters([Parameter(k, value=v) for k, v in params.items()])
+
+    def call(self, srv_type, name, request):
+        cli = self.t.create_client(srv_type, name)
+        assert cli.wait_for_service(timeout_sec=TIMEOUT)
+        fut = cli.call_async(request)
+        wait_until(fut.done, what=f'service {name}')
+        self.t.destroy_client(cli)
+        return fut.result()
+
+    def close(self):
+        self.closing = True
+        self.ex.shutdown(timeout_sec=2.0)
+        self.thread.join(timeout=5.0)
+        if self.node is not None:
+            self.node.destroy_node()
+        self.t.destroy_node()
+        self.ctx.try_shutdown()
+
+
+@pytest.fixture
+def ros():
+    global _current
+    h = _current = Harness()
+    yield h
+    h.close()
+
+
+@pytest.fixture(scope='module')
+def chain():
+    """5 revolute joints; the second one is not controlled, so it is locked and moves via joint_states."""
+    xml = big_limits(random_urdf(21, 5, joint_types=('revolute',)))
+    names = load_urdf(xml).joint_names
+    return xml, [names[0]] + names[2:], names[1]
+
+
+def with_payload(xml, link, mass, com, inertia):
+    ixx, ixy, ixz, iyy, iyz, izz = inertia
+    return xml.replace('</robot>', f'''
+  <link name="test_payload"><inertial><origin xyz="{com[0]} {com[1]} {com[2]}"/><mass value="{mass}"/>
+    <inertia ixx="{ixx}" ixy="{ixy}" ixz="{ixz}" iyy="{iyy}" iyz="{iyz}" izz="{izz}"/></inertial></link>
+  <joint name="test_payload_joint" type="fixed"><parent link="{link}"/><child link="test_payload"/></joint>
+</robot>''')
+
+
+def test_gravity_compensation_matches_pinocchio(ros, chain):
+    """Latched description before start; streamed joint_states with a moving locked joint;
+    gravity parameter change; payload at run time (parameter service); clamp."""
+    xml, ctrl, locked = chain
+    ros.desc_pub.publish(String(data=xml))  # transient local: the node starts later
+    node = ros.start(joints=ctrl, diagnostics_period=0.2)
+    rng = np.random.default_rng(0)
+    names = [locked, 'some_other_joint'] + ctrl[::-1]   # arbitrary order and extra joints
+    sent = [(rng.uniform(-2, 2, len(ctrl)), rng.uniform(-1.5, 1.5)) for _ in range(40)]
+    for q, ql in sent:
+        ros.publish(names, [ql, 0.5] + q[::-1].tolist())
+        time.sleep(0.002)
+    wait_until(lambda: len(ros.cmds) >= len(sent), what='40 commands')
+    time.sleep(0.05)
+    assert len(ros.cmds) == len(sent)  # one command per accepted message
+    for (q, ql), tau in zip(sent, ros.cmds):
+        np.testing.assert_allclose(tau, Oracle(xml, joints=ctrl, locked={locked: ql}).gravity(q), atol=TOL, rtol=0)
+    q, ql = sent[-1]
+    names = ctrl + [locked]
+
+    # wall mount: gravity along -y
+    assert all(r.successful for r in ros.set_params(gravity=[0.0, -9.81, 0.0]))
+    tau = ros.send(names, list(q) + [ql])
+    ref = Oracle(xml, joints=ctrl, locked={locked: ql}, gravity=(0.0, -9.81, 0.0)).gravity(q)
+    np.testing.assert_allclose(tau, ref, atol=TOL, rtol=0)
+
+    # payload at run time, through the parameter services (as `ros2 param set` does)
+    link = [k for k, (b, _) in node.core.model.link_frames.items() if b == node.core.model.nb - 1][0]
+    client = AsyncParameterClient(ros.t, 'dynamics_node')
+    assert client.wait_for_services(timeout_sec=TIMEOUT)
+    inertia = [0.01, 0.001, 0.0, 0.02, 0.0, 0.015]
+    fut = client.set_parameters_atomically([
+        Parameter('payload.link', value=link), Parameter('payload.mass', value=1.7),
+        Parameter('payload.com', value=[0.05, -0.02, 0.1]), Parameter('payload.inertia', value=inertia)])
+    wait_until(fut.done, what='set_parameters')
+    assert fut.result().result.successful, fut.result().result.reason
+    tau = ros.send(names, list(q) + [ql])
+    xml_p = with_payload(xml, link, 1.7, [0.05, -0.02, 0.1], inertia)
+    ref = Oracle(xml_p, joints=ctrl, locked={locked: ql}, gravity=(0.0, -9.81, 0.0)).gravity(q)
+    np.testing.assert_allclose(tau, ref, atol=TOL, rtol=0)
+
+    # clamp: effort limits scaled down far below the gravity torques
+    limit = 1e6 * 2e-6
+    assert all(r.successful for r in ros.set_params(effort_limit_scale=2e-6))
+    tau = ros.send(names, list(q) + [ql])
+    assert np.any(np.abs(ref) > limit)
+    np.testing.assert_allclose(tau, np.clip(ref, -limit, limit), atol=TOL, rtol=0)
+    assert np.all(np.abs(tau) <= limit)
+    wait_until(lambda: any('clamped' in line for line in ros.logs), what='clamp log')
+    wait_until(lambda: int(ros.diag_values().get('clamp_count', 0)) >= 1, what='clamp diag')
+    v = ros.diag_values()
+    assert v['model_name'] == 'random_21_5' and v['joint_count'] == str(len(ctrl))
+    assert v['locked_joints'] == locked
+
+
+def test_bad_joint_states_are_rejected_and_logged_once(ros, chain):
+    xml, ctrl, locked = chain
+    ros.desc_pub.publish(String(data=xml))
+    ros.start(joints=ctrl)
+    n = len(ctrl)
+    q = np.linspace(-1, 1, n)
+    good = (ctrl, q)
+    ref = Oracle(xml, joints=ctrl).gravity(q)
+    cases = {
+        'lengths differ': [(ctrl, q[:-1]), (ctrl, q, [0.0]), (ctrl, q, [], [0.0] * (n + 1))],
+        'duplicate': [(ctrl + [ctrl[0]], list(q) + [0.0])] * 3,
+        'non-finite': [(ctrl, list(q[:-1]) + [math.nan]), (ctrl, list(q[:-1]) + [math.inf]),
+                       (ctrl + [locked], list(q) + [math.nan])],
+        'missing controlled': [(ctrl[1:], q[1:])],
+    }
+    for problem, msgs in cases.items():
+        for bad in msgs:
+            tau = ros.send_rejected(good, *bad)
+            np.testing.assert_allclose(tau, ref, atol=TOL, rtol=0)
+    # one throttled log line per problem although several messages were bad
+    wait_until(lambda: all(any(p in line for line in ros.logs) for p in cases), what='rejection logs')
+    time.sleep(0.1)
+    for problem in cases:
+        assert sum(problem in line for line in ros.logs) == 1, (problem, ros.logs)
+    assert ros.node.core.rejected == sum(len(m) for m in cases.values())
+
+
+def test_nan_velocity_velocity_terms_and_joint_state_output(ros, chain):
+    xml, ctrl, locked = chain
+    ros.desc_pub.publish(String(data=xml))
+    ros.start(joints=ctrl, include_velocity_terms=True, publish_joint_state=True)
+    wait_until(lambda: ros.t.count_publishers('/dynamics_node/commanded_efforts') >= 1, what='efforts pub')
+    n = len(ctrl)
+    rng = np.random.default_rng(3)
+    q, qd = rng.uniform(-1, 1, n), rng.uniform(-2, 2, n)
+    o = Oracle(xml, joints=ctrl)
+    tau = ros.send(ctrl, q, qd, [0.0] * n)
+    np.testing.assert_allclose(tau, o.rnea(q, qd, np.zeros(n)), atol=TOL, rtol=0)
+    qd[2] = math.nan   # joint_state_broadcaster sends NaN for a missing velocity interface
+    tau = ros.send(ctrl, q, qd)
+    qd[2] = 0.0
+    np.testing.assert_allclose(tau, o.rnea(q, qd, np.zeros(n)), atol=TOL, rtol=0)
+    assert np.all(np.isfinite(tau))
+    wait_until(lambda: len(ros.efforts) >= 2, what='JointState output')
+    assert list(ros.efforts[-1].name) == ctrl
+    np.testing.assert_array_equal(np.array(ros.efforts[-1].effort), tau)
+
+
+def test_stale_input_hold_zero_and_recovery(ros, chain):
+    xml, ctrl, locked = chain
+    ros.desc_pub.publish(String(data=xml))
+    ros.start(joints=ctrl, include_velocity_terms=True, stale_timeout=0.25, diagnostics_period=0.1)
+    n = len(ctrl)
+    q, qd = np.full(n, 0.3), np.full(n, 1.5)
+    o = Oracle(xml, joints=ctrl)
+    t0 = time.monotonic()
+    tau = ros.send(ctrl, q, qd)
+    np.testing.assert_allclose(tau, o.rnea(q, qd, np.zeros(n)), atol=TOL, rtol=0)
+    wait_until(lambda: len(ros.cmds) == 2, timeout=3.0, what='stale command')
+    assert time.monotonic() - t0 >= 0.25
+    np.testing.assert_allclose(ros.cmds[1], o.gravity(q), atol=TOL, rtol=0)   # velocity terms dropped
+    wait_until(lambda: ros.diag_values().get('stale') == 'True' and ros.diag_level() == 1, what='stale diag')
+    time.sleep(0.3)
+    assert len(ros.cmds) == 2   # applied once, not repeated
+    tau = ros.send(ctrl, q, qd)  # recovery
+    np.testing.assert_allclose(tau, o.rnea(q, qd, np.zeros(n)), atol=TOL, rtol=0)
+    wait_until(lambda: ros.diag_values().get('stale') == 'False', what='recovered diag')
+    assert all(r.successful for r in ros.set_params(stale_action='zero'))
+    wait_until(lambda: len(ros.cmds) == 4, timeout=3.0, what='zero stale command')
+    np.testing.assert_array_equal(ros.cmds[3], np.zeros(n))
+    assert ros.node.core.stale_events == 2
+    assert any('compensation resumed' in line for line in ros.logs)
+
+
+def test_bad_description_keeps_previous_model(ros, chain):
+    xml, ctrl, locked = chain
+    ros.desc_pub.publish(String(data=xml))
+    node = ros.start(joints=ctrl, diagnostics_period=0.1)
+    q = np.linspace(-0.5, 0.5, len(ctrl))
+    names = ctrl + [locked]
+    ref = Oracle(xml, joints=ctrl, locked={locked: 0.2}).gravity(q)
+    np.testing.assert_allclose(ros.send(names, list(q) + [0.2]), ref, atol=TOL, rtol=0)
+    children = set(re.findall(r'<child link="([^"]+)"', xml))
+    root = [lk for lk in re.findall(r'<link name="([^"]+)"', xml) if lk not in children][0]
+    floating = xml.replace('</robot>', '<link name="world"/><joint name="float_j" type="floating">'
+                                       f'<parent link="world"/><child link="{root}"/></joint></robot>')
+    bad = {
+        'malformed': '<robot name="x"><link name="a"></robot',
+        'floating': floating,
+        ctrl[0]: xml.replace(f'"{ctrl[0]}"', '"renamed_joint"'),
+        'not URDF': 'just some text',
+    }
+    for why, text in bad.items():
+        node.core.description_error = ''
+        ros.desc_pub.publish(String(data=text))
+        wait_until(lambda: node.core.description_error != '', what=f'rejection of {why}')
+        assert why in node.core.description_error, node.core.description_error
+        np.testing.assert_allclose(ros.send(names, list(q) + [0.2]), ref, atol=TOL, rtol=0)
+    wait_until(lambda: ros.diag_values().get('description_error') and ros.diag_level() == 1,
+               what='diagnostics')
+    assert 'previous model kept' in ros.diag.message
+    # a good update replaces the model; locked values survive the swap
+    heavier = re.sub(r'<mass value="([^"]*)"', lambda m: f'<mass value="{3 * float(m.group(1))!r}"', xml)
+    ros.desc_pub.publish(String(data=heavier))
+    wait_until(lambda: node.core.description_error == '', what='model update')
+    ref = Oracle(heavier, joints=ctrl, locked={locked: 0.2}).gravity(q)
+    np.testing.assert_allclose(ros.send(ctrl, q), ref, atol=TOL, rtol=0)
+
+
+def test_services_enable_and_reload(ros, chain, tmp_path):
+    xml, ctrl, locked = chain
+    path = tmp_path / 'robot.urdf'
+    path.write_text(xml)
+    ros.start(joints=ctrl, urdf_path=str(path))
+    q = np.linspace(0.1, 0.9, len(ctrl))
+    ref = Oracle(xml, joints=ctrl).gravity(q)
+    np.testing.assert_allclose(ros.send(ctrl, q), ref, atol=TOL, rtol=0)
+
+    res = ros.call(SetBool, '/dynamics_node/set_enabled', SetBool.Request(data=False))
+    assert res.success
+    wait_until(lambda: len(ros.cmds) == 2, what='zero command on disable')
+    np.testing.assert_array_equal(ros.cmds[1], np.zeros(len(ctrl)))
+    assert ros.node.get_parameter('enabled').value is False
+    n0 = ros.node.core.accepted
+    ros.publish(ctrl, q)
+    wait_until(lambda: ros.node.core.accepted == n0 + 1, what='disabled message processed')
+    assert len(ros.cmds) == 2  # silent while disabled
+    assert ros.call(SetBool, '/dynamics_node/set_enabled', SetBool.Request(data=True)).success
+    np.testing.assert_allclose(ros.send(ctrl, q), ref, atol=TOL, rtol=0)
+
+    heavier = re.sub(r'<mass value="([^"]*)"', lambda m: f'<mass value="{2 * float(m.group(1))!r}"', xml)
+    path.write_text(heavier)
+    res = ros.call(Trigger, '/dynamics_node/reload_model', Trigger.Request())
+    assert res.success, res.message
+    np.testing.assert_allclose(ros.send(ctrl, q), Oracle(heavier, joints=ctrl).gravity(q), atol=TOL, rtol=0)
+    path.write_text('<robot name="broken"><link name=')
+    res = ros.call(Trigger, '/dynamics_node/reload_model', Trigger.Request())
+    assert not res.success and 'malformed' in res.message
+    np.testing.assert_allclose(ros.send(ctrl, q), Oracle(heavier, joints=ctrl).gravity(q), atol=TOL, rtol=0)
+
+
+def test_no_model_publishes_nothing_and_parameter_validation(ros, chain):
+    xml, ctrl, locked = chain
+    volatile = ros.t.create_publisher(String, 'robot_description', 10)   # a common mistake
+    node = ros.start(wait_model=False, joints=ctrl, diagnostics_period=0.1)
+    wait_until(lambda: any('volatile durability' in line and 'node_tester' in line for line in ros.logs),
+               what='incompatible publisher warning')
+    ros.t.destroy_publisher(volatile)
+    q = np.zeros(len(ctrl))
+    for _ in range(3):
+        ros.publish(ctrl, q)
+    wait_until(lambda: node.core.received == 3, what='3 messages without a model')
+    wait_until(lambda: any('no robot model' in line for line in ros.logs), what='no-model log')
+    assert ros.cmds == []
+    ros.desc_pub.publish(String(data=xml))
+    wait_until(lambda: node.core.model is not None, what='model')
+    np.testing.assert_allclose(ros.send(ctrl, q), Oracle(xml, joints=ctrl).gravity(q), atol=TOL, rtol=0)
+    assert sum('no robot model' in line for line in ros.logs) == 1   # said once
+
+    rejected = [dict(gravity_scale=1.5), dict(gravity=[0.0, -9.81]), dict(stale_action='freeze'),
+                dict(joints=['a']), dict(command_topic='/x'), dict(payload__link='no_such_link'),
+                dict(**{'friction.viscous': [0.1, 0.2]}), dict(**{'payload.mass': 2.0}),
+                dict(urdf_path='/nonexistent.urdf')]
+    for change in rejected:
+        change = {k.replace('__', '.'): v for k, v in change.items()}
+        change.setdefault('payload.mass', 2.0) if 'payload.link' in change else None
+        res = node.set_parameters_atomically([Parameter(k, value=v) for k, v in change.items()])
+        assert not res.successful, change
+    np.testing.assert_allclose(ros.send(ctrl, q), Oracle(xml, joints=ctrl).gravity(q), atol=TOL, rtol=0)
+
+
+def test_shipped_wall_mount_config(ros):
+    """config/wall_mount_payload.yaml: gravity along -x, velocity terms, 1.5 kg on tool0, 0.9 x limits."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    node = ros.start(params_file=os.path.join(root, 'config', 'wall_mount_payload.yaml'))
+    xml = open(os.path.join(root, 'config', 'arm7.urdf')).read()
+    joints = [f'joint{i}' for i in range(1, 8)]
+    assert node.core.layout == joints and node.core.model.name == 'lie_arm7'
+    xml_p = with_payload(xml, 'tool0', 1.5, [0.0, 0.0, 0.06], [0.004, 0.0, 0.0, 0.004, 0.0, 0.002])
+    o = Oracle(xml_p, joints=joints, gravity=(-9.81, 0.0, 0.0))
+    lim = 0.9 * load_urdf(xml).effort_limits
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        q, qd = rng.uniform(-1.5, 1.5, 7), rng.uniform(-1, 1, 7)
+        tau = ros.send(joints, q, qd)
+        np.testing.assert_allclose(tau, np.clip(o.rnea(q, qd, np.zeros(7)), -lim, lim), atol=TOL, rtol=0)
+
+
+def test_module_entry_point_rejects_bad_configuration():
+    proc = subprocess.run([sys.executable, '-m', 'lie_dynamics.dynamics_node', '--ros-args',
+                           '-p', 'stale_action:=freeze'], capture_output=True, text=True, timeout=60,
+                          cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert proc.returncode == 2
+    assert 'stale_action' in proc.stderr

@@ -1,0 +1,270 @@
+"""Decision logic of the dynamics node without ROS: lie_dynamics.ros_core / ros_params."""
+import math
+import re
+
+import numpy as np
+import pytest
+
+from lie_dynamics import load_urdf
+from lie_dynamics.ros_core import ERROR, OK, WARN, Compensator, Throttle
+from lie_dynamics.ros_params import PARAMS, check_value, defaults
+from oracle import Oracle
+from robots import random_urdf
+
+TOL = 1e-9
+
+
+def big_limits(xml):
+    return re.sub(r'effort="[^"]*"', 'effort="1e6"', xml)
+
+
+class Clock:
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self):
+        return self.t
+
+
+@pytest.fixture
+def chain():
+    """A 5-joint chain: joints[1] is left out of `joints`, so it is locked and fed by joint_states."""
+    xml = big_limits(random_urdf(21, 5, joint_types=('revolute',), mimic=False))
+    names = load_urdf(xml).joint_names
+    ctrl = [names[0]] + names[2:]
+    return xml, ctrl, names[1]
+
+
+def make(xml, ctrl, clock=None, **settings):
+    settings.setdefault('friction.viscous', [0.0])
+    settings.setdefault('friction.coulomb', [0.0])
+    c = Compensator(dict(joints=ctrl, **settings), clock=clock or Clock())
+    c.set_model(load_urdf(xml, joints=ctrl))
+    return c
+
+
+def test_gravity_with_moving_locked_joint_in_any_message_order(chain):
+    xml, ctrl, locked = chain
+    c = make(xml, ctrl)
+    rng = np.random.default_rng(1)
+    for _ in range(4):
+        q = rng.uniform(-2, 2, len(ctrl))
+        ql = rng.uniform(-2, 2)
+        names = [locked, 'unrelated_joint'] + ctrl[::-1]
+        tau = c.on_joint_state(names, [ql, 7.0] + q[::-1].tolist())
+        ref = Oracle(xml, joints=ctrl, locked={locked: ql}).gravity(q)
+        np.testing.assert_allclose(tau, ref, atol=TOL, rtol=0)
+    assert c.accepted == 4 and c.rejected == 0
+
+
+def test_gravity_scale_gravity_vector_and_payload(chain):
+    xml, ctrl, locked = chain
+    c = make(xml, ctrl)
+    q = np.linspace(-1, 1, len(ctrl))
+    names = ctrl + [locked]
+    c.update({'gravity': [0.0, -9.81, 0.0], 'gravity_scale': 0.5})
+    tau = c.on_joint_state(names, q.tolist() + [0.3])
+    ref = Oracle(xml, joints=ctrl, locked={locked: 0.3}, gravity=(0, -4.905, 0)).gravity(q)
+    np.testing.assert_allclose(tau, ref, atol=TOL, rtol=0)
+    # payload == an extra fixed link in the URDF
+    model = c.model
+    link = [k for k, (b, _) in model.link_frames.items() if b == model.nb - 1][0]
+    c.update({'gravity_scale': 1.0, 'payload.link': link})
+    c.update({'payload.mass': 2.0, 'payload.com': [0.1, 0.0, 0.05], 'payload.inertia': [0.01, 0, 0, 0.02, 0, 0.03]})
+    xml_p = xml.replace('</robot>', f'''<link name="pl"><inertial><origin xyz="0.1 0 0.05"/><mass value="2"/>
+      <inertia ixx="0.01" ixy="0" ixz="0" iyy="0.02" iyz="0" izz="0.03"/></inertial></link>
+      <joint name="pl_joint" type="fixed"><parent link="{link}"/><child link="pl"/></joint></robot>''')
+    tau = c.on_joint_state(names, q.tolist() + [0.3])
+    ref = Oracle(xml_p, joints=ctrl, locked={locked: 0.3}, gravity=(0, -9.81, 0)).gravity(q)
+    np.testing.assert_allclose(tau, ref, atol=TOL, rtol=0)
+    c.update({'payload.mass': 0.0})
+    tau = c.on_joint_state(names, q.tolist() + [0.3])
+    ref = Oracle(xml, joints=ctrl, locked={locked: 0.3}, gravity=(0, -9.81, 0)).gravity(q)
+    np.testing.assert_allclose(tau, ref, atol=TOL, rtol=0)
+
+
+def test_velocity_terms_friction_and_nan_velocity(chain):
+    xml, ctrl, locked = chain
+    n = len(ctrl)
+    c = make(xml, ctrl, include_velocity_terms=True, **{'friction.viscous': [0.3], 'friction.coulomb': [0.2]})
+    rng = np.random.default_rng(4)
+    q, qd = rng.uniform(-1, 1, n), rng.uniform(-1, 1, n)
+    eps = defaults()['friction.coulomb_velocity_epsilon']
+    o = Oracle(xml, joints=ctrl)
+    tau = c.on_joint_state(ctrl, q.tolist(), qd.tolist())
+    ref = o.rnea(q, qd, np.zeros(n)) + 0.3 * qd + 0.2 * np.tanh(qd / eps)
+    np.testing.assert_allclose(tau, ref, atol=TOL, rtol=0)
+    # NaN velocity (joint_state_broadcaster without a velocity interface): used as 0
+    qd_nan = qd.copy()
+    qd_nan[1] = math.nan
+    qd0 = qd.copy()
+    qd0[1] = 0.0
+    tau = c.on_joint_state(ctrl, q.tolist(), qd_nan.tolist())
+    ref = o.rnea(q, qd0, np.zeros(n)) + 0.3 * qd0 + 0.2 * np.tanh(qd0 / eps)
+    np.testing.assert_allclose(tau, ref, atol=TOL, rtol=0)
+    assert c.velocity_unavailable == 1
+    # no velocity array at all: gravity only
+    tau = c.on_joint_state(ctrl, q.tolist())
+    np.testing.assert_allclose(tau, o.gravity(q), atol=TOL, rtol=0)
+
+
+def test_friction_defaults_from_urdf():
+    xml = random_urdf(5, 3, joint_types=('revolute',))
+    xml = big_limits(re.sub(r'<dynamics[^>]*/>', '', xml))
+    xml = re.sub(r'(<limit [^>]*/>)', r'\1<dynamics damping="0.7" friction="0.4"/>', xml)
+    m = load_urdf(xml)
+    c = Compensator(clock=Clock())
+    c.set_model(load_urdf(xml))
+    q, qd = np.zeros(m.n), np.full(m.n, 0.5)
+    tau = c.on_joint_state(m.joint_names, q, qd)
+    eps = c.settings['friction.coulomb_velocity_epsilon']
+    np.testing.assert_allclose(tau, m.gravity(q) + 0.7 * qd + 0.4 * np.tanh(qd / eps), atol=TOL)
+    c.update({'friction.viscous': [0.0], 'friction.coulomb': [0.0]})
+    np.testing.assert_allclose(c.on_joint_state(m.joint_names, q, qd), m.gravity(q), atol=TOL)
+    with pytest.raises(ValueError, match='0, 1 or 3'):
+        c.update({'friction.viscous': [0.1, 0.2]})
+
+
+def test_rejections_publish_nothing_and_name_the_problem(chain):
+    xml, ctrl, locked = chain
+    c = make(xml, ctrl)
+    n = len(ctrl)
+    good = list(np.linspace(0, 1, n))
+    cases = [
+        ('length', ctrl, good[:-1], [], []),
+        ('length', ctrl, good, [0.0], []),
+        ('length', ctrl, good, [], [0.0] * (n + 1)),
+        ('duplicate', ctrl + [ctrl[0]], good + [0.0], [], []),
+        ('nonfinite', ctrl, good[:-1] + [math.nan], [], []),
+        ('nonfinite', ctrl, good[:-1] + [math.inf], [], []),
+        ('nonfinite', ctrl + [locked], good + [math.nan], [], []),
+        ('missing', ctrl[1:], good[1:], [], []),
+    ]
+    for k, (kind, names, pos, vel, eff) in enumerate(cases):
+        c.events.clear()
+        assert c.on_joint_state(names, pos, vel, eff) is None, kind
+        assert c.rejected == k + 1
+        assert [e[1] for e in c.events] == ['reject:' + kind]
+        text = c.events[0][2]
+        assert {'length': 'lengths', 'duplicate': ctrl[0], 'nonfinite': 'non-finite',
+                'missing': ctrl[0]}[kind] in text
+    assert c.on_joint_state(ctrl, good) is not None
+    assert c.accepted == 1
+
+
+def test_clamp_and_nonfinite_output(chain):
+    xml, ctrl, locked = chain
+    xml = re.sub(r'effort="[^"]*"', 'effort="2.0"', xml)
+    c = make(xml, ctrl, effort_limit_scale=0.5)
+    q = np.full(len(ctrl), 0.7)
+    tau = c.on_joint_state(ctrl, q)
+    ref = Oracle(xml, joints=ctrl).gravity(q)
+    assert np.any(np.abs(ref) > 1.0)
+    np.testing.assert_allclose(tau, np.clip(ref, -1.0, 1.0), atol=TOL)
+    assert c.clamp_count == 1 and c.clamped
+    assert [e[1] for e in c.events if e[1]] == ['clamp']
+    # a model that produces NaN must never reach the output
+    c.model.gravity = lambda q: np.full(len(ctrl), math.nan)
+    assert c.on_joint_state(ctrl, q) is None
+    assert 'non-finite torque' in c.last_error
+    c.model.gravity = lambda q: np.full(len(ctrl), -math.inf)   # beyond any finite limit: clamped
+    np.testing.assert_array_equal(c.on_joint_state(ctrl, q), np.full(len(ctrl), -1.0))
+    # no URDF effort limit: not clamped, but an infinite value is still never published
+    c2 = make(re.sub(r' effort="[^"]*"', '', xml), ctrl)
+    assert not np.isfinite(c2.model.effort_limits).any()
+    assert any('no URDF effort limit' in e[2] for e in c2.events)
+    c2.model.gravity = lambda q: np.full(len(ctrl), math.inf)
+    assert c2.on_joint_state(ctrl, q) is None
+
+
+def test_stale_hold_zero_and_recovery(chain):
+    xml, ctrl, locked = chain
+    clock = Clock()
+    c = make(xml, ctrl, clock=clock, stale_timeout=0.2, include_velocity_terms=True)
+    assert c.tick() is None  # nothing received yet: nothing to hold
+    q, qd = np.full(len(ctrl), 0.4), np.full(len(ctrl), 1.0)
+    tau = c.on_joint_state(ctrl, q, qd)
+    clock.t += 0.15
+    assert c.tick() is None and not c.stale
+    clock.t += 0.1
+    held = c.tick()
+    assert c.stale and c.stale_events == 1
+    np.testing.assert_allclose(held, c.model.gravity(q), atol=TOL)   # velocity terms dropped
+    assert not np.allclose(held, tau)
+    assert c.tick() is None  # once
+    assert c.diagnostics()[0] == WARN
+    assert c.on_joint_state(ctrl, q, qd) is not None and not c.stale
+    c.update({'stale_action': 'zero'})
+    clock.t += 1.0
+    np.testing.assert_array_equal(c.tick(), np.zeros(len(ctrl)))
+
+
+def test_enable_disable(chain):
+    xml, ctrl, locked = chain
+    c = make(xml, ctrl)
+    q = np.zeros(len(ctrl))
+    zeros = c.set_enabled(False)
+    np.testing.assert_array_equal(zeros, np.zeros(len(ctrl)))
+    assert c.on_joint_state(ctrl, q) is None and c.accepted == 1   # still tracked, not published
+    assert c.set_enabled(False) is None                            # no change, nothing to send
+    assert c.set_enabled(True) is None
+    assert c.on_joint_state(ctrl, q) is not None
+
+
+def test_model_swap_keeps_layout_and_locked_values(chain):
+    xml, ctrl, locked = chain
+    c = make(xml, ctrl)
+    q = np.full(len(ctrl), 0.2)
+    c.on_joint_state(ctrl + [locked], list(q) + [0.9])
+    heavier = re.sub(r'<mass value="([^"]*)"', lambda m: f'<mass value="{2 * float(m.group(1))!r}"', xml)
+    c.set_model(load_urdf(heavier, joints=ctrl))
+    assert c.model.locked_values[locked] == 0.9
+    ref = Oracle(heavier, joints=ctrl, locked={locked: 0.9}).gravity(q)
+    np.testing.assert_allclose(c.on_joint_state(ctrl, q), ref, atol=TOL)
+    with pytest.raises(ValueError, match='layout'):
+        c.set_model(load_urdf(xml, joints=ctrl[::-1]))
+
+
+def test_no_model_publishes_nothing():
+    c = Compensator(clock=Clock())
+    assert c.on_joint_state(['a'], [0.0]) is None
+    assert c.tick(1e9) is None
+    assert c.set_enabled(False) is None
+    assert c.diagnostics()[0] == ERROR
+
+
+def test_parameter_checks():
+    assert set(defaults()) == {p.name for p in PARAMS}
+    bad = [('gravity_scale', 1.5), ('gravity', [0.0, 9.81]), ('gravity', [0.0, 0.0, math.nan]),
+           ('gravity', [0.0, 0.0, -981.0]), ('stale_action', 'freeze'), ('payload.inertia', [1.0, 2.0]),
+           ('friction.viscous', [-1.0]), ('joints', ['a', 'a']), ('enabled', 1), ('stale_timeout', 0.0)]
+    for name, value in bad:
+        with pytest.raises(ValueError):
+            check_value(name, value)
+    with pytest.raises(ValueError, match='payload.link'):
+        Compensator({'payload.mass': 1.0})
+
+
+def test_diagnostics_window(chain):
+    xml, ctrl, locked = chain
+    clock = Clock()
+    c = make(xml, ctrl, clock=clock)
+    c.diagnostics()
+    for _ in range(10):
+        c.on_joint_state(ctrl, np.zeros(len(ctrl)))
+        c.record_compute_time(1e-4)
+    clock.t += 2.0
+    level, msg, values = c.diagnostics()
+    v = dict(values)
+    assert level == OK and msg == 'compensating'
+    assert float(v['input_rate_hz']) == pytest.approx(5.0)
+    assert float(v['compute_time_mean_ms']) == pytest.approx(0.1)
+    assert v['joint_count'] == str(len(ctrl)) and v['model_loaded'] == 'True'
+
+
+def test_throttle():
+    clock = Clock()
+    t = Throttle(2.0, clock)
+    assert t.ready('a') and not t.ready('a') and t.ready('b')
+    clock.t += 2.0
+    assert t.ready('a')
