@@ -102,6 +102,7 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
     env['ROS_DOMAIN_ID'] = str(domain if domain is not None else 50 + os.getpid() % 50)
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     log_dir = log_dir or tempfile.mkdtemp(prefix='lie_dynamics_demo_')
+    os.makedirs(log_dir, exist_ok=True)
     steps = int(round(duration * rate)) if duration > 0 else 0
     ctx = rclpy.Context()
     old_domain = os.environ.get('ROS_DOMAIN_ID')
@@ -112,6 +113,7 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
     else:
         os.environ['ROS_DOMAIN_ID'] = old_domain
     rec = {'t': [], 'q': [], 'qd': [], 'tau': []}
+    interrupted = False
     try:
         node = rclpy.create_node('demo_recorder', context=ctx)
         ex = SingleThreadedExecutor(context=ctx)
@@ -139,20 +141,26 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
                              20.0, stack):
                     raise RuntimeError('trajectory_source did not come up')
             stack.start('sim_node', 'lie_dynamics.sim_node',
-                        {'rate': f'{rate:.1f}', 'initial_positions': _arr(HOME), 'lockstep': 'true',
+                        {'rate': f'{rate:.1f}', 'initial_positions': _arr(HOME),
+                         'lockstep': 'true' if node_params is not None else 'false',
                          'max_steps': str(steps)})
             last_status = 0.0
-            while True:
-                ex.spin_once(timeout_sec=0.05)
-                stack.check()
-                if steps and rec['t'] and rec['t'][-1] >= duration - 0.5 / rate:
-                    break
-                if status and time.monotonic() - last_status > 0.5 and rec['t']:
-                    last_status = time.monotonic()
-                    status(name, rec)
+            try:
+                while True:
+                    ex.spin_once(timeout_sec=0.05)
+                    stack.check()
+                    if steps and rec['t'] and rec['t'][-1] >= duration - 0.5 / rate:
+                        break
+                    if status and time.monotonic() - last_status > 1.0 and rec['t']:
+                        last_status = time.monotonic()
+                        status(name, rec)
+            except KeyboardInterrupt:  # keep what was recorded; the caller reports it
+                interrupted = True
     finally:
         rclpy.shutdown(context=ctx)
-    return {k: np.array(v, dtype=float) for k, v in rec.items()}
+    out = {k: np.array(v, dtype=float) for k, v in rec.items()}
+    out['interrupted'] = interrupted
+    return out
 
 
 def _wait(ex, cond, timeout, stack):
@@ -199,11 +207,12 @@ def plot(records, path):
             ax_tau.plot(t, rec['tau'], lw=1)
         ax_q.set_title(name)
         ax_q.set_ylabel('q - q_home (rad)' if 'compensation' in name else 'q (solid), q_d (dashed) (rad)')
-        ax_tau.set_ylabel('applied torque (Nm)')
+        ax_tau.set_ylabel('joint torque: command - damping (Nm)')
         ax_tau.set_xlabel('simulated time (s)')
         ax_q.grid(alpha=0.3)
         ax_tau.grid(alpha=0.3)
-    fig.suptitle('lie_dynamics demo: bundled 7-DoF arm, 1 kHz simulation (joints 1-7)')
+    axes[0, 0].legend([f'joint{i + 1}' for i in range(len(HOME))], fontsize=7, ncol=2, loc='lower left')
+    fig.suptitle('lie_dynamics demo: bundled 7-DoF arm, 1 kHz simulation')
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -216,6 +225,8 @@ def main(argv=None):
     ap.add_argument('--out', default='demo_out', help='output folder for the PNG and CSV')
     ap.add_argument('--scenarios', nargs='*', default=None, help='subset of scenario names')
     args = ap.parse_args(argv)
+    # SIGTERM (a closing terminal, a CI timeout) cleans up like Ctrl-C: no orphans, no DDS leftovers.
+    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
     os.makedirs(args.out, exist_ok=True)
     load_urdf(default_urdf_path())  # fail early with a clear message if the bundled model is broken
     names = args.scenarios or list(scenarios())
@@ -229,13 +240,13 @@ def main(argv=None):
 
     records = {}
     try:
-        if args.duration <= 0:
-            records['PD + feedforward'] = run_scenario('PD + feedforward', 0, args.rate, status=status)
-        else:
-            for name in names:
+        for name in (['PD + feedforward'] if args.duration <= 0 else names):
+            if args.duration > 0:
                 print(f'running: {name} ({args.duration:g} s simulated)', flush=True)
-                records[name] = run_scenario(name, args.duration, args.rate, status=status)
-                print()
+            records[name] = run_scenario(name, max(args.duration, 0.0), args.rate, status=status)
+            print()
+            if records[name]['interrupted']:
+                raise KeyboardInterrupt
     except KeyboardInterrupt:
         print('\ninterrupted: processes stopped')
     rows = [metrics(n, r) for n, r in records.items()]

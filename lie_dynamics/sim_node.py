@@ -12,15 +12,14 @@ Subscribes  <command_topic> (std_msgs/Float64MultiArray, ordered as `joints`), h
 
 Parameters  urdf_path (default: the bundled arm), joints (default: all), rate (Hz, 1000),
             initial_positions, damping (URDF joint damping on/off), command_topic,
-            lockstep (wait for the command answering each published state, up to
-            lockstep_timeout s, while a command publisher exists: results then do not depend
-            on machine load), max_steps (0 = run until shut down).
+            lockstep (hold the initial state until the first command arrives, then wait for
+            the command answering each published state, re-sending the state every
+            `resend_period` s and stepping anyway after `lockstep_timeout` s: results then do
+            not depend on machine load), max_steps (0 = run until shut down).
 """
 import sys
 
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
@@ -28,6 +27,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 
 from . import default_urdf_path
+from .ros_run import run
 from .sim import ArmSim
 from .urdf import load_urdf
 
@@ -47,6 +47,7 @@ class SimNode(Node):
         self.command_topic = p('command_topic', '/effort_controller/commands').value
         self.lockstep = bool(p('lockstep', False).value)
         self.lockstep_timeout = float(p('lockstep_timeout', 0.05).value)
+        self.resend_period = float(p('resend_period', 0.01).value)
         self.max_steps = int(p('max_steps', 0).value)
         with open(urdf_path, encoding='utf-8') as fh:
             self.xml = fh.read()
@@ -63,8 +64,11 @@ class SimNode(Node):
         self.desc_pub.publish(String(data=self.xml))
         self.state_pub = self.create_publisher(JointState, 'joint_states', 10)
         self.create_subscription(Float64MultiArray, self.command_topic, self._on_command, 10)
-        self.fresh_command = True
-        self.waited = 0.0
+        self.fresh_command = False
+        self.started = not self.lockstep
+        self.wait_ticks = 0
+        self.timeout_ticks = max(1, int(round(self.lockstep_timeout * rate)))
+        self.resend_ticks = max(1, int(round(self.resend_period * rate)))
         self.steps = 0
         self.bad_commands = 0
         self.timer = self.create_timer(1.0 / rate, self._tick)
@@ -85,11 +89,18 @@ class SimNode(Node):
     def _tick(self):
         if self.max_steps and self.steps >= self.max_steps:
             return
-        if self.lockstep and not self.fresh_command and self.count_publishers(self.command_topic) > 0:
-            self.waited += self.timer.timer_period_ns * 1e-9
-            if self.waited < self.lockstep_timeout:
+        if self.lockstep and not self.fresh_command:
+            # The answer to the last state has not come (yet): wait, re-sending the state in
+            # case a best-effort reader lost it; before the first command, wait indefinitely.
+            self.wait_ticks += 1
+            if not self.started or self.wait_ticks < self.timeout_ticks:
+                if self.wait_ticks % self.resend_ticks == 0:
+                    self._publish_state()
                 return
-        self.waited = 0.0
+            self.get_logger().warn(f'no command within {self.lockstep_timeout} s: stepping with the held one',
+                                   throttle_duration_sec=2.0)
+        self.started = True
+        self.wait_ticks = 0
         self.fresh_command = False
         self.sim.step()
         self.steps += 1
@@ -106,25 +117,7 @@ class SimNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    executor = SingleThreadedExecutor()
-    node = None
-    try:
-        node = SimNode()
-        executor.add_node(node)
-        while rclpy.ok() and not (node.max_steps and node.steps >= node.max_steps):
-            executor.spin_once(timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:
-        print(f'sim_node: {exc}', file=sys.stderr)
-        return 2
-    finally:
-        if node is not None:
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
-    return 0
+    return run(SimNode, 'sim_node', args, done=lambda n: bool(n.max_steps) and n.steps >= n.max_steps)
 
 
 if __name__ == '__main__':

@@ -12,11 +12,11 @@ which starts at rest at q_home and stays within q_home +- a (kept inside the joi
 import sys
 
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from .ros_run import run
 
 
 def desired_state(t, q_home, amplitude, frequency):
@@ -54,20 +54,7 @@ class TrajectorySource(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    executor = SingleThreadedExecutor()
-    node = TrajectorySource()
-    executor.add_node(node)
-    try:
-        while rclpy.ok():
-            executor.spin_once(timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
-    return 0
+    return run(TrajectorySource, 'trajectory_source', args)
 
 
 if __name__ == '__main__':
