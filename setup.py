@@ -25,6 +25,10 @@ setup(
     entry_points={
         'console_scripts': [
             'dynamics_node = lie_dynamics.dynamics_node:main',
+            'sim_node = lie_dynamics.sim_node:main',
+            'trajectory_source = lie_dynamics.trajectory_source:main',
+            'demo = lie_dynamics.demo:main',
+            'fill_trajectory = lie_dynamics.trajectory:main',
         ],
     },
 )

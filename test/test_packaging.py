@@ -73,6 +73,10 @@ def test_colcon_build_and_ros2_run_resolution(tmp_path):
     assert prefix == str(install)
     exe = os.path.join(prefix, 'lib', 'lie_dynamics', 'dynamics_node')
     assert os.path.isfile(exe) and os.access(exe, os.X_OK)
+    for other in ('sim_node', 'trajectory_source', 'demo', 'fill_trajectory'):
+        path = os.path.join(prefix, 'lib', 'lie_dynamics', other)
+        assert os.path.isfile(path) and os.access(path, os.X_OK), other
+    assert os.path.isfile(site / 'lie_dynamics' / 'data' / 'arm7.urdf')  # the embedded default model
     for f in ('config/arm7_gravity.yaml', 'config/wall_mount_payload.yaml', 'config/arm7.urdf',
               'launch/dynamics.launch.py', 'package.xml'):
         assert os.path.isfile(os.path.join(share, f)), f
