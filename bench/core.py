@@ -21,9 +21,10 @@ import json
 import os
 import platform
 import sys
-import time
 
 import numpy as np
+
+from bench import common
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -33,52 +34,10 @@ LABELS = {'lie_dynamics': 'lie_dynamics', 'lie_dynamics_vectorised': 'lie_dynami
           'pinocchio': 'Pinocchio', 'modern_robotics': 'Modern Robotics'}
 
 
-def default_urdf():
-    """The bundled arm (config/arm7.urdf), else the package's embedded copy."""
-    path = os.path.join(ROOT, 'config', 'arm7.urdf')
-    if os.path.isfile(path):
-        return path
-    from lie_dynamics import default_urdf_path
-    return default_urdf_path()
-
-
-# ------------------------------------------------------------------ Modern Robotics model
-def modern_robotics_lists(model):
-    """(Mlist, Glist, Slist) of Modern Robotics for a serial chain model.
-
-    MR puts link frame {i} at the centre of mass with G_i = diag(I_c, m 1) there, Mlist the
-    home poses of {i} in {i-1} (plus an end frame), Slist the space-frame screws (w, v).
-    """
-    from lie_dynamics import se3
-    if np.any(model.parent != np.arange(-1, model.nb - 1)) or not np.array_equal(model.E, np.eye(model.n)) \
-            or np.any(model.e0 != 0):
-        raise ValueError('Modern Robotics needs a serial chain without mimic or locked joints')
-    T = np.eye(4)
-    frames, G, S = [], [], []
-    for b in range(model.nb):
-        T = T @ model.M[b]                      # body frame at q = 0
-        J = model.J[b]
-        m = J[3, 3]
-        c = np.array([J[2, 4], J[0, 5], J[1, 3]]) / m if m > 0 else np.zeros(3)  # J[:3, 3:] = m[c]
-        C = T @ se3.transform(p=c)              # CoM frame, body orientation
-        Ic = J[:3, :3] + m * se3.hat3(c) @ se3.hat3(c)
-        G.append(np.block([[Ic, np.zeros((3, 3))], [np.zeros((3, 3)), m * np.eye(3)]]))
-        S.append(se3.Ad(T) @ model.S[b])
-        frames.append(C)
-    Mlist = [frames[0]] + [se3.inv(frames[i - 1]) @ frames[i] for i in range(1, model.nb)] + [np.eye(4)]
-    return np.array(Mlist), np.array(G), np.array(S).T
-
-
-# ------------------------------------------------------------------ timing
-def _calibrate(fn, target):
-    """Calls per measurement so that one measurement takes about `target` seconds."""
-    t0 = time.perf_counter()
-    fn()
-    dt = time.perf_counter() - t0
-    number = 1
-    while dt * number < target and number < 1_000_000:
-        number *= 2
-    return number
+# Shared with the other benchmarks (bench/common.py); the names stay importable from here.
+default_urdf = common.default_urdf
+modern_robotics_lists = common.modern_robotics_lists
+_calibrate = common.calibrate
 
 
 def _build(model, urdf_xml, op, N, rng, mr_states):
@@ -161,14 +120,9 @@ def run(quick=False, urdf=None, rounds=None, sizes=SIZES, seed=0):
         for N in sizes:
             fns, worst = _build(model, xml, op, N, rng, mr_states)
             accuracy[f'{op} N={N}'] = worst
-            numbers = {impl: _calibrate(fn, target) for impl, (fn, _) in fns.items()}
-            per_state = {impl: [] for impl in fns}
-            for _ in range(rounds):  # interleaved: each round times every implementation once
-                for impl, (fn, states) in fns.items():
-                    t0 = time.perf_counter()
-                    for _ in range(numbers[impl]):
-                        fn()
-                    per_state[impl].append((time.perf_counter() - t0) / numbers[impl] / states * 1e6)
+            # interleaved: each round times every implementation once
+            secs = common.time_interleaved({impl: fn for impl, (fn, _) in fns.items()}, rounds, target)
+            per_state = {impl: secs[impl] / fns[impl][1] * 1e6 for impl in fns}
             pin_rounds = np.array(per_state['pinocchio'])
             for impl in fns:
                 ts = np.array(per_state[impl])

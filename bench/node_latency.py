@@ -153,12 +153,15 @@ def _key(x):
     return np.round(x, 6).tobytes()
 
 
-def start(kind, cpu=None):
+def start(kind, cpu=None, params=None):
+    """params: extra dynamics-node parameters {name: value string}, after the file (they win)."""
     if kind == 'echo':
         cmd = [sys.executable, '-m', 'bench.node_latency', '--echo-node']
     else:
         cmd = [sys.executable, '-m', 'lie_dynamics.dynamics_node', '--ros-args', '--params-file',
                os.path.join(ROOT, 'config', 'arm7_gravity.yaml')]
+        for k, v in (params or {}).items():
+            cmd += ['-p', f'{k}:={v}']
     pre = (lambda: os.sched_setaffinity(0, {cpu})) if cpu is not None else None
     return subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=pre)
 

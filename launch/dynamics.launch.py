@@ -1,6 +1,11 @@
 """Start the dynamics node with a parameter file (needs a full ROS 2 install: launch, launch_ros).
 
     ros2 launch lie_dynamics dynamics.launch.py params_file:=/path/to/params.yaml
+    ros2 launch lie_dynamics dynamics.launch.py \
+        params_file:=$(ros2 pkg prefix lie_dynamics)/share/lie_dynamics/config/arm7_feedforward.yaml
+
+The filled trajectories (~/trajectory_out) are remapped to joint_trajectory_controller's
+input; change it with trajectory_out:=/<controller_name>/joint_trajectory.
 """
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
@@ -14,6 +19,9 @@ def generate_launch_description():
     return LaunchDescription([
         DeclareLaunchArgument('params_file', default_value=default_params,
                               description='Parameter file of the dynamics node'),
+        DeclareLaunchArgument('trajectory_out', default_value='/joint_trajectory_controller/joint_trajectory',
+                              description='Where trajectories with filled efforts go'),
         Node(package='lie_dynamics', executable='dynamics_node', name='dynamics_node', output='screen',
-             parameters=[LaunchConfiguration('params_file')]),
+             parameters=[LaunchConfiguration('params_file')],
+             remappings=[('~/trajectory_out', LaunchConfiguration('trajectory_out'))]),
     ])

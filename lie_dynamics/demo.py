@@ -57,8 +57,10 @@ class Stack:
 
     def __init__(self, env, log_dir):
         self.env, self.log_dir, self.procs = env, log_dir, []
+        self.exit_codes = {}  # name -> return code once stopped (negative: killed by a signal)
+        self.self_ending = set()  # processes with a step budget: let them finish before signalling
 
-    def start(self, name, module, params, params_file=None):
+    def start(self, name, module, params, params_file=None, ends_by_itself=False):
         args = [sys.executable, '-m', module, '--ros-args']
         if params_file:  # a file first: the -p overrides after it win
             args += ['--params-file', params_file]
@@ -67,6 +69,8 @@ class Stack:
         log = open(os.path.join(self.log_dir, name + '.log'), 'w')
         self.procs.append((name, subprocess.Popen(args, env=self.env, stdout=log, stderr=subprocess.STDOUT,
                                                   cwd=os.path.dirname(PKG_DIR)), log))
+        if ends_by_itself:
+            self.self_ending.add(name)
 
     def check(self):
         for name, p, _ in self.procs:
@@ -77,6 +81,13 @@ class Stack:
         return self
 
     def __exit__(self, *exc):
+        finished = exc[0] is None
+        for name, p, _ in self.procs:
+            if finished and name in self.self_ending:
+                try:
+                    p.wait(timeout=5.0)
+                except subprocess.TimeoutExpired:
+                    pass
         for _, p, _ in self.procs:
             if p.poll() is None:
                 p.send_signal(signal.SIGINT)
@@ -88,6 +99,7 @@ class Stack:
                 p.kill()
                 p.wait()
             log.close()
+        self.exit_codes = {name: p.returncode for name, p, _ in self.procs}
         return False
 
 
@@ -114,6 +126,7 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
         os.environ['ROS_DOMAIN_ID'] = old_domain
     rec = {'t': [], 'q': [], 'qd': [], 'tau': []}
     interrupted = False
+    stack = node = ex = None
     try:
         node = rclpy.create_node('demo_recorder', context=ctx)
         ex = SingleThreadedExecutor(context=ctx)
@@ -124,8 +137,10 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
             rec['q'].append(list(msg.position))
             rec['qd'].append(list(msg.velocity))
             rec['tau'].append(list(msg.effort))
-        node.create_subscription(JointState, 'joint_states', on_state, 1000)
-        with Stack(env, log_dir) as stack:
+        # deep enough for a whole default run: a reader that falls behind must not drop the oldest states
+        node.create_subscription(JointState, 'joint_states', on_state, 20000)
+        stack = Stack(env, log_dir)
+        with stack:
             if node_params is not None:
                 if os.path.isfile(CONFIG):
                     stack.start('dynamics_node', 'lie_dynamics.dynamics_node', node_params, CONFIG)
@@ -143,23 +158,33 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
             stack.start('sim_node', 'lie_dynamics.sim_node',
                         {'rate': f'{rate:.1f}', 'initial_positions': _arr(HOME),
                          'lockstep': 'true' if node_params is not None else 'false',
-                         'max_steps': str(steps)})
-            last_status = 0.0
+                         'min_subscribers': str(1 + (node_params is not None) + with_traj),
+                         'max_steps': str(steps)}, ends_by_itself=steps > 0)
+            last_check = last_status = 0.0
             try:
                 while True:
-                    ex.spin_once(timeout_sec=0.05)
-                    stack.check()
+                    ex.spin_once(timeout_sec=0.05)  # one callback: keep this loop lean, it must not lag
                     if steps and rec['t'] and rec['t'][-1] >= duration - 0.5 / rate:
                         break
-                    if status and time.monotonic() - last_status > 1.0 and rec['t']:
-                        last_status = time.monotonic()
+                    now = time.monotonic()
+                    if now - last_check > 0.2:
+                        last_check = now
+                        stack.check()
+                    if status and now - last_status > 1.0 and rec['t']:
+                        last_status = now
                         status(name, rec)
             except KeyboardInterrupt:  # keep what was recorded; the caller reports it
                 interrupted = True
     finally:
+        # destroy the reader explicitly: a leftover one would count as "ready" for the next sim
+        if ex is not None:
+            ex.shutdown()
+        if node is not None:
+            node.destroy_node()
         rclpy.shutdown(context=ctx)
     out = {k: np.array(v, dtype=float) for k, v in rec.items()}
     out['interrupted'] = interrupted
+    out['exit_codes'] = stack.exit_codes
     return out
 
 

@@ -1,4 +1,5 @@
-"""ROS 2 node: gravity compensation from joint_states to ros2_control effort commands.
+"""ROS 2 node: gravity compensation / torque feedforward from joint_states to ros2_control effort
+commands, and feedforward efforts for joint_trajectory_controller trajectories.
 
     ros2 run lie_dynamics dynamics_node --ros-args --params-file config/arm7_gravity.yaml
     python -m lie_dynamics.dynamics_node --ros-args -p urdf_path:=config/arm7.urdf
@@ -7,7 +8,13 @@ A thin shell around `ros_core.Compensator` (all decisions live there, testable w
 
 Subscribes  robot_description (std_msgs/String, reliable, transient local, depth 1)
             joint_states      (sensor_msgs/JointState, best effort, depth 10 - as robot_state_publisher)
+            <desired_topic>   (trajectory_msgs/JointTrajectory, one point; best effort, depth 1: only the
+                              latest set-point matters; compatible with reliable publishers), default ~/desired
+            ~/trajectory_in   (trajectory_msgs/JointTrajectory from a planner; reliable, depth 10)
 Publishes   <command_topic>   (std_msgs/Float64MultiArray, `joints` order), one per valid joint_states
+            ~/trajectory_out  (trajectory_msgs/JointTrajectory: ~/trajectory_in with `effort` filled;
+                              remap it to the controller, e.g.
+                              -r ~/trajectory_out:=/joint_trajectory_controller/joint_trajectory)
             ~/commanded_efforts (sensor_msgs/JointState, if publish_joint_state; input stamp)
             /diagnostics      (diagnostic_msgs/DiagnosticArray, every diagnostics_period)
 Services    ~/set_enabled (std_srvs/SetBool), ~/reload_model (std_srvs/Trigger)
@@ -29,6 +36,25 @@ Behaviour (the effort controller holds the last command forever and does not cla
 * Disabling (parameter or ~/set_enabled) publishes one all-zero command, then nothing, so
   another publisher may take over the controller; enabling resumes with the next message.
 * Shutdown (SIGINT/SIGTERM) publishes the stale_action command once.
+* Torque law: parameter `mode` (gravity, feedforward, computed_torque, pd; live), see ros_core.
+  The modes other than gravity use the last valid desired state; without one younger than
+  desired_timeout they fall back to the gravity law at the measured state (one log line,
+  diagnostics), and resume with the next valid desired state. Commands are still computed
+  and published per joint_states message; a desired message only updates the set-point.
+* Desired messages: exactly one point (a whole trajectory belongs on ~/trajectory_in);
+  positions for every name; velocities / accelerations one per name or empty (= zeros);
+  point effort and time_from_start, and the header, are ignored. Names are mapped; names
+  that are not controlled joints (including locked ones) are ignored; every controlled joint
+  must be present with finite values. A rejected message (one throttled log line per
+  problem) leaves the last valid desired state in place, including its age.
+* Trajectories: the message is republished unchanged except that every point's `effort` is
+  set (one value per joint name, in the message's order): inverse dynamics at the point plus
+  friction compensation at its velocity, clamped to the effort limits; 0 for names that are
+  not controlled joints. Missing velocities / accelerations are derived from positions /
+  velocities and time_from_start (trajectory.py). Malformed trajectories (no points, ragged
+  arrays, times not strictly increasing, duplicate names, missing controlled joints,
+  non-finite values) are rejected with one log line and nothing is published; so are
+  trajectories arriving without a model or while disabled.
 * Invalid parameters at start-up: the process exits with status 2 and says why; invalid
   live updates are rejected with the reason.
 """
@@ -52,15 +78,19 @@ from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
+from trajectory_msgs.msg import JointTrajectory
 
 from .ros_core import Compensator, Throttle
 from .ros_params import PARAMS, SPECS
+from .ros_trajectory import set_point_efforts
 
 # As robot_state_publisher publishes it: a late subscriber must also be transient local.
 DESCRIPTION_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
 JOINT_STATES_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST,
                               reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
+DESIRED_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
+                         reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
 _NO_PUB_EVENTS = PublisherEventCallbacks(use_default_callbacks=False)
 _NO_SUB_EVENTS = SubscriptionEventCallbacks(use_default_callbacks=False)
 _TYPES = {'bool': Parameter.Type.BOOL, 'double': Parameter.Type.DOUBLE, 'string': Parameter.Type.STRING,
@@ -109,7 +139,7 @@ def _tick_period(stale_timeout, diagnostics_period):
 
 
 class DynamicsNode(Node):
-    """Gravity-compensation node. Extra keyword arguments go to rclpy's Node (context, overrides)."""
+    """Dynamics node. Extra keyword arguments go to rclpy's Node (context, overrides)."""
 
     def __init__(self, node_name='dynamics_node', **kwargs):
         super().__init__(node_name, **kwargs)
@@ -143,6 +173,13 @@ class DynamicsNode(Node):
         self._warned_publishers = set()
         self.create_subscription(JointState, 'joint_states', self._on_joint_state, JOINT_STATES_QOS,
                                  event_callbacks=_NO_SUB_EVENTS)
+        desired = self.create_subscription(JointTrajectory, values['desired_topic'], self._on_desired,
+                                           DESIRED_QOS, event_callbacks=_NO_SUB_EVENTS)
+        self.core.desired_topic = desired.topic_name
+        self.create_subscription(JointTrajectory, '~/trajectory_in', self._on_trajectory, 10,
+                                 event_callbacks=_NO_SUB_EVENTS)
+        self._traj_pub = self.create_publisher(JointTrajectory, '~/trajectory_out', 10,
+                                               event_callbacks=_NO_PUB_EVENTS)
         self.create_service(SetBool, '~/set_enabled', self._srv_set_enabled)
         self.create_service(Trigger, '~/reload_model', self._srv_reload)
         self._diag_period = values['diagnostics_period']
@@ -202,6 +239,22 @@ class DynamicsNode(Node):
             if core.events:
                 self._drain_events()
             core.record_compute_time(time.perf_counter() - t0)
+
+    @_guarded
+    def _on_desired(self, msg):
+        with self._lock:
+            self.core.on_desired(msg.joint_names, msg.points)
+            if self.core.events:
+                self._drain_events()
+
+    @_guarded
+    def _on_trajectory(self, msg):
+        with self._lock:
+            efforts = self.core.on_trajectory(msg.joint_names, msg.points)
+            self._drain_events()
+        if efforts is not None:
+            set_point_efforts(msg.points, efforts)
+            self._traj_pub.publish(msg)
 
     def _publish(self, tau, stamp=None):
         data = array.array('d', tau.tobytes())

@@ -2,20 +2,35 @@
 
 `Compensator` turns joint_states messages into effort commands: it validates each message,
 maps joints by name, feeds uncontrolled joints to the model's locked values, applies the
-torque law, clamps, and runs the stale-input watchdog. The ROS node (dynamics_node.py) only
-moves messages in and out and logs the `events` this class queues.
+torque law, clamps, and runs the stale-input watchdog. It also keeps the last valid desired
+state (`on_desired`) and fills trajectories with feedforward efforts (`on_trajectory`). The
+ROS node (dynamics_node.py) only moves messages in and out and logs the `events` queued here.
 
-Torque law (command order = controlled joints):
-    tau = g(q)|gravity*gravity_scale  [+ C(q, qd) qd]  + b*qd + fc*tanh(qd/eps)
-then clamped to +-effort_limit*effort_limit_scale. Velocity-dependent terms use the measured
-velocity; a NaN/inf (or absent) velocity of a joint counts as unavailable and is used as 0.
-Locked joints are treated as stationary.
+Torque laws (`mode`; command order = controlled joints; q, qd measured; q_d, qd_d, qdd_d the
+last valid desired state; e = q_d - q, de = qd_d - qd; f(v) = b*v + fc*tanh(v/eps) friction):
+    gravity          tau = g(q) [+ C(q, qd) qd if include_velocity_terms] + f(qd)
+    feedforward      tau = M(q_d) qdd_d + C(q_d, qd_d) qd_d + g(q_d) + f(qd_d) + Kp e + Kd de
+    computed_torque  tau = M(q) (qdd_d + Kp e + Kd de) + C(q, qd) qd + g(q) + f(qd)
+    pd               tau = Kp e + Kd de
+g uses gravity * gravity_scale (and the payload). Each is one inverse-dynamics (RNEA) call.
+A mode other than gravity without a desired state younger than desired_timeout (or none yet)
+uses the gravity law instead, says so once (throttled) and in the diagnostics, and resumes by
+itself with the next valid desired state. The result is clamped to
++-effort_limit*effort_limit_scale; a non-finite result is never published. Velocity-dependent
+terms use the measured velocity; a NaN/inf (or absent) velocity of a joint counts as
+unavailable and is used as 0. Locked joints are treated as stationary at their measured value
+(desired values for them are ignored). Commands are computed for joint_states messages only:
+a desired message updates the set-point, it does not trigger a command.
 """
 import time
 
 import numpy as np
 
 from .ros_params import check_value, defaults
+from .ros_trajectory import trajectory_arrays
+from .trajectory import fill_trajectory_efforts
+
+NEEDS_DESIRED = ('feedforward', 'computed_torque', 'pd')
 
 # diagnostic_msgs/DiagnosticStatus levels
 OK, WARN, ERROR = 0, 1, 2
@@ -34,6 +49,8 @@ class Throttle:
         last = self._last.get(key)
         if last is not None and now - last < self.period:
             return False
+        if len(self._last) > 1000:  # keys may carry message text: forget the expired ones
+            self._last = {k: t for k, t in self._last.items() if now - t < self.period}
         self._last[key] = now
         return True
 
@@ -53,6 +70,45 @@ def _per_joint(values, urdf_values, n, name):
     return out if np.any(out != 0) else None
 
 
+def _gains(values, n, name):
+    """PD gains: [] -> 0, [k] -> every joint, n values -> per joint. None when all 0."""
+    if len(values) not in (0, 1, n):
+        raise ValueError(f'{name} must have 1 or {n} values (one per controlled joint), got {len(values)}')
+    out = np.zeros(n) + np.asarray(values or [0.0], dtype=float)
+    if not np.all(np.isfinite(out)) or np.any(out < 0):
+        raise ValueError(f'{name} must be finite and >= 0, got {out.tolist()}')
+    return out if np.any(out != 0) else None
+
+
+class _NameMap:
+    """Column indices of the controlled joints in a message's name list (cached per list)."""
+
+    def __init__(self):
+        self.names = None
+        self.error = None
+        self.idx = None
+
+    def build(self, names, controlled):
+        self.names = list(names)
+        self.error = None
+        index = {}
+        dup = []
+        for i, name in enumerate(names):
+            if name in index:
+                dup.append(name)
+            index[name] = i
+        if dup:
+            self.error = ('duplicate', f'duplicate joint names {sorted(set(dup))}')
+            return
+        missing = [j for j in controlled if j not in index]
+        if missing:
+            other = [j for j in names if j not in set(controlled)]
+            hint = f' (it names {other}, which are not controlled joints)' if other else ''
+            self.error = ('missing', f'missing controlled joints {missing}{hint}')
+            return
+        self.idx = np.array([index[j] for j in controlled], dtype=int)
+
+
 class Compensator:
     """Gravity/feedforward compensation state machine, independent of ROS.
 
@@ -69,6 +125,9 @@ class Compensator:
         self._check_payload_pair(self.settings)
         self.model = None
         self.layout = list(self.settings['joints']) or None  # command joint order, fixed once known
+        if self.layout is not None:
+            _gains(self.settings['kp'], len(self.layout), 'kp')
+            _gains(self.settings['kd'], len(self.layout), 'kd')
         self.model_info = ''          # where the current model came from
         self.events = []
         # derived from (model, settings)
@@ -77,6 +136,8 @@ class Compensator:
         self._viscous = None
         self._coulomb = None
         self._need_velocity = False
+        self._kp = None
+        self._kd = None
         # name-mapping cache
         self._names = None
         self._map_error = None
@@ -90,6 +151,19 @@ class Compensator:
         self.last_valid_time = None
         self.stale = False
         self.clamped = None
+        # desired state (controlled order) and its fallback state
+        self.desired_topic = self.settings['desired_topic']   # the node sets the resolved name
+        self._des_map = _NameMap()
+        self.desired = None           # (q_d, qd_d, qdd_d)
+        self.desired_time = None
+        self.desired_fallback = False  # the last command used the gravity law instead of `mode`
+        self.law = None                # torque law of the last command ('gravity (fallback)' if it fell back)
+        self.desired_received = 0
+        self.desired_accepted = 0
+        self.desired_rejected = 0
+        self.fallback_events = 0
+        self.trajectories_filled = 0
+        self.trajectories_rejected = 0
         # statistics
         self.received = 0
         self.accepted = 0
@@ -103,6 +177,7 @@ class Compensator:
         self._win_accepted = 0
         self._win_rejected = 0
         self._win_clamped = 0
+        self._win_desired_rejected = 0
         self._win_times = []
 
     # ------------------------------------------------------------------ configuration
@@ -117,6 +192,7 @@ class Compensator:
         n = model.n
         viscous = _per_joint(s['friction.viscous'], model.damping, n, 'friction.viscous')
         coulomb = _per_joint(s['friction.coulomb'], model.friction, n, 'friction.coulomb')
+        gains = (_gains(s['kp'], n, 'kp'), _gains(s['kd'], n, 'kd'))
         limit = np.asarray(model.effort_limits, dtype=float) * s['effort_limit_scale']
         limit = np.where(np.isnan(limit), np.inf, limit)  # inf * 0
         self._check_payload_pair(s)
@@ -130,10 +206,11 @@ class Compensator:
         elif prev_link:
             model.clear_payload(prev_link)
         model.gravity_vector = np.asarray(s['gravity'], dtype=float) * s['gravity_scale']
-        return limit, viscous, coulomb
+        return limit, viscous, coulomb, gains
 
-    def _adopt(self, limit, viscous, coulomb):
+    def _adopt(self, limit, viscous, coulomb, gains):
         self._limit, self._viscous, self._coulomb = limit, viscous, coulomb
+        self._kp, self._kd = gains
         self._limit_finite = np.minimum(limit, np.finfo(float).max)  # so that +-inf fails `<=`
         self._need_velocity = (self.settings['include_velocity_terms'] or viscous is not None
                                or coulomb is not None)
@@ -178,6 +255,10 @@ class Compensator:
             raise ValueError('joints cannot change at run time')
         self._check_payload_pair(new)
         enable_changed = new['enabled'] != self.settings['enabled']
+        if self.model is None and self.layout is not None:  # gains are checked against the layout early
+            _gains(new['kp'], len(self.layout), 'kp')
+            _gains(new['kd'], len(self.layout), 'kd')
+        mode_changed = new['mode'] != self.settings['mode']
         if self.model is not None:
             old = self.settings
             derived = self._configure(self.model, new, old['payload.link'] if old['payload.mass'] > 0 else '')
@@ -185,6 +266,9 @@ class Compensator:
             self._adopt(*derived)
         else:
             self.settings = new
+        if mode_changed:
+            self.desired_fallback = False  # a later stale desired state is reported again
+            self.events.append(('info', None, f"mode: {new['mode']}"))
         if enable_changed:
             return self._on_enabled_changed()
         return None
@@ -262,25 +346,39 @@ class Compensator:
                 self._last_locked = lv
 
         s = self.settings
-        qd = None
-        if self._need_velocity:
-            if len(velocity):
-                qd = np.asarray(velocity, dtype=float)[self._ctrl_idx]
-                ok = np.isfinite(qd)
-                if not ok.all():
-                    qd = np.where(ok, qd, 0.0)
-                    self.velocity_unavailable += 1
-            else:
-                qd = np.zeros(model.n)
-                self.velocity_unavailable += 1
-        if qd is not None and s['include_velocity_terms']:
-            tau = model.inverse_dynamics(q, qd, np.zeros(model.n))
+        now = self.clock() if now is None else now
+        law = s['mode']
+        if law != 'gravity' and not self._desired_fresh(now):
+            law = 'gravity'
+            self.law = 'gravity (fallback)'
         else:
-            tau = model.gravity(q)
-        if self._viscous is not None:
-            tau = tau + self._viscous * qd
-        if self._coulomb is not None:
-            tau = tau + self._coulomb * np.tanh(qd / s['friction.coulomb_velocity_epsilon'])
+            self.law = law
+        if law == 'gravity':
+            need_v = self._need_velocity
+        else:
+            need_v = law == 'computed_torque' or self._kd is not None
+        qd = self._velocity(velocity) if need_v else None
+        if law == 'gravity':
+            if qd is not None and s['include_velocity_terms']:
+                tau = model.inverse_dynamics(q, qd, np.zeros(model.n))
+            else:
+                tau = model.gravity(q)
+            tau = self._add_friction(tau, qd)
+        else:
+            q_d, qd_d, qdd_d = self.desired
+            fb = None  # Kp e + Kd de
+            if self._kp is not None:
+                fb = self._kp * (q_d - q)
+            if self._kd is not None:
+                fb = self._kd * (qd_d - qd) if fb is None else fb + self._kd * (qd_d - qd)
+            if law == 'feedforward':
+                tau = self._add_friction(model.inverse_dynamics(q_d, qd_d, qdd_d), qd_d)
+                if fb is not None:
+                    tau = tau + fb
+            elif law == 'computed_torque':
+                tau = self._add_friction(model.inverse_dynamics(q, qd, qdd_d if fb is None else qdd_d + fb), qd)
+            else:  # pd
+                tau = np.zeros(model.n) if fb is None else fb
         tau = self._clamp(tau)
         if tau is None:
             return self._reject('nonfinite_output', f'non-finite torque computed at q={q.tolist()}')
@@ -288,13 +386,148 @@ class Compensator:
         self.accepted += 1
         self._win_accepted += 1
         self.last_q = q
-        self.last_valid_time = self.clock() if now is None else now
+        self.last_valid_time = now
         if self.stale:
             self.stale = False
             self.events.append(('info', None, 'joint_states valid again: compensation resumed'))
         if not s['enabled']:
             return None
         return tau
+
+    def _velocity(self, velocity):
+        """Measured velocities of the controlled joints; unavailable (absent, NaN/inf) = 0."""
+        if not len(velocity):
+            self.velocity_unavailable += 1
+            return np.zeros(self.model.n)
+        qd = np.asarray(velocity, dtype=float)[self._ctrl_idx]
+        ok = np.isfinite(qd)
+        if not ok.all():
+            qd = np.where(ok, qd, 0.0)
+            self.velocity_unavailable += 1
+        return qd
+
+    def _add_friction(self, tau, v):
+        """tau + b*v + fc*tanh(v/eps) (configured friction compensation; v may be a batch)."""
+        if self._viscous is not None:
+            tau = tau + self._viscous * v
+        if self._coulomb is not None:
+            tau = tau + self._coulomb * np.tanh(v / self.settings['friction.coulomb_velocity_epsilon'])
+        return tau
+
+    def _desired_fresh(self, now):
+        """Is the desired state usable at `now`? Queues the fallback / recovery log lines."""
+        t = self.desired_time
+        if self.desired_is_fresh(now):
+            if self.desired_fallback:
+                self.desired_fallback = False
+                self.events.append(('info', 'desired:recovered',
+                                    f"desired state on {self.desired_topic} fresh again: mode {self.settings['mode']}"
+                                    ' resumed'))
+            return True
+        if not self.desired_fallback:
+            self.desired_fallback = True
+            self.fallback_events += 1
+            if t is None:
+                key, why = 'desired:none', f'no desired state received yet on {self.desired_topic}'
+            else:
+                key, why = 'desired:stale', (f'no valid desired state on {self.desired_topic} for {now - t:.3f} s '
+                                             f"(desired_timeout {self.settings['desired_timeout']} s)")
+            self.events.append(('warn', key, f"mode {self.settings['mode']}: {why}: "
+                                             'gravity compensation at the measured state'))
+        return False
+
+    # ------------------------------------------------------------------ desired state and trajectories
+    def desired_is_fresh(self, now=None):
+        now = self.clock() if now is None else now
+        return self.desired_time is not None and now - self.desired_time <= self.settings['desired_timeout']
+
+    def _reject_desired(self, kind, text):
+        self.desired_rejected += 1
+        self._win_desired_rejected += 1
+        self.last_error = f'desired state rejected: {text}'
+        self.events.append(('warn', 'desired:' + kind, self.last_error))
+        return False
+
+    def on_desired(self, names, points, now=None):
+        """One desired-state message (JointTrajectory joint_names and points) -> accepted?
+
+        Exactly one point; positions for every name; velocities and accelerations either one
+        per name or absent (= 0); the controlled joints present and finite (other names are
+        ignored). A rejected message leaves the last valid desired state (and its age) as it was.
+        """
+        self.desired_received += 1
+        if self.layout is None:  # no model and no `joints` yet: nothing to map to
+            return False
+        if len(points) != 1:
+            return self._reject_desired('points', f'{len(points)} points: {self.desired_topic} takes exactly one '
+                                                  '(whole trajectories go to ~/trajectory_in)')
+        p = points[0]
+        n_names = len(names)
+        pos, vel, acc = p.positions, p.velocities, p.accelerations
+        if len(pos) != n_names or len(vel) not in (0, n_names) or len(acc) not in (0, n_names):
+            return self._reject_desired('length', f'array lengths differ: {n_names} joint names, {len(pos)} '
+                                                  f'positions, {len(vel)} velocities, {len(acc)} accelerations')
+        m = self._des_map
+        if names != m.names:
+            m.build(names, self.layout)
+        if m.error is not None:
+            return self._reject_desired(*m.error)
+        n = len(self.layout)
+        out = []
+        for field, values in (('positions', pos), ('velocities', vel), ('accelerations', acc)):
+            if not len(values):
+                out.append(np.zeros(n))
+                continue
+            a = np.asarray(values, dtype=float)[m.idx]
+            if not np.isfinite(a).all():
+                bad = [self.layout[k] for k in np.flatnonzero(~np.isfinite(a))]
+                return self._reject_desired('nonfinite', f'non-finite {field} for {bad}')
+            out.append(a)
+        self.desired = tuple(out)
+        self.desired_time = self.clock() if now is None else now
+        self.desired_accepted += 1
+        return True
+
+    def _reject_trajectory(self, text):
+        self.trajectories_rejected += 1
+        self.last_error = f'trajectory rejected: {text}'
+        self.events.append(('warn', 'trajectory:' + text, self.last_error + ' (nothing published)'))
+        return None
+
+    def on_trajectory(self, names, points):
+        """A planner's trajectory (JointTrajectory joint_names and points) -> efforts (N, k) in the
+        message's joint order, or None (rejected: publish nothing).
+
+        Effort of a controlled joint: inverse dynamics at the point (missing velocities /
+        accelerations derived, see trajectory.py) + friction compensation at the point's velocity,
+        clamped like commands. Joints that are not controlled get 0. Not while disabled.
+        """
+        model = self.model
+        if model is None:
+            return self._reject_trajectory('no robot model yet')
+        if not self.settings['enabled']:
+            return self._reject_trajectory('node disabled')
+        try:
+            arrays = trajectory_arrays(names, points)
+            res = fill_trajectory_efforts(model, arrays)
+        except ValueError as exc:
+            return self._reject_trajectory(str(exc))
+        tau = self._add_friction(res['efforts'], res['velocities'])
+        lim = self._limit
+        over = np.abs(tau) > lim
+        if over.any():
+            tau = np.clip(tau, -lim, lim)
+            joints = [self.layout[k] for k in np.flatnonzero(over.any(axis=0))]
+            self.events.append(('warn', 'trajectory:clamp', f'trajectory efforts clamped to limit x '
+                                f"{self.settings['effort_limit_scale']} at {int(over.any(axis=1).sum())} of "
+                                f'{len(tau)} points for {joints}'))
+        if not np.isfinite(tau).all():
+            return self._reject_trajectory('non-finite effort computed')
+        names = list(names)
+        efforts = np.zeros((len(tau), len(names)))
+        efforts[:, [names.index(j) for j in model.joint_names]] = tau
+        self.trajectories_filled += 1
+        return efforts
 
     def _clamp(self, tau):
         if (np.abs(tau) <= self._limit_finite).all():  # fast path: finite and within the limits
@@ -357,6 +590,10 @@ class Compensator:
             elif self.stale:
                 level = WARN
                 msgs.append(f"joint_states stale: {s['stale_action']}")
+            elif s['mode'] in NEEDS_DESIRED and not self.desired_is_fresh(now):
+                level = WARN
+                msgs.append(f"mode {s['mode']}: " + ('no desired state yet' if self.desired_time is None else
+                                                    'desired state stale') + ': gravity fallback')
             if self.description_error:
                 level = max(level, WARN)
                 msgs.append('last robot description rejected, previous model kept')
@@ -368,8 +605,11 @@ class Compensator:
                 msgs.append(f'{self._win_clamped} commands clamped')
             if not s['enabled']:
                 msgs.append('disabled')
+            if self._win_desired_rejected:
+                level = max(level, WARN)
+                msgs.append(f'{self._win_desired_rejected} desired states rejected')
             if not msgs:
-                msgs.append('compensating')
+                msgs.append('compensating' if s['mode'] == 'gravity' else s['mode'])
         values = [
             ('model_loaded', str(m is not None)),
             ('model_name', m.name if m is not None else ''),
@@ -378,6 +618,15 @@ class Compensator:
             ('joints', ','.join(self.layout or [])),
             ('locked_joints', ','.join(m.locked_joint_names) if m is not None else ''),
             ('enabled', str(s['enabled'])),
+            ('mode', s['mode']),
+            ('control_law', self.law or ''),
+            ('desired_age_ms', f'{1e3 * (now - self.desired_time):.1f}' if self.desired_time is not None else 'inf'),
+            ('desired_received_total', str(self.desired_received)),
+            ('desired_accepted_total', str(self.desired_accepted)),
+            ('desired_rejected_total', str(self.desired_rejected)),
+            ('desired_fallback_events', str(self.fallback_events)),
+            ('trajectories_filled_total', str(self.trajectories_filled)),
+            ('trajectories_rejected_total', str(self.trajectories_rejected)),
             ('input_rate_hz', f'{rate:.1f}'),
             ('compute_time_mean_ms', f'{1e3 * sum(times) / len(times):.4f}' if times else 'nan'),
             ('compute_time_max_ms', f'{1e3 * max(times):.4f}' if times else 'nan'),
@@ -393,6 +642,6 @@ class Compensator:
             ('description_error', self.description_error),
         ]
         self._win_start = now
-        self._win_accepted = self._win_rejected = self._win_clamped = 0
+        self._win_accepted = self._win_rejected = self._win_clamped = self._win_desired_rejected = 0
         self._win_times = []
         return level, '; '.join(msgs), values

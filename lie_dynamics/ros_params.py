@@ -9,6 +9,8 @@ from dataclasses import dataclass
 from typing import Optional, Tuple
 
 STALE_ACTIONS = ('hold_gravity_at_last_state', 'zero')
+# Torque laws (see ros_core). Every mode but `gravity` needs the desired-state stream.
+MODES = ('gravity', 'feedforward', 'computed_torque', 'pd')
 
 # kinds: 'bool', 'double', 'string', 'double_array', 'string_array'
 
@@ -41,6 +43,25 @@ PARAMS = (
               True),
     ParamSpec('enabled', 'bool', True,
               'Publish commands. Disabling publishes one all-zero command, then nothing.', True),
+    ParamSpec('mode', 'string', 'gravity',
+              'Torque law. gravity: g(q) [+ C(q, qd) qd] + friction at the measured state. feedforward: '
+              'M(q_d) qdd_d + C(q_d, qd_d) qd_d + g(q_d) + friction(qd_d) + Kp e + Kd de. computed_torque: '
+              'M(q) (qdd_d + Kp e + Kd de) + C(q, qd) qd + g(q) + friction(qd). pd: Kp e + Kd de only. '
+              'e = q_d - q, de = qd_d - qd. Without a fresh desired state: gravity at the measured state.',
+              True, constraints=' or '.join(MODES)),
+    ParamSpec('kp', 'double_array', [0.0],
+              'Position gains of feedforward / computed_torque / pd (computed_torque: 1/s^2, else N m/rad); '
+              'one value: every joint, or one per controlled joint in `joints` order.', True,
+              constraints='empty (= 0), 1 or n finite doubles >= 0'),
+    ParamSpec('kd', 'double_array', [0.0],
+              'Velocity gains, as kp (computed_torque: 1/s, else N m s/rad).', True,
+              constraints='empty (= 0), 1 or n finite doubles >= 0'),
+    ParamSpec('desired_topic', 'string', '~/desired',
+              'trajectory_msgs/JointTrajectory desired-state topic: one point with positions, optional '
+              'velocities and accelerations (absent = 0), joints mapped by name.', False),
+    ParamSpec('desired_timeout', 'double', 0.1,
+              'Seconds after the last valid desired state before a mode that needs it falls back to '
+              'gravity compensation at the measured state.', True, (0.001, 60.0)),
     ParamSpec('gravity', 'double_array', [0.0, 0.0, -9.81],
               'Gravity in the URDF root frame, m/s^2 (3 doubles; wall or ceiling mounts).', True,
               constraints='3 finite doubles, norm <= 100'),
@@ -103,8 +124,10 @@ def check_value(name, value):
             raise ValueError(f'{name} must be a string')
         if name == 'stale_action' and value not in STALE_ACTIONS:
             raise ValueError(f'stale_action must be one of {list(STALE_ACTIONS)}, got {value!r}')
-        if name == 'command_topic' and not value.strip():
-            raise ValueError('command_topic must not be empty')
+        if name == 'mode' and value not in MODES:
+            raise ValueError(f'mode must be one of {list(MODES)}, got {value!r}')
+        if name in ('command_topic', 'desired_topic') and not value.strip():
+            raise ValueError(f'{name} must not be empty')
         return value
     if spec.kind == 'double':
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -136,7 +159,7 @@ def check_value(name, value):
     elif name == 'payload.inertia':
         if len(vals) not in (0, 6):
             raise ValueError(f'payload.inertia must be empty or have 6 values, got {len(vals)}')
-    elif name.startswith('friction.'):
+    elif name.startswith('friction.') or name in ('kp', 'kd'):
         if any(v < 0 for v in vals):
             raise ValueError(f'{name} must be >= 0, got {vals}')
     return vals

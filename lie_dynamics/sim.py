@@ -1,22 +1,33 @@
 """A simulated fixed-base arm: forward dynamics integrated at a fixed step (no ROS here).
 
-Per step of length dt (semi-implicit, i.e. symplectic, Euler):
+Per step of length dt (default: semi-implicit Euler):
     tau   = clip(command, -effort_limit, effort_limit) - damping * qd
     qdd   = forward_dynamics(q, qd, tau)
     qd   += dt * qdd ;  q += dt * qd
+Other integrators (integrators.py: explicit Euler, RK4, the symplectic Lie-group midpoint) are
+selected with `integrator=`; they re-evaluate the damping torque wherever they need a force.
+Semi-implicit Euler in (q, qd) is symplectic only for a constant mass matrix: with M(q) its energy
+drifts, in a 10 s undamped free fall of the bundled arm even faster than explicit Euler's (RK4 or
+the midpoint rule hold it; docs/benchmarks.md, bench/stability.py).
 Joint position limits act as hard stops (position clamped, velocity into the stop zeroed).
 Coulomb friction is not simulated (it would make "the arm holds" depend on stiction);
 URDF damping is, and can be switched off (damping=False) for energy checks.
 """
 import numpy as np
 
+from .integrators import STEPPERS
+
 
 class ArmSim:
     """State (q, qd, t) of a model integrated under held effort commands."""
 
-    def __init__(self, model, dt=1e-3, q0=None, qd0=None, damping=True, limits=True):
+    def __init__(self, model, dt=1e-3, q0=None, qd0=None, damping=True, limits=True,
+                 integrator='semi_implicit_euler'):
         if not (np.isfinite(dt) and dt > 0):
             raise ValueError(f'dt must be a positive number, got {dt}')
+        if integrator not in STEPPERS:
+            raise ValueError(f'unknown integrator {integrator!r}: use one of {sorted(STEPPERS)}')
+        self.integrator = integrator
         self.model = model
         self.dt = float(dt)
         self.q = np.zeros(model.n) if q0 is None else np.array(q0, dtype=float).reshape(model.n)
@@ -42,9 +53,15 @@ class ArmSim:
         lim = m.effort_limits
         for _ in range(n):
             tau = np.clip(self.command, -lim, lim) - self.damping * self.qd
-            qdd = m.forward_dynamics(self.q, self.qd, tau)
-            self.qd = self.qd + self.dt * qdd
-            self.q = self.q + self.dt * self.qd
+            if self.integrator == 'semi_implicit_euler':
+                qdd = m.forward_dynamics(self.q, self.qd, tau)
+                self.qd = self.qd + self.dt * qdd
+                self.q = self.q + self.dt * self.qd
+            else:
+                qd0 = self.qd
+                self.q, self.qd = STEPPERS[self.integrator](m, self.q, self.qd, self.dt,
+                                                            np.clip(self.command, -lim, lim), self.damping)
+                qdd = (self.qd - qd0) / self.dt   # mean acceleration over the step
             if self.limits:
                 lo, hi = m.position_lower, m.position_upper
                 below, above = self.q < lo, self.q > hi

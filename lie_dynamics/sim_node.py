@@ -15,11 +15,14 @@ Parameters  urdf_path (default: the bundled arm), joints (default: all), rate (H
             lockstep (hold the initial state until the first command arrives, then wait for
             the command answering each published state, re-sending the state every
             `resend_period` s and stepping anyway after `lockstep_timeout` s: results then do
-            not depend on machine load), max_steps (0 = run until shut down).
+            not depend on machine load), min_subscribers (do not start before this many
+            joint_states readers are matched, so no reader misses the start),
+            max_steps (0 = run until shut down).
 """
 import sys
 
 import numpy as np
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
@@ -49,6 +52,7 @@ class SimNode(Node):
         self.lockstep_timeout = float(p('lockstep_timeout', 0.05).value)
         self.resend_period = float(p('resend_period', 0.01).value)
         self.max_steps = int(p('max_steps', 0).value)
+        self.min_subscribers = int(p('min_subscribers', 0).value)
         with open(urdf_path, encoding='utf-8') as fh:
             self.xml = fh.read()
         model = load_urdf(self.xml, joints=[j for j in joints if j] or None)
@@ -62,7 +66,9 @@ class SimNode(Node):
         self.names = model.joint_names
         self.desc_pub = self.create_publisher(String, 'robot_description', DESCRIPTION_QOS)
         self.desc_pub.publish(String(data=self.xml))
-        self.state_pub = self.create_publisher(JointState, 'joint_states', 10)
+        # Deep history: a reliable reader whose acknowledgements lag (a busy recorder) must not lose
+        # states while the lockstep loop with a fast controller runs ahead of it.
+        self.state_pub = self.create_publisher(JointState, 'joint_states', 1000)
         self.create_subscription(Float64MultiArray, self.command_topic, self._on_command, 10)
         self.fresh_command = False
         self.started = not self.lockstep
@@ -89,7 +95,11 @@ class SimNode(Node):
     def _tick(self):
         if self.max_steps and self.steps >= self.max_steps:
             return
+        if not self.steps and not self._readers_ready():
+            return  # discovery still under way
         if self.lockstep and not self.fresh_command:
+            if not self.steps:  # _readers_ready counts the ticks and re-sends before the first step
+                return
             # The answer to the last state has not come (yet): wait, re-sending the state in
             # case a best-effort reader lost it; before the first command, wait indefinitely.
             self.wait_ticks += 1
@@ -105,6 +115,16 @@ class SimNode(Node):
         self.sim.step()
         self.steps += 1
         self._publish_state()
+
+    def _readers_ready(self):
+        """Before the first step: enough joint_states readers matched, and every reliable one
+        has acknowledged the initial state (so it has matched us too: none misses the start)."""
+        self.wait_ticks += 1
+        if self.wait_ticks % self.resend_ticks == 0:
+            self._publish_state()
+        if self.state_pub.get_subscription_count() < self.min_subscribers:
+            return False
+        return self.state_pub.wait_for_all_acked(Duration(seconds=0))
 
     def _publish_state(self):
         msg = JointState()

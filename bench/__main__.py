@@ -1,0 +1,113 @@
+"""All benchmarks in one command: tables (Markdown + CSV/JSON) and PNG charts in one folder.
+
+    python -m bench [--quick] [--out DIR] [--only core,lagrangian,accuracy,scaling,stability]
+                    [--docs-img DIR]
+    make bench ARGS="--quick"
+
+Sections (each writes its own files into DIR, default bench/out/):
+  core        inverse dynamics and gravity against Pinocchio and Modern Robotics (bench/core.py)
+  lagrangian  mass matrix, Coriolis, forward dynamics, derivatives (bench/lagrangian.py, if present)
+  accuracy    speed against accuracy, every method, arm and 30-joint chain (bench/accuracy.py)
+  scaling     time against number of joints, chains and trees, fitted slopes (bench/scaling.py)
+  stability   where methods fail: exp/log, chain length, ill-conditioned M, FD step, energy
+              drift (bench/stability.py)
+--quick shortens everything (a smoke test runs it); the full run takes a few minutes.
+--docs-img copies the PNG charts, palette-compressed, to DIR (docs/img: the copies docs/benchmarks.md shows).
+A failing section is reported and the others still run; the exit status is then 1.
+"""
+import argparse
+import glob
+import os
+import shutil
+import sys
+import time
+import traceback
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+SECTIONS = ('core', 'lagrangian', 'accuracy', 'scaling', 'stability')
+
+
+def _core(quick, out):
+    from bench import core
+    res = core.run(quick=quick)
+    core.write(res, out)
+
+
+def _lagrangian(quick, out):
+    try:
+        from bench import lagrangian
+    except ImportError:
+        return 'skipped (bench/lagrangian.py not present)'
+    lagrangian.run(quick=quick, out=out)
+
+
+def _accuracy(quick, out):
+    from bench import accuracy
+    accuracy.run(quick=quick, out=out)
+
+
+def _scaling(quick, out):
+    from bench import scaling
+    scaling.run(quick=quick, out=out)
+
+
+def _stability(quick, out):
+    from bench import stability
+    stability.run(quick=quick, out=out)
+
+
+def _small_copy(src, dst):
+    """Copy a chart for committing: a 128-colour palette PNG is ~3x smaller and looks the same."""
+    try:
+        from PIL import Image
+    except ImportError:
+        shutil.copy(src, dst)
+        return
+    with Image.open(src) as im:
+        im.convert('RGB').quantize(colors=128, method=Image.Quantize.MEDIANCUT,
+                                   dither=Image.Dither.NONE).save(dst, optimize=True)
+
+
+RUNNERS = {'core': _core, 'lagrangian': _lagrangian, 'accuracy': _accuracy, 'scaling': _scaling,
+           'stability': _stability}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog='python -m bench', description=__doc__.split('\n')[0])
+    ap.add_argument('--quick', action='store_true', help='short runs (seconds per section)')
+    ap.add_argument('--out', default=os.path.join(HERE, 'out'), help='output folder (default bench/out)')
+    ap.add_argument('--only', default=','.join(SECTIONS), help='comma-separated sections to run')
+    ap.add_argument('--docs-img', metavar='DIR', help='also copy the PNG charts to DIR')
+    args = ap.parse_args(argv)
+    sections = [s.strip() for s in args.only.split(',') if s.strip()]
+    unknown = [s for s in sections if s not in RUNNERS]
+    if unknown:
+        ap.error(f'unknown section(s) {unknown}; choose from {list(SECTIONS)}')
+    os.makedirs(args.out, exist_ok=True)
+    status = {}
+    for name in sections:
+        t0 = time.perf_counter()
+        print(f'[bench] {name} ...', flush=True)
+        try:
+            note = RUNNERS[name](args.quick, args.out)
+            status[name] = f'{note or "ok"} ({time.perf_counter() - t0:.0f} s)'
+        except Exception:   # keep going: one broken section must not hide the others' results
+            traceback.print_exc()
+            status[name] = f'FAILED ({time.perf_counter() - t0:.0f} s)'
+        print(f'[bench] {name}: {status[name]}', flush=True)
+    files = sorted(os.path.basename(p) for p in glob.glob(os.path.join(args.out, '*'))
+                   if p.endswith(('.md', '.csv', '.json', '.png')) and not p.endswith('index.md'))
+    with open(os.path.join(args.out, 'index.md'), 'w', encoding='utf-8') as fh:
+        fh.write('# Benchmark outputs\n\n' + ('Quick run (short, noisy).\n\n' if args.quick else '') +
+                 ''.join(f'- {k}: {v}\n' for k, v in status.items()) + '\n' +
+                 ''.join(f'- [{f}]({f})\n' for f in files))
+    if args.docs_img:
+        os.makedirs(args.docs_img, exist_ok=True)
+        for p in glob.glob(os.path.join(args.out, '*.png')):
+            _small_copy(p, os.path.join(args.docs_img, os.path.basename(p)))
+    print(f'[bench] outputs in {args.out}')
+    return 1 if any(v.startswith('FAILED') for v in status.values()) else 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,72 @@
+"""Smoke test of the benchmark command: `python -m bench --quick` writes well-formed tables and charts.
+
+Runs the quick mode of the speed/accuracy, scaling and stability sections (seconds), and the
+core benchmark on a reduced size set; the full run (`make bench`) stays out of CI.
+"""
+import csv
+import os
+
+import pytest
+
+from bench import __main__ as bench_main
+from bench import core
+
+PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
+CSV_COLUMNS = {
+    'accuracy.csv': ['robot', 'dof', 'op', 'method', 'impl', 'mode', 'us', 'ratio_to_pinocchio', 'err_max',
+                     'err_median', 'states'],
+    'scaling.csv': ['kind', 'n', 'algorithm', 'us', 'slope'],
+    'stability.csv': ['scan', 'method', 'x_name', 'x', 'error', 'status'],
+}
+PNGS = ['accuracy_arm7.png', 'accuracy_chain12.png', 'scaling.png', 'stability_explog.png', 'stability_chain.png',
+        'stability_forward_dynamics.png', 'stability_fd_step.png', 'stability_energy.png']
+
+
+@pytest.fixture(scope='module')
+def out(tmp_path_factory):
+    d = str(tmp_path_factory.mktemp('bench'))
+    assert bench_main.main(['--quick', '--only', 'accuracy,scaling,stability', '--out', d]) == 0
+    return d
+
+
+def _rows(path):
+    with open(path, newline='', encoding='utf-8') as fh:
+        r = csv.DictReader(fh)
+        return r.fieldnames, list(r)
+
+
+@pytest.mark.parametrize('name', sorted(CSV_COLUMNS))
+def test_csv_tables_have_the_documented_columns(out, name):
+    cols, rows = _rows(os.path.join(out, name))
+    assert cols == CSV_COLUMNS[name]
+    assert len(rows) > 10
+    for r in rows:
+        for key in ('us', 'err_max', 'error', 'x', 'n'):
+            if key in r and r[key] not in ('', 'nan', 'inf'):
+                float(r[key])   # numeric
+
+
+def test_markdown_and_charts(out):
+    for name in ('accuracy.md', 'scaling.md', 'stability.md', 'index.md'):
+        with open(os.path.join(out, name), encoding='utf-8') as fh:
+            assert fh.read().startswith('# ')
+    for name in PNGS:
+        with open(os.path.join(out, name), 'rb') as fh:
+            data = fh.read()
+        assert data[:8] == PNG_MAGIC and len(data) > 5000, name
+
+
+def test_every_method_is_measured(out):
+    _, rows = _rows(os.path.join(out, 'accuracy.csv'))
+    ops = {r['op'] for r in rows}
+    assert len(ops) == 6
+    for r in rows:   # everything agreed with the longdouble reference at least to float32 level
+        assert float(r['err_max']) < 1e-5 or r['method'] == 'forward differences', r
+
+
+def test_core_benchmark_still_runs(tmp_path):
+    res = core.run(quick=True, sizes=(1, 100), rounds=2)
+    core.write(res, str(tmp_path))
+    assert {r['impl'] for r in res['rows']} == set(core.IMPLS)
+    with open(tmp_path / 'core.png', 'rb') as fh:
+        assert fh.read(8) == PNG_MAGIC
