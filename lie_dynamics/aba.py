@@ -44,10 +44,11 @@ def cholesky(M):
     except np.linalg.LinAlgError:
         L = None
     else:
-        # LAPACK factors some singular matrices (a zero pivot rounded positive): test the pivots
+        # LAPACK factors some singular matrices (a zero pivot rounded positive): test each pivot
+        # against its own diagonal entry, so the test is blind to scale (graded masses are fine)
+        # and sees only near-dependence (a joint that moves no mass of its own)
         d = np.diagonal(L, axis1=-2, axis2=-1)
-        tol = _PD_RTOL * np.diagonal(M, axis1=-2, axis2=-1).max(axis=-1, keepdims=True)
-        if (d * d > tol).all():
+        if (d * d > _PD_RTOL * np.diagonal(M, axis1=-2, axis2=-1)).all():
             return L
     bad = [k for k in range(M.shape[0]) if not _is_pd(M[k])]
     k = int(bad[0])
@@ -63,7 +64,7 @@ def _is_pd(M):
         L = np.linalg.cholesky(M)
     except np.linalg.LinAlgError:
         return False
-    return bool(np.all(np.diagonal(L) ** 2 > _PD_RTOL * np.max(np.diagonal(M))))
+    return bool(np.all(np.diagonal(L) ** 2 > _PD_RTOL * np.diagonal(M)))
 
 
 def cho_solve(L, B):
@@ -208,7 +209,7 @@ def forward_dynamics(model, q, qd, tau, wrenches=None, method='cholesky'):
                     out = fn(a, b, c, P, A0, E0, sin=math.sin, cos=math.cos, sqrt=math.sqrt)
                 except (ValueError, ZeroDivisionError):
                     out = None
-                if out is not None and min(out[n:2 * n]) > _PD_RTOL * max(out[2 * n:]):
+                if out is not None and all(d > _PD_RTOL * m for d, m in zip(out[n:2 * n], out[2 * n:])):
                     return np.array(out[:n])
             # not positive definite, or no kernel: plain 2-D calls (checked, with the message)
             M = crba.mass_matrix(model, q)
@@ -324,6 +325,6 @@ def _kernel_forward_dynamics(model, q, qd, tau):
         vals = cg.run_rows(lambda Q, QD, T, sin, cos, sqrt: fn(Q, QD, T, P, A0, E0, sin=sin, cos=cos, sqrt=sqrt),
                            [q, qd, tau], (), 3 * n)
     piv, diag = vals[:, n:2 * n], vals[:, 2 * n:]
-    if not (np.all(np.isfinite(vals[:, :n])) and np.all(piv > _PD_RTOL * diag.max(axis=1, keepdims=True))):
+    if not (np.all(np.isfinite(vals[:, :n])) and np.all(piv > _PD_RTOL * diag)):
         return None
     return vals[:, :n]
