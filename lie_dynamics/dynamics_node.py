@@ -60,21 +60,17 @@ Behaviour (the effort controller holds the last command forever and does not cla
 """
 import array
 import os
-import signal
 import sys
 import threading
 import time
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
 from rclpy.duration import Duration
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
@@ -82,6 +78,7 @@ from trajectory_msgs.msg import JointTrajectory
 
 from .ros_core import Compensator, Throttle
 from .ros_params import PARAMS, SPECS
+from .ros_run import run
 from .ros_trajectory import set_point_efforts
 
 # As robot_state_publisher publishes it: a late subscriber must also be transient local.
@@ -406,30 +403,14 @@ class DynamicsNode(Node):
         return True
 
 
+def _last_command(node):
+    if node.shutdown_command():
+        node.get_logger().info('shutting down: published the stale_action command once')
+
+
 def main(args=None):
     """Entry point of `ros2 run lie_dynamics dynamics_node`."""
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    try:
-        node = DynamicsNode()
-    except Exception as exc:  # invalid parameters: refuse to start, say why
-        print(f'dynamics_node: invalid configuration: {exc}', file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    try:
-        while not stop.is_set() and rclpy.ok():
-            executor.spin_once(timeout_sec=0.1)
-        if node.shutdown_command():
-            node.get_logger().info('shutting down: published the stale_action command once')
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run(DynamicsNode, 'dynamics_node', args, on_stop=_last_command)
 
 
 if __name__ == '__main__':

@@ -100,7 +100,6 @@ def _constants(model):
     if cache is not None and cache['J'] is model.J:
         return cache
     J, E, anc = model.J, model.E, model.ancestors
-    nb = model.nb
     mass = J[:, 3, 3].copy()
     first = np.stack([J[:, 2, 4], J[:, 0, 5], J[:, 1, 3]], axis=-1)  # m c, body frame
     identity = E.shape[0] == E.shape[1] and np.array_equal(E, np.eye(E.shape[0]))

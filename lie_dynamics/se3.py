@@ -62,7 +62,7 @@ def _exp_coefficients(theta):
     t2 = theta * theta
     small = theta < _SERIES_EXP
     ts = np.where(small, 1.0, theta)  # safe divisor
-    s, c = np.sin(ts), np.cos(ts)
+    s = np.sin(ts)
     half = np.sin(0.5 * ts)
     a = np.where(small, 1 - t2 / 6 * (1 - t2 / 20 * (1 - t2 / 42)), s / ts)
     b = np.where(small, 0.5 - t2 / 24 * (1 - t2 / 30 * (1 - t2 / 56)), 2 * half * half / (ts * ts))

@@ -75,18 +75,4 @@ class ArmSim:
 
     def energy(self):
         """Kinetic + potential energy of the current state."""
-        return kinetic_energy(self.model, self.q, self.qd) + potential_energy(self.model, self.q)
-
-
-def kinetic_energy(model, q, qd):
-    """1/2 qd^T M(q) qd, with M qd = ID(q, 0, qd) - g(q) (one RNEA, no mass matrix)."""
-    return 0.5 * qd @ (model.inverse_dynamics(q, np.zeros_like(qd), qd) - model.gravity(q))
-
-
-def potential_energy(model, q):
-    """U = -sum_i m_i g . c_i (paper eq 43), CoMs c_i read off the spatial inertias J_i."""
-    T = model.forward_kinematics(np.asarray(q, dtype=float))
-    m = model.J[:, 3, 3]
-    mc = np.stack([model.J[:, 2, 4], model.J[:, 0, 5], model.J[:, 1, 3]], axis=-1)  # m[c] block
-    world_mc = np.einsum('bij,bj->bi', T[:, :3, :3], mc) + m[:, None] * T[:, :3, 3]
-    return -float(np.sum(world_mc @ model.gravity_vector))
+        return self.model.kinetic_energy(self.q, self.qd) + self.model.potential_energy(self.q)

@@ -12,7 +12,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from .model import Model
-from .se3 import rpy_to_matrix, spatial_inertia
+from .se3 import spatial_inertia
 
 MOVABLE = ('revolute', 'continuous', 'prismatic')
 KNOWN = MOVABLE + ('fixed', 'floating', 'planar')
