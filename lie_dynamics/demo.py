@@ -73,9 +73,13 @@ class Stack:
             self.self_ending.add(name)
 
     def check(self):
+        """Raise if a process died; returns True once every self-ending process has finished."""
         for name, p, _ in self.procs:
-            if p.poll() is not None:
-                raise RuntimeError(f'{name} exited with code {p.returncode}; see {self.log_dir}/{name}.log')
+            code = p.poll()
+            if code is not None and not (code == 0 and name in self.self_ending):
+                raise RuntimeError(f'{name} exited with code {code}; see {self.log_dir}/{name}.log')
+        return bool(self.self_ending) and all(p.poll() is not None for name, p, _ in self.procs
+                                              if name in self.self_ending)
 
     def __enter__(self):
         return self
@@ -161,15 +165,19 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
                          'min_subscribers': str(1 + (node_params is not None) + with_traj),
                          'max_steps': str(steps)}, ends_by_itself=steps > 0)
             last_check = last_status = 0.0
+            drain_until = None
             try:
                 while True:
                     ex.spin_once(timeout_sec=0.05)  # one callback: keep this loop lean, it must not lag
                     if steps and rec['t'] and rec['t'][-1] >= duration - 0.5 / rate:
                         break
                     now = time.monotonic()
+                    if drain_until is not None and now > drain_until:
+                        break  # the simulator is done: what has not arrived by now will not
                     if now - last_check > 0.2:
                         last_check = now
-                        stack.check()
+                        if stack.check() and drain_until is None:
+                            drain_until = now + 10.0
                     if status and now - last_status > 1.0 and rec['t']:
                         last_status = now
                         status(name, rec)
