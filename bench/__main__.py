@@ -1,6 +1,6 @@
 """All benchmarks in one command: tables (Markdown + CSV/JSON) and PNG charts in one folder.
 
-    python -m bench [--quick] [--out DIR] [--only core,lagrangian,accuracy,scaling,stability]
+    python -m bench [--quick] [--out DIR] [--only core,lagrangian,accuracy,scaling,stability,node]
                     [--docs-img DIR]
     make bench ARGS="--quick"
 
@@ -11,6 +11,9 @@ Sections (each writes its own files into DIR, default bench/out/):
   scaling     time against number of joints, chains and trees, fitted slopes (bench/scaling.py)
   stability   where methods fail: exp/log, chain length, ill-conditioned M, FD step, energy
               drift (bench/stability.py)
+  node        the ROS node: trajectory effort fill against a Pinocchio loop, and joint_states ->
+              effort latency in gravity and feedforward modes beside a bare echo node (real
+              processes over DDS; bench/feedforward.py, bench/node_latency.py)
 --quick shortens everything (a smoke test runs it); the full run takes a few minutes.
 --docs-img copies the PNG charts, palette-compressed, to DIR (docs/img: the copies docs/benchmarks.md shows).
 A failing section is reported and the others still run; the exit status is then 1.
@@ -24,7 +27,7 @@ import time
 import traceback
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-SECTIONS = ('core', 'lagrangian', 'accuracy', 'scaling', 'stability')
+SECTIONS = ('core', 'lagrangian', 'accuracy', 'scaling', 'stability', 'node')
 
 
 def _core(quick, out):
@@ -56,6 +59,22 @@ def _stability(quick, out):
     stability.run(quick=quick, out=out)
 
 
+def _node(quick, out):
+    import contextlib
+    import io
+
+    from bench import feedforward, node_latency
+    feedforward.run(quick=quick, out=out)
+    # gravity mode beside a bare echo node, and the highest sustained rate (prints its table)
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        node_latency.main(['--seconds', '1', '--rounds', '1', '--max-rates', '1000,2000'] if quick else [])
+    with open(os.path.join(out, 'node_latency.md'), 'w') as fh:
+        fh.write('# joint_states -> effort latency: dynamics node vs a bare echo node\n\n```\n'
+                 + buf.getvalue() + '```\n')
+    print(buf.getvalue())
+
+
 def _small_copy(src, dst):
     """Copy a chart for committing: a 128-colour palette PNG is ~3x smaller and looks the same."""
     try:
@@ -69,7 +88,7 @@ def _small_copy(src, dst):
 
 
 RUNNERS = {'core': _core, 'lagrangian': _lagrangian, 'accuracy': _accuracy, 'scaling': _scaling,
-           'stability': _stability}
+           'stability': _stability, 'node': _node}
 
 
 def main(argv=None):
