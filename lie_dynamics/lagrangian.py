@@ -69,6 +69,7 @@ Every function takes a single state (n,) or a batch (N, n) and returns matching 
 import numpy as np
 
 from .codegen import model_cache
+from .rnea import external_body_wrenches  # noqa: F401  (shared with aba, rnea_derivatives)
 from .kinematics import ad_matrices, adjoints, spatial_screws, world_poses
 
 # states per pass: bounds the work arrays (the O(n^3) ones scale with nb^3 per state)
@@ -141,37 +142,6 @@ def _to_joints_mat(model, c, X):
         return X
     E = model.E
     return E.T @ X @ E
-
-
-def external_body_wrenches(model, wrenches, N):
-    """{link: wrench (m, f) in the link frame} -> (N, nb) body-frame wrenches, or None.
-
-    A wrench (shape (6,) or (N, 6)) on link l, rigidly attached to body b at T_bl, acts
-    on body b as Ad_{T_bl^-1}^T w. Links fixed to the world (or to a part of the tree that
-    cannot move a controlled joint) take no effect.
-    """
-    if not wrenches:
-        return None
-    if not isinstance(wrenches, dict):
-        raise ValueError('wrenches must be a dict {link name: (m, f) wrench in the link frame}')
-    out = np.zeros((N, model.nb, 6))
-    for link, w in wrenches.items():
-        if link not in model.link_frames:
-            raise ValueError(f"unknown link '{link}' in wrenches")
-        w = np.asarray(w, dtype=float)
-        if w.shape not in ((6,), (N, 6)):
-            raise ValueError(f"wrench on '{link}' must have shape (6,) or ({N}, 6), got {w.shape}")
-        if not np.all(np.isfinite(w)):
-            raise ValueError(f"wrench on '{link}' contains non-finite values")
-        b, T = model.link_frames[link]
-        if b < 0:
-            continue
-        R, p = T[:3, :3], T[:3, 3]
-        # Ad_{T^-1}^T w = (R m + p x (R f), R f)
-        f = w[..., 3:] @ R.T
-        out[:, b, :3] += w[..., :3] @ R.T + _cross(np.broadcast_to(p, f.shape), f)
-        out[:, b, 3:] += f
-    return out
 
 
 def kinematic_state(model, x, with_ad=False):

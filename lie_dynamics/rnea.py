@@ -26,6 +26,7 @@ import numpy as np
 
 from . import kernels
 from .kinematics import ad_matrices, adjoints, spatial_screws, world_poses
+from .se3 import Ad_inv
 
 _CHUNK = 512  # reference path: states per pass, keeps the (chunk, nb, 6, 6) arrays in cache
 # Kernel path: below this many states a Python loop of the float kernel beats the numpy-rows
@@ -101,7 +102,7 @@ def inverse_dynamics(model, q, qd, qdd, wrenches=None, with_gravity=True):
     N = 1 if single else len(arrs[0])
     if K is None or (N < _SMALL_BATCH and model.nb > _FLOAT_MAX_BODIES):
         return _reference_inverse_dynamics(model, np.array(arrs), wrenches, with_gravity)
-    fext = _external(model, wrenches, N)
+    fext = external_body_wrenches(model, wrenches, N)
     if fext is not None:
         fext = K.structure.wrench_params(fext).reshape(N, 6 * model.nb)
     kind = 'id' if fext is None else 'id_wrench'
@@ -148,12 +149,19 @@ def gravity(model, q):
     return out
 
 
-def _external(model, wrenches, N):
-    """{link: wrench in link frame} -> (N, nb, 6) body-frame wrenches, or None."""
+def external_body_wrenches(model, wrenches, N):
+    """{link: wrench (m, f) acting on the link, in the link frame} -> (N, nb, 6) body-frame wrenches.
+
+    A wrench (shape (6,) or (N, 6)) on link l, rigidly attached to body b at T_bl, acts on body b
+    as Ad_{T_bl^-1}^T w. Links fixed to the world, or to a part of the tree that cannot move a
+    controlled joint, take no effect. None when there are no wrenches.
+    """
     if not wrenches:
         return None
+    if not isinstance(wrenches, dict):
+        raise ValueError('wrenches must be a dict {link name: (m, f) wrench in the link frame}')
     out = np.zeros((N, model.nb, 6))
-    for link, w in dict(wrenches).items():
+    for link, w in wrenches.items():
         if link not in model.link_frames:
             raise ValueError(f"unknown link '{link}' in wrenches")
         w = np.asarray(w, dtype=float)
@@ -162,11 +170,8 @@ def _external(model, wrenches, N):
         if not np.all(np.isfinite(w)):
             raise ValueError(f"wrench on '{link}' contains non-finite values")
         b, T = model.link_frames[link]
-        if b < 0:  # on the world, or on a part that cannot move a controlled joint
-            continue
-        # a wrench in frame l, expressed in body frame b: F_b = Ad_{T_bl^-1}^T F_l
-        Ad_lb_T = adjoints(np.linalg.inv(T))[0].T
-        out[:, b] += w @ Ad_lb_T.T
+        if b >= 0:
+            out[:, b] += w @ Ad_inv(T)  # row form of Ad_{T_bl^-1}^T w
     return out
 
 
@@ -176,7 +181,7 @@ def _reference_inverse_dynamics(model, a, wrenches, with_gravity):
     single = a.ndim == 2
     q, qd, qdd = (a[:, None] if single else a)
     N = q.shape[0]
-    fext = _external(model, wrenches, N)
+    fext = external_body_wrenches(model, wrenches, N)
     a0 = model._a0 if with_gravity else np.zeros(6)
     x = model.body_coordinates(q)
     xd = qd @ model.E.T
