@@ -294,21 +294,12 @@ class Compensator:
         return None
 
     def _build_map(self, names):
-        self._names = list(names)
-        self._map_error = None
-        index = {}
-        dup = []
-        for i, name in enumerate(names):
-            if name in index:
-                dup.append(name)
-            index[name] = i
-        if dup:
-            self._map_error = ('duplicate', f'duplicate joint names {sorted(set(dup))}')
+        nm = _NameMap()
+        nm.build(names, self.layout)  # duplicates and missing controlled joints, one message each
+        self._names, self._map_error = nm.names, nm.error
+        if nm.error:
             return
-        missing = [j for j in self.layout if j not in index]
-        if missing:
-            self._map_error = ('missing', f'missing controlled joints {missing}')
-            return
+        index = {name: i for i, name in enumerate(names)}
         self._ctrl_idx = np.array([index[j] for j in self.model.joint_names], dtype=int)
         self._lock_names = [j for j in self.model.locked_joint_names if j in index]
         self._lock_idx = np.array([index[j] for j in self._lock_names], dtype=int)
