@@ -32,6 +32,10 @@ for _var in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
 
 import numpy as np  # noqa: E402
 
+from bench.common import default_urdf  # noqa: E402,F401  (also used by callers of this module)
+from bench.common import pinocchio_model as _pin_setup  # noqa: E402
+from bench.common import time_interleaved as _time_rounds  # noqa: E402
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 GROWTH_N = (2, 4, 8, 12, 16, 24, 32, 45, 60)
@@ -42,14 +46,6 @@ EXTENDED_N = (90, 120, 180, 240)
 EXTENDED_N_QUICK = (120,)
 ASYMPTOTIC_FROM = 60
 CHRISTOFFEL_MAX_N = 120
-
-
-def default_urdf():
-    path = os.path.join(ROOT, 'config', 'arm7.urdf')
-    if os.path.isfile(path):
-        return path
-    from lie_dynamics import default_urdf_path
-    return default_urdf_path()
 
 
 def chain_urdf(n, seed=0):
@@ -77,37 +73,6 @@ def chain_urdf(n, seed=0):
                      '</inertial></link>')
     parts.append('</robot>')
     return '\n'.join(parts)
-
-
-# ------------------------------------------------------------------ timing
-def _calibrate(fn, target):
-    t0 = time.perf_counter()
-    fn()
-    dt = max(time.perf_counter() - t0, 1e-7)
-    return max(1, min(100_000, int(target / dt)))
-
-
-def _time_rounds(fns, rounds, target):
-    """fns: {key: callable}; interleaved rounds; returns {key: array of seconds per call}."""
-    numbers = {k: _calibrate(f, target) for k, f in fns.items()}
-    out = {k: [] for k in fns}
-    for _ in range(rounds):
-        for k, f in fns.items():
-            n = numbers[k]
-            t0 = time.perf_counter()
-            for _ in range(n):
-                f()
-            out[k].append((time.perf_counter() - t0) / n)
-    return {k: np.array(v) for k, v in out.items()}
-
-
-def _pin_setup(xml, model):
-    import pinocchio as pin
-    pm = pin.buildModelFromXML(xml)
-    pm.gravity.linear = model.gravity_vector
-    if pm.nq != model.n or pm.nv != model.n:
-        raise ValueError('benchmark robots need one revolute/prismatic Pinocchio joint per joint')
-    return pin, pm, pm.createData()
 
 
 def _sym(M):
