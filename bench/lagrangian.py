@@ -32,7 +32,7 @@ for _var in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
 
 import numpy as np  # noqa: E402
 
-from bench.common import default_urdf  # noqa: E402,F401  (also used by callers of this module)
+from bench.common import default_urdf  # noqa: E402
 from bench.common import pinocchio_model as _pin_setup  # noqa: E402
 from bench.common import time_interleaved as _time_rounds  # noqa: E402
 
