@@ -63,6 +63,20 @@ def test_recorded_torques_respect_limits(runs):
         assert np.all(np.abs(rec['tau']) <= limits * 1.05)
 
 
+def test_no_shared_memory_left_behind(runs):
+    """Fast DDS names its shared-memory port files after RTPS ports, 7400 + 250 * domain + k
+    (k < 250): once every process of the scenarios has stopped, none of this domain's remain."""
+    if not os.path.isdir('/dev/shm'):
+        pytest.skip('no /dev/shm on this system')
+    lo = 7400 + 250 * _domain()
+    left = []
+    for name in os.listdir('/dev/shm'):
+        digits = name.split('fastrtps_port')[-1].split('_')[0] if 'fastrtps_port' in name else ''
+        if digits.isdigit() and lo <= int(digits) < lo + 250:
+            left.append(name)
+    assert not left
+
+
 def test_demo_main_writes_table_png_and_csv(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv('ROS_DOMAIN_ID', str(_domain()))
     assert demo.main(['--duration', '0.3', '--scenarios', 'gravity compensation', '--out', str(tmp_path)]) == 0
