@@ -13,6 +13,7 @@ multiplier * tau_mimic.
 """
 import numpy as np
 
+from . import aba, aba_derivatives, crba, kinematics, lagrangian, regressor, rnea, rnea_derivatives
 from .se3 import hat3, spatial_inertia
 
 
@@ -213,23 +214,19 @@ class Model:
         wrenches: optional {link: (m, f)} external wrench acting on the link, expressed in
         the link frame. Single state (n,) or batch (N, n).
         """
-        from . import rnea
         return rnea.inverse_dynamics(self, q, qd, qdd, wrenches)
 
     def gravity(self, q):
         """Gravity compensation torques g(q) (RNEA with V = 0, Vdot_0 = (0, -g))."""
-        from . import rnea
         return rnea.gravity(self, q)
 
     def coriolis_term(self, q, qd):
         """C(q, qd) qd = inverse_dynamics(q, qd, 0) without gravity."""
-        from . import rnea
         return rnea.inverse_dynamics(self, q, qd, np.zeros_like(np.asarray(qd, dtype=float)), None,
                                      with_gravity=False)
 
     def forward_kinematics(self, q):
         """World poses (N, nb, 4, 4) or (nb, 4, 4) of every modelled body frame."""
-        from . import kinematics
         single = np.ndim(q) == 1
         T = kinematics.world_poses(self, self.body_coordinates(self._batch('q', q)))
         return T[0] if single else T
@@ -254,69 +251,55 @@ class Model:
         """M(q), (n, n) or (N, n, n). method: 'crba' (composite rigid body, O(n^2); a generated
         kernel for small models, the fastest) or 'closed_form' (S^T G^T J G S, paper eq 39, O(n^3))."""
         if method == 'closed_form':
-            from . import lagrangian
             return lagrangian.mass_matrix(self, q)
         if method == 'crba':
-            from . import crba
             return crba.mass_matrix(self, q)
         raise ValueError(f"unknown mass matrix method {method!r}: use 'closed_form' or 'crba'")
 
     def christoffel(self, q):
         """Christoffel symbols of the first kind Gamma[i, j, k] (paper eq 40), (n, n, n) or (N, n, n, n)."""
-        from . import lagrangian
         return lagrangian.christoffel(self, q)
 
     def coriolis_matrix(self, q, qd):
         """C(q, qd) from the Christoffel symbols: C qd = coriolis_term(q, qd), Mdot - 2C skew."""
-        from . import lagrangian
         return lagrangian.coriolis_matrix(self, q, qd)
 
     def mass_matrix_derivatives(self, q):
         """dM/dq: D[..., a, :, :] = dM/dq_a (Proposition 1 applied to eq 39)."""
-        from . import lagrangian
         return lagrangian.mass_matrix_derivatives(self, q)
 
     def gravity_potential(self, q):
         """g(q) = dU/dq from the potential energy (paper eqs 43-45); equals gravity(q)."""
-        from . import lagrangian
         return lagrangian.gravity(self, q)
 
     def potential_energy(self, q):
         """U(q) = -sum_i m_i g . c_i (paper eq 43)."""
-        from . import lagrangian
         return lagrangian.potential_energy(self, q)
 
     def kinetic_energy(self, q, qd):
         """1/2 qd^T M(q) qd."""
-        from . import lagrangian
         return lagrangian.kinetic_energy(self, q, qd)
 
     def forward_dynamics(self, q, qd, tau, wrenches=None, method='cholesky'):
         """qdd with inverse_dynamics(q, qd, qdd, wrenches) = tau; method 'cholesky' or 'aba' (O(n))."""
-        from . import aba
         return aba.forward_dynamics(self, q, qd, tau, wrenches, method)
 
     def inverse_dynamics_derivatives(self, q, qd, qdd, wrenches=None):
         """(dtau/dq, dtau/dqd), analytic (rnea_derivatives.py)."""
-        from . import rnea_derivatives
         return rnea_derivatives.inverse_dynamics_derivatives(self, q, qd, qdd, wrenches)
 
     def forward_dynamics_derivatives(self, q, qd, tau, wrenches=None):
         """(dqdd/dq, dqdd/dqd, dqdd/dtau = M^-1) at qdd = forward_dynamics(q, qd, tau)."""
-        from . import aba_derivatives
         return aba_derivatives.forward_dynamics_derivatives(self, q, qd, tau, wrenches)
 
     def regressor(self, q, qd, qdd):
         """Y with inverse_dynamics(q, qd, qdd) = Y @ inertial_parameters(), (n, 10 nb) or (N, n, 10 nb)."""
-        from . import regressor
         return regressor.regressor(self, q, qd, qdd)
 
     def inertial_parameters(self):
         """(10 nb,) parameters (m, m c, I_xx, I_xy, I_yy, I_xz, I_yz, I_zz) per body, about the body frame."""
-        from . import regressor
         return regressor.inertial_parameters(self)
 
     def with_inertial_parameters(self, pi, check=True):
         """Copy of this model with the given inertial parameters (payloads folded in)."""
-        from . import regressor
         return regressor.with_inertial_parameters(self, pi, check)

@@ -101,7 +101,8 @@ def inverse_dynamics_derivatives(model, q, qd, qdd, wrenches=None):
             if k:
                 fr, fn, _ = k
                 P, E0, A0 = cg.model_params(model, fr, gravity=True)
-                out = np.array(fn(a, b, c, P, A0, E0, sin=math.sin, cos=math.cos)).reshape(2, n, n)
+                out = np.fromiter(fn(a, b, c, P, A0, E0, sin=math.sin, cos=math.cos), float,
+                                  2 * n * n).reshape(2, n, n)
                 return out[0], out[1]
     single = np.ndim(q) == 1
     q = model._batch('q', q)
@@ -168,7 +169,11 @@ def _build_kernel(fr, wrench):
     nb = fr.nb
     x, xd, xdd = co['x'], co['xd'], co['xdd']
     zero3 = (0.0, 0.0, 0.0)
-    Rw, pw, A, V, a, Js, H, F, dJ = ([None] * nb for _ in range(9))
+    # Reference point of the "root frame": the (constant) origin of the first root joint, so
+    # that its screw and that of any child joint whose axis passes through it have no moment
+    # part. Every root-frame quantity is taken about this point; the outputs do not depend on it.
+    origin = fr.t[fr.parent.index(-1)]
+    Rw, pw, A, V, a, Js, H, F, dJ, Zs, Vp_, ap_ = ([None] * nb for _ in range(12))
     for b in range(nb):
         p = fr.parent[b]
         R, t = fr.joint_transform(g, b, x[b])
@@ -177,15 +182,18 @@ def _build_kernel(fr, wrench):
             pw[b] = cg.vadd(pw[p], cg.mat_vec(Rw[p], t))
             Vp, ap = V[p], a[p]
         else:
-            Rw[b], pw[b] = R, t
+            Rw[b], pw[b] = R, cg.vsub(t, origin)
             Vp, ap = (zero3, zero3), (zero3, tuple(ga))
         axis = (Rw[b][0][2], Rw[b][1][2], Rw[b][2][2])
         A[b] = (axis, cg.cross(pw[b], axis)) if fr.revolute[b] else (zero3, axis)
         Axd = cg.twist_scale(xd[b], A[b])
         V[b] = cg.twist_add(Vp, Axd)
-        a[b] = cg.twist_add(cg.twist_add(ap, cg.twist_scale(xdd[b], A[b])), cg.bracket(V[b], Axd))
+        Zs[b] = cg.bracket(A[b], Vp)                 # Z_b = [A_b, V_b] = [A_b, V_p]
+        Vp_[b], ap_[b] = Vp, ap                      # (the xd_b terms of Y_b cancel)
+        a[b] = cg.twist_add(cg.twist_add(ap, cg.twist_scale(xdd[b], A[b])),
+                            cg.twist_scale(-1.0, cg.twist_scale(xd[b], Zs[b])))   # [V_b, A_b xd_b]
         # body inertia about the root frame (f_{0,b'} = (Rw, pw))
-        Js[b] = cg.inertia_to_parent(params[b], Rw[b], pw[b])
+        Js[b] = _inertia_to_root(params[b], Rw[b], pw[b])
         H[b] = cg.inertia_times(Js[b], V[b])
         Ja = cg.inertia_times(Js[b], a[b])
         F[b] = cg.twist_add(Ja, cg.twist_scale(-1.0, cg.ad_t(V[b], H[b])))
@@ -208,8 +216,8 @@ def _build_kernel(fr, wrench):
 
     P, Pv, R_, Rv, Q, Qv = ([None] * nb for _ in range(6))
     for m in range(nb):
-        Z = cg.bracket(A[m], V[m])
-        Y = cg.twist_add(cg.bracket(A[m], a[m]), cg.bracket(V[m], Z))
+        Z = Zs[m]
+        Y = cg.twist_add(cg.bracket(A[m], ap_[m]), cg.bracket(Vp_[m], Z))   # = [A, a] + [V, Z]
         JcA = cg.inertia_times(Jc[m], A[m])
         BcA = Bc(m, A[m])
         adAH = cg.ad_t(A[m], Hc[m])
@@ -241,6 +249,27 @@ def _build_kernel(fr, wrench):
     outputs = [dq[r][c] for r in range(n) for c in range(n)] + [dv[r][c] for r in range(n) for c in range(n)]
     src = cg.emit(g, 'rnea_derivatives_kernel', args, outputs)
     return cg.compile_function(src, 'rnea_derivatives_kernel'), src
+
+
+def _inertia_to_root(ic, R, t):
+    """codegen.inertia_to_parent with fewer traced products.
+
+    With g = R h + m t / 2: I' = R I R^T + 2 (t . g) 1 - t g^T - g t^T, h' = R h + m t.
+    """
+    m, h, I = ic
+    Rh = cg.mat_vec(R, h)
+    mt = cg.vscale(m, t)
+    hp = cg.vadd(Rh, mt)
+    gv = cg.vadd(Rh, cg.vscale(0.5, mt))
+    Ir = cg.sym_rot(R, I)
+    d = 2.0 * cg.dot(t, gv)
+    Ip = []
+    for k, (r, c) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
+        v = Ir[k] - (t[r] * gv[c] + gv[r] * t[c])
+        if r == c:
+            v = v + d
+        Ip.append(v)
+    return m, hp, tuple(Ip)
 
 
 def _kernel(model, wrench):
