@@ -37,8 +37,8 @@ CONFIG = os.path.join(os.path.dirname(PKG_DIR), 'config', 'arm7_gravity.yaml')
 
 
 def _arr(x):
-    return '[' + ','.join(f'{float(v):.6g}' if '.' in f'{float(v):.6g}' or 'e' in f'{float(v):.6g}'
-                          else f'{float(v):.6g}.0' for v in x) + ']'
+    # a ROS double array: repr keeps a decimal point ("60.0"), which the parameter parser needs
+    return '[' + ','.join(repr(float(v)) for v in x) + ']'
 
 
 def scenarios():
