@@ -27,6 +27,16 @@ def desired_state(t, q_home, amplitude, frequency):
     return q, a * w * np.sin(w * t), a * w * w * np.cos(w * t)
 
 
+def per_joint(values, n, name):
+    """A parameter array for n joints: one value for all, or exactly n values."""
+    values = np.asarray(values, dtype=float)
+    if values.shape == (1,):
+        return np.full(n, values[0])
+    if values.shape != (n,):
+        raise ValueError(f'{name} has {values.size} values for {n} joints (give 1 or {n})')
+    return values
+
+
 class TrajectorySource(Node):
     def __init__(self, **kwargs):
         super().__init__('trajectory_source', **kwargs)
@@ -44,7 +54,12 @@ class TrajectorySource(Node):
         if n == 0:
             return
         t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9 + self.lead
-        home, amp, freq = (np.resize(x, n) for x in (self.home, self.amplitude, self.frequency))
+        try:
+            home, amp, freq = (per_joint(x, n, k) for x, k in ((self.home, 'home'), (self.amplitude, 'amplitude'),
+                                                               (self.frequency, 'frequency')))
+        except ValueError as exc:
+            self.get_logger().warn(f'no desired state published: {exc}', throttle_duration_sec=2.0)
+            return
         q, qd, qdd = desired_state(t, home, amp, freq)
         out = JointTrajectory()
         out.header.stamp = msg.header.stamp

@@ -1,0 +1,44 @@
+"""sim_node and trajectory_source: bad configuration is refused with a clear message."""
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from lie_dynamics.trajectory_source import desired_state, per_joint
+
+ROOT = os.path.join(os.path.dirname(__file__), '..')
+
+
+@pytest.mark.parametrize('params, msg', [
+    (['-p', 'initial_positions:=[0.0, 1.0]'], 'initial_positions needs 7 values, got 2'),
+    (['-p', 'rate:=-5.0'], 'rate must be positive'),
+    (['-p', 'joints:=[nope]'], "unknown joint 'nope'"),
+])
+def test_sim_node_refuses_bad_parameters(params, msg):
+    r = subprocess.run([sys.executable, '-m', 'lie_dynamics.sim_node', '--ros-args'] + params,
+                       cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert 'sim_node: invalid configuration' in r.stderr and msg in r.stderr
+
+
+def test_per_joint_values():
+    np.testing.assert_array_equal(per_joint([0.5], 3, 'home'), [0.5, 0.5, 0.5])
+    np.testing.assert_array_equal(per_joint([1.0, 2.0, 3.0], 3, 'home'), [1, 2, 3])
+    with pytest.raises(ValueError, match=r'amplitude has 2 values for 3 joints \(give 1 or 3\)'):
+        per_joint([1.0, 2.0], 3, 'amplitude')
+
+
+def test_desired_state_starts_at_rest_and_is_consistent():
+    home, amp, freq = np.array([0.1, -0.2]), np.array([0.4, 0.2]), np.array([0.3, 0.5])
+    q, qd, _ = desired_state(0.0, home, amp, freq)
+    np.testing.assert_allclose(q, home)
+    np.testing.assert_allclose(qd, 0.0)
+    h = 1e-6
+    for t in (0.3, 1.7):
+        qp, qdp, _ = desired_state(t + h, home, amp, freq)
+        qm, qdm, _ = desired_state(t - h, home, amp, freq)
+        _, qd, qdd = desired_state(t, home, amp, freq)
+        np.testing.assert_allclose((qp - qm) / (2 * h), qd, atol=1e-8)
+        np.testing.assert_allclose((qdp - qdm) / (2 * h), qdd, atol=1e-7)
