@@ -15,6 +15,7 @@ Only +, -, *, unary minus, sin and cos are traced; no data-dependent branches.
 """
 import hashlib
 import math
+import re
 import weakref
 
 import numpy as np
@@ -151,6 +152,14 @@ class Graph:
         m = self._atom('mul', (x, y) if x <= y else (y, x))
         return Sym(self, {m: ca * cb})
 
+    def bake(self, x):
+        """x with its constant factor inside its atom, so that products with it need no extra
+        multiply (worth it for a value scaled once and multiplied many times)."""
+        if _const(x) or (x.const == 0.0 and len(x.terms) == 1 and abs(next(iter(x.terms.values()))) == 1.0):
+            return x
+        s, a = self._materialise(x.terms, x.const)
+        return Sym(self, {a: s})
+
     def fn(self, name, a):
         if _const(a):
             return getattr(math, name)(a)
@@ -255,19 +264,80 @@ def emit(g, fname, arg_lists, outputs, inline_limit=24):
             text[i], size[i] = (s, p), n_ops
         else:
             names[i] = f't{len(lines)}'
-            lines.append(f'    {names[i]} = {s}')
+            lines.append((names[i], s))
 
     def out(o):
         if not isinstance(o, Sym):
             return repr(float(o))
         return _render_form(tuple(o.terms.items()), o.const, ref)[0]
 
-    head = [f'def {fname}({", ".join(n for n, _ in arg_lists)}, sin, cos, sqrt=None):']
+    ret = f'({", ".join(out(o) for o in outputs)}{"," if len(outputs) == 1 else ""})'
+    lines, ret = _registers(lines, ret)
+    params = [n for n, _ in arg_lists] + ['sin', 'cos', 'sqrt=None']
+    hot = _hot_locals(lines, ret, [nm for _, syms in arg_lists for nm in syms], _MAX_FAST - len(params))
+    head = [f'def {fname}({", ".join(params + [f"{h}=0.0" for h in hot])}):']
     for lname, syms in arg_lists:
         if syms:
             head.append(f'    {", ".join(syms)}{"," if len(syms) == 1 else ""} = {lname}')
-    ret = f'    return ({", ".join(out(o) for o in outputs)}{"," if len(outputs) == 1 else ""})'
-    return '\n'.join(head + lines + [ret]) + '\n'
+    return '\n'.join(head + [f'    {t} = {x}' for t, x in lines] + [f'    return {ret}']) + '\n'
+
+
+# Identifiers of the generated text (not the exponent of a float literal such as 1e-05).
+_IDENT = re.compile(r'(?<![\w.])[A-Za-z_]\w*')
+# CPython addresses the first 256 local variables with a one-byte argument; every access to a
+# later one costs an extra EXTENDED_ARG instruction (about 10-15% of a large kernel's time).
+_MAX_FAST = 256
+
+
+def _registers(lines, ret):
+    """Rename temporaries so that a name is reused once its value is dead (linear scan).
+
+    Fewer distinct locals keep most of them within the first 256 (see _MAX_FAST).
+    lines: [(temp, expression)] in order; ret: the return expression.
+    """
+    temps = {t for t, _ in lines}
+    toks = [[x for x in _IDENT.findall(e) if x in temps] for _, e in lines]
+    last = {}
+    for i, ts in enumerate(toks):
+        for x in ts:
+            last[x] = i
+    for x in _IDENT.findall(ret):
+        if x in temps:
+            last[x] = len(lines)
+    regs, free, nreg = {}, [], 0
+    for i, ((t, _), ts) in enumerate(zip(lines, toks)):
+        for x in dict.fromkeys(ts):
+            if last[x] == i:
+                free.append(regs[x])
+        if free:
+            regs[t] = free.pop()
+        else:
+            regs[t], nreg = f'r{nreg}', nreg + 1
+
+    def ren(e):
+        return _IDENT.sub(lambda m: regs.get(m.group(0), m.group(0)), e)
+    return [(regs[t], ren(e)) for t, e in lines], ren(ret)
+
+
+def _hot_locals(lines, ret, inputs, k):
+    """The k most used locals (registers and unpacked inputs), to be declared first.
+
+    Locals are numbered in order of first appearance after the parameters; declaring the
+    busiest ones as parameters with defaults (filled in from a tuple at no cost) gives them
+    the one-byte numbers.
+    """
+    count = dict.fromkeys(inputs, 0)
+    for t, e in lines:
+        count[t] = count.get(t, 0) + 1
+        for x in _IDENT.findall(e):
+            if x in count:
+                count[x] += 1
+    for x in _IDENT.findall(ret):
+        if x in count:
+            count[x] += 1
+    if len(count) <= k:
+        return []
+    return sorted(count, key=lambda x: -count[x])[:k]
 
 
 def compile_function(src, fname):

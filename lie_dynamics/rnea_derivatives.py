@@ -149,9 +149,14 @@ _LOOP_BELOW = 4
 _ROWS_FROM = 160
 
 
-def _build_kernel(fr, wrench):
-    """Trace the O(n^2) derivative formulas of the module docstring in the root frame.
+def _build_kernel(fr, wrench, center=0):
+    """Trace the O(n^2) derivative formulas of the module docstring.
 
+    "Root frame" here is any fixed frame: the formulas are covariant, and the outputs are
+    scalars. The kernel uses the frame that coincides with body `center`'s primed frame at
+    the current configuration, about its origin (on that joint's axis): that body's pose
+    is the identity and its screw is e_z, so whole products fold away. Only gravity and the
+    poses change. The first body gave the fewest operations on the arm and random chains.
     The 6x6 composite Bc_k = -d/dt Jc_k is carried as the rate of the 10 inertia
     parameters (codegen.inertia_rate), which is all Bc is applied through.
     """
@@ -169,86 +174,103 @@ def _build_kernel(fr, wrench):
     nb = fr.nb
     x, xd, xdd = co['x'], co['xd'], co['xdd']
     zero3 = (0.0, 0.0, 0.0)
-    # Reference point of the "root frame": the (constant) origin of the first root joint, so
-    # that its screw and that of any child joint whose axis passes through it have no moment
-    # part. Every root-frame quantity is taken about this point; the outputs do not depend on it.
-    origin = fr.t[fr.parent.index(-1)]
-    Rw, pw, A, V, a, Js, H, F, dJ, Zs, Vp_, ap_ = ([None] * nb for _ in range(12))
-    for b in range(nb):
+    Rw, pw, Rb = _poses(fr, g, x, center)
+    ga = cg.mat_vec(Rb, ga)
+    A, V, a, Z, Y = ([None] * nb for _ in range(5))
+    for b in range(nb):   # forward: screws and twists
         p = fr.parent[b]
-        R, t = fr.joint_transform(g, b, x[b])
         if p >= 0:
-            Rw[b] = cg.mat_mat(Rw[p], R)
-            pw[b] = cg.vadd(pw[p], cg.mat_vec(Rw[p], t))
             Vp, ap = V[p], a[p]
         else:
-            Rw[b], pw[b] = R, cg.vsub(t, origin)
             Vp, ap = (zero3, zero3), (zero3, tuple(ga))
         axis = (Rw[b][0][2], Rw[b][1][2], Rw[b][2][2])
         A[b] = (axis, cg.cross(pw[b], axis)) if fr.revolute[b] else (zero3, axis)
-        Axd = cg.twist_scale(xd[b], A[b])
-        V[b] = cg.twist_add(Vp, Axd)
-        Zs[b] = cg.bracket(A[b], Vp)                 # Z_b = [A_b, V_b] = [A_b, V_p]
-        Vp_[b], ap_[b] = Vp, ap                      # (the xd_b terms of Y_b cancel)
+        V[b] = cg.twist_add(Vp, cg.twist_scale(xd[b], A[b]))
+        Z[b] = cg.bracket(A[b], Vp)                                      # [A_b, V_b] = [A_b, V_p]
+        Y[b] = cg.twist_add(cg.bracket(A[b], ap), cg.bracket(Vp, Z[b]))  # [A, a] + [V, Z] (xd_b terms cancel)
         a[b] = cg.twist_add(cg.twist_add(ap, cg.twist_scale(xdd[b], A[b])),
-                            cg.twist_scale(-1.0, cg.twist_scale(xd[b], Zs[b])))   # [V_b, A_b xd_b]
-        # body inertia about the root frame (f_{0,b'} = (Rw, pw))
-        Js[b] = _inertia_to_root(params[b], Rw[b], pw[b])
-        H[b] = cg.inertia_times(Js[b], V[b])
-        Ja = cg.inertia_times(Js[b], a[b])
-        F[b] = cg.twist_add(Ja, cg.twist_scale(-1.0, cg.ad_t(V[b], H[b])))
-        if fext is not None:
-            # body-frame wrench (in frame b') to the root frame
-            F[b] = cg.twist_add(F[b], cg.twist_scale(-1.0, cg.wrench_to_parent(fext[b], Rw[b], pw[b])))
-        dJ[b] = cg.inertia_rate(Js[b], V[b])
-    # subtree sums
-    Jc, Dc, Hc, Fc = list(Js), list(dJ), list(H), list(F)
-    for b in reversed(range(nb)):
-        p = fr.parent[b]
-        if p >= 0:
-            Jc[p] = cg.inertia_add(Jc[p], Jc[b])
-            Dc[p] = cg.inertia_add(Dc[p], Dc[b])
-            Hc[p] = cg.twist_add(Hc[p], Hc[b])
-            Fc[p] = cg.twist_add(Fc[p], Fc[b])
-
-    def Bc(k, y):  # Bc_k y = -(d/dt Jc_k) y
-        return cg.twist_scale(-1.0, cg.inertia_times(Dc[k], y))
-
-    P, Pv, R_, Rv, Q, Qv = ([None] * nb for _ in range(6))
-    for m in range(nb):
-        Z = Zs[m]
-        Y = cg.twist_add(cg.bracket(A[m], ap_[m]), cg.bracket(Vp_[m], Z))   # = [A, a] + [V, Z]
-        JcA = cg.inertia_times(Jc[m], A[m])
-        BcA = Bc(m, A[m])
-        adAH = cg.ad_t(A[m], Hc[m])
-        P[m] = cg.twist_add(cg.twist_add(cg.twist_scale(-1.0, cg.inertia_times(Jc[m], Y)), Bc(m, Z)),
-                            cg.twist_add(cg.ad_t(Z, Hc[m]), cg.twist_scale(-1.0, cg.ad_t(A[m], Fc[m]))))
-        Pv[m] = cg.twist_scale(-1.0, cg.twist_add(cg.twist_add(BcA, cg.twist_scale(2.0, cg.inertia_times(Jc[m], Z))),
-                                                  adAH))
-        R_[m] = (cg.twist_scale(-1.0, JcA), cg.twist_add(BcA, cg.twist_scale(-1.0, adAH)))
-        Rv[m] = (cg.twist_add(adAH, cg.twist_scale(-1.0, BcA)), cg.twist_scale(-2.0, JcA))
-        Q[m], Qv[m] = (Y, Z), (A[m], Z)
-    anc = [[False] * nb for _ in range(nb)]   # anc[i][j]: j <= i
-    for i in range(nb):
-        j = i
-        while j >= 0:
-            anc[i][j] = True
-            j = fr.parent[j]
+                            cg.twist_scale(-1.0, cg.twist_scale(xd[b], Z[b])))   # [V_b, A_b xd_b]
+    # backward: body terms, subtree sums (composites), then joint b's products with its
+    # ancestors at once, so that few values are live at a time (see codegen._MAX_FAST)
+    Jc, Dc, Hc, Fc = ([None] * nb for _ in range(4))
     dq = [[0.0] * nb for _ in range(nb)]
     dv = [[0.0] * nb for _ in range(nb)]
-    for k in range(nb):
-        for m in range(nb):
-            if anc[m][k]:          # k <= m
-                dq[k][m] = cg.dot6(A[k], P[m])
-                dv[k][m] = cg.dot6(A[k], Pv[m])
-            elif anc[k][m]:        # m < k
-                dq[k][m] = cg.dot6(R_[k][0], Q[m][0]) + cg.dot6(R_[k][1], Q[m][1])
-                dv[k][m] = cg.dot6(Rv[k][0], Qv[m][0]) + cg.dot6(Rv[k][1], Qv[m][1])
+    for m in reversed(range(nb)):
+        Js = _inertia_to_root(params[m], Rw[m], pw[m])   # f_{0,m'} = (Rw, pw)
+        H = cg.inertia_times(Js, V[m])
+        F = cg.twist_add(cg.inertia_times(Js, a[m]), cg.twist_scale(-1.0, cg.ad_t(V[m], H)))
+        if fext is not None:   # body-frame wrench (in frame m') to the root frame
+            F = cg.twist_add(F, cg.twist_scale(-1.0, cg.wrench_to_parent(fext[m], Rw[m], pw[m])))
+        D = cg.inertia_rate(Js, V[m])
+        if Jc[m] is None:
+            Jc[m], Dc[m], Hc[m], Fc[m] = Js, D, H, F
+        else:
+            Jc[m], Dc[m] = cg.inertia_add(Jc[m], Js), cg.inertia_add(Dc[m], D)
+            Hc[m], Fc[m] = cg.twist_add(Hc[m], H), cg.twist_add(Fc[m], F)
+        J, Am, Zm = Jc[m], A[m], Z[m]
+
+        def Bc(y):  # Bc_m y = -(d/dt Jc_m) y
+            return cg.twist_scale(-1.0, cg.inertia_times(Dc[m], y))
+        JcA = cg.inertia_times(J, Am)
+        BcA = Bc(Am)
+        adAH = cg.ad_t(Am, Hc[m])
+        P = cg.twist_add(cg.twist_add(cg.twist_scale(-1.0, cg.inertia_times(J, Y[m])), Bc(Zm)),
+                         cg.twist_add(cg.ad_t(Zm, Hc[m]), cg.twist_scale(-1.0, cg.ad_t(Am, Fc[m]))))
+        Pv = cg.twist_scale(-1.0, cg.twist_add(cg.twist_add(BcA, cg.twist_scale(2.0, cg.inertia_times(J, Zm))),
+                                               adAH))
+        R = (cg.twist_scale(-1.0, JcA), cg.twist_add(BcA, cg.twist_scale(-1.0, adAH)))
+        Rv = (cg.twist_add(adAH, cg.twist_scale(-1.0, BcA)),
+              tuple(tuple(g.bake(-2.0 * c) for c in v) for v in JcA))   # used in O(n) products
+        dq[m][m], dv[m][m] = cg.dot6(Am, P), cg.dot6(Am, Pv)
+        k = fr.parent[m]
+        while k >= 0:          # k < m
+            dq[k][m], dv[k][m] = cg.dot6(A[k], P), cg.dot6(A[k], Pv)
+            dq[m][k] = cg.dot6(R[0], Y[k]) + cg.dot6(R[1], Z[k])
+            dv[m][k] = cg.dot6(Rv[0], A[k]) + cg.dot6(Rv[1], Z[k])
+            k = fr.parent[k]
+        p = fr.parent[m]
+        if p >= 0:
+            if Jc[p] is None:
+                Jc[p], Dc[p], Hc[p], Fc[p] = Jc[m], Dc[m], Hc[m], Fc[m]
+            else:
+                Jc[p], Dc[p] = cg.inertia_add(Jc[p], Jc[m]), cg.inertia_add(Dc[p], Dc[m])
+                Hc[p], Fc[p] = cg.twist_add(Hc[p], Hc[m]), cg.twist_add(Fc[p], Fc[m])
     dq, dv = fr.project(dq), fr.project(dv)
     n = fr.n
     outputs = [dq[r][c] for r in range(n) for c in range(n)] + [dv[r][c] for r in range(n) for c in range(n)]
     src = cg.emit(g, 'rnea_derivatives_kernel', args, outputs)
     return cg.compile_function(src, 'rnea_derivatives_kernel'), src
+
+
+def _poses(fr, g, x, r):
+    """Poses (R, p) of every body frame b' in frame r' at this configuration, and the base's R.
+
+    Up the path from r: pose(parent) = pose(c) X_c^-1; then down: pose(b) = pose(parent) X_b.
+    """
+    nb = fr.nb
+    X = [fr.joint_transform(g, b, x[b]) for b in range(nb)]
+    eye = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    Rw, pw = [None] * nb, [None] * nb
+    Rw[r], pw[r] = eye, (0.0, 0.0, 0.0)
+    c = r
+    while True:
+        R, t = X[c]
+        Rp = tuple(tuple(cg.dot(Rw[c][i], R[j]) for j in range(3)) for i in range(3))   # R_c R^T
+        pp = cg.vsub(pw[c], cg.mat_vec(Rp, t))
+        p = fr.parent[c]
+        if p < 0:
+            Rb, pb = Rp, pp
+            break
+        Rw[p], pw[p] = Rp, pp
+        c = p
+    for b in range(nb):
+        if Rw[b] is None:
+            p = fr.parent[b]
+            R, t = X[b]
+            Rp, pp = (Rw[p], pw[p]) if p >= 0 else (Rb, pb)
+            Rw[b] = cg.mat_mat(Rp, R)
+            pw[b] = cg.vadd(pp, cg.mat_vec(Rp, t))
+    return Rw, pw, Rb
 
 
 def _inertia_to_root(ic, R, t):

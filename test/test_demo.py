@@ -18,8 +18,28 @@ def _logs(log_dir):
     return '\n'.join(f'--- {p.name}\n{p.read_text()[-3000:]}' for p in sorted(log_dir.iterdir()))
 
 
+def _shm_port_files():
+    """Fast DDS names its shared-memory port files after RTPS ports, 7400 + 250 * domain + k
+    (k < 250): the files of the demo's domain."""
+    if not os.path.isdir('/dev/shm'):
+        return None
+    lo = 7400 + 250 * _domain()
+    left = set()
+    for name in os.listdir('/dev/shm'):
+        digits = name.split('fastrtps_port')[-1].split('_')[0] if 'fastrtps_port' in name else ''
+        if digits.isdigit() and lo <= int(digits) < lo + 250:
+            left.add(name)
+    return left
+
+
 @pytest.fixture(scope='module')
-def runs(tmp_path_factory):
+def shm_before():
+    # files a killed process of some earlier run left behind are not this run's doing
+    return _shm_port_files()
+
+
+@pytest.fixture(scope='module')
+def runs(tmp_path_factory, shm_before):
     out = {}
     for name in demo.scenarios():
         log_dir = tmp_path_factory.mktemp('logs')
@@ -63,18 +83,11 @@ def test_recorded_torques_respect_limits(runs):
         assert np.all(np.abs(rec['tau']) <= limits * 1.05)
 
 
-def test_no_shared_memory_left_behind(runs):
-    """Fast DDS names its shared-memory port files after RTPS ports, 7400 + 250 * domain + k
-    (k < 250): once every process of the scenarios has stopped, none of this domain's remain."""
-    if not os.path.isdir('/dev/shm'):
+def test_no_shared_memory_left_behind(runs, shm_before):
+    """Once every process of the scenarios has stopped, none of them left a port file behind."""
+    if shm_before is None:
         pytest.skip('no /dev/shm on this system')
-    lo = 7400 + 250 * _domain()
-    left = []
-    for name in os.listdir('/dev/shm'):
-        digits = name.split('fastrtps_port')[-1].split('_')[0] if 'fastrtps_port' in name else ''
-        if digits.isdigit() and lo <= int(digits) < lo + 250:
-            left.append(name)
-    assert not left
+    assert not _shm_port_files() - shm_before
 
 
 def test_demo_main_writes_table_png_and_csv(tmp_path, monkeypatch, capsys):
