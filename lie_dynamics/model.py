@@ -260,9 +260,17 @@ class Model:
         """Christoffel symbols of the first kind Gamma[i, j, k] (paper eq 40), (n, n, n) or (N, n, n, n)."""
         return lagrangian.christoffel(self, q)
 
-    def coriolis_matrix(self, q, qd):
-        """C(q, qd) from the Christoffel symbols: C qd = coriolis_term(q, qd), Mdot - 2C skew."""
-        return lagrangian.coriolis_matrix(self, q, qd)
+    def coriolis_matrix(self, q, qd, method='christoffel'):
+        """C(q, qd) from the Christoffel symbols: C qd = coriolis_term(q, qd), Mdot - 2C skew.
+
+        method: 'christoffel' (eqs 40-42 from dM/dq, O(n^3)) or 'recursive' (the same matrix as
+        1/2 dtau/dqd of the differentiated RNEA, O(n^2); a generated kernel for small models,
+        several times faster)."""
+        if method == 'christoffel':
+            return lagrangian.coriolis_matrix(self, q, qd)
+        if method == 'recursive':
+            return rnea_derivatives.coriolis_matrix(self, q, qd)
+        raise ValueError(f"unknown Coriolis matrix method {method!r}: use 'christoffel' or 'recursive'")
 
     def mass_matrix_derivatives(self, q):
         """dM/dq: D[..., a, :, :] = dM/dq_a (Proposition 1 applied to eq 39)."""

@@ -149,7 +149,7 @@ _LOOP_BELOW = 4
 _ROWS_FROM = 160
 
 
-def _build_kernel(fr, wrench, center=0):
+def _build_kernel(fr, wrench, center=0, coriolis=False):
     """Trace the O(n^2) derivative formulas of the module docstring.
 
     "Root frame" here is any fixed frame: the formulas are covariant, and the outputs are
@@ -159,12 +159,19 @@ def _build_kernel(fr, wrench, center=0):
     poses change. The first body gave the fewest operations on the arm and random chains.
     The 6x6 composite Bc_k = -d/dt Jc_k is carried as the rate of the 10 inertia
     parameters (codegen.inertia_rate), which is all Bc is applied through.
+    coriolis: only C = 1/2 dtau/dqd, which depends on neither qdd nor gravity; the kernel then
+    takes (Q, QD, P, E0) and everything only dtau/dq needs is pruned.
     """
     g = cg.Graph()
-    co = fr.trace_coordinates(g, rates=2)
+    co = fr.trace_coordinates(g, rates=1 if coriolis else 2)
     parg, params = fr.trace_params(g)
-    ga = [g.input(f'g{k}') for k in range(3)]
-    args = co['args'] + [parg, ('A0', [f'g{k}' for k in range(3)]), co['offset_args']]
+    if coriolis:
+        ga = [0.0, 0.0, 0.0]
+        co['xdd'] = [0.0] * fr.nb
+        args = co['args'] + [parg, co['offset_args']]
+    else:
+        ga = [g.input(f'g{k}') for k in range(3)]
+        args = co['args'] + [parg, ('A0', [f'g{k}' for k in range(3)]), co['offset_args']]
     fext = None
     if wrench:
         names = [f'f{b}_{k}' for b in range(fr.nb) for k in range(6)]
@@ -237,7 +244,10 @@ def _build_kernel(fr, wrench, center=0):
                 Hc[p], Fc[p] = cg.twist_add(Hc[p], Hc[m]), cg.twist_add(Fc[p], Fc[m])
     dq, dv = fr.project(dq), fr.project(dv)
     n = fr.n
-    outputs = [dq[r][c] for r in range(n) for c in range(n)] + [dv[r][c] for r in range(n) for c in range(n)]
+    if coriolis:
+        outputs = [0.5 * dv[r][c] for r in range(n) for c in range(n)]
+    else:
+        outputs = [dq[r][c] for r in range(n) for c in range(n)] + [dv[r][c] for r in range(n) for c in range(n)]
     src = cg.emit(g, 'rnea_derivatives_kernel', args, outputs)
     return cg.compile_function(src, 'rnea_derivatives_kernel'), src
 
@@ -299,6 +309,44 @@ def _kernel(model, wrench):
         return False
     return cg.compiled(model, 'rnea_derivatives_wrench' if wrench else 'rnea_derivatives',
                        lambda fr: _build_kernel(fr, wrench))
+
+
+def _coriolis_kernel(model):
+    if model.nb > KERNEL_MAX_BODIES:
+        return False
+    return cg.compiled(model, 'coriolis', lambda fr: _build_kernel(fr, False, coriolis=True))
+
+
+def coriolis_matrix(model, q, qd):
+    """C(q, qd) = 1/2 dtau/dqd by the differentiated recursion (the dtau/dqd half of the
+    derivative kernel). This is the Christoffel C of eqs 40-42: tau is quadratic in qd with
+    symmetric Gamma_ijk = Gamma_jik, so d/dqd_j sum_i,l Gamma_ilk qd_i qd_l = 2 sum_i Gamma_ijk qd_i.
+    q, qd: (n,) or (N, n) -> (n, n) or (N, n, n).
+    """
+    n = model.n
+    a, b = cg.is_fast_single(q, n), cg.is_fast_single(qd, n)
+    if a is not None and b is not None:
+        k = _coriolis_kernel(model)
+        if k:
+            fr, fn, _ = k
+            P, E0 = cg.model_params(model, fr)
+            return np.fromiter(fn(a, b, P, E0, sin=math.sin, cos=math.cos), float, n * n).reshape(n, n)
+    single = np.ndim(q) == 1
+    q = model._batch('q', q)
+    N = q.shape[0]
+    qd = model._batch('qd', qd, N)
+    k = _coriolis_kernel(model)
+    if not k or _LOOP_BELOW <= N < _ROWS_FROM:
+        C = 0.5 * inverse_dynamics_derivatives_vectorized(model, q, qd, np.zeros_like(qd))[1]
+    else:
+        fr, fn, _ = k
+        P, E0 = cg.model_params(model, fr)
+        if N < _LOOP_BELOW:
+            C = np.array([fn(a, b, P, E0, sin=math.sin, cos=math.cos) for a, b in zip(q.tolist(), qd.tolist())])
+        else:
+            C = cg.run_rows(fn, [q, qd], (P, E0), n * n)
+        C = C.reshape(N, n, n)
+    return C[0] if single else C
 
 
 def _kernel_derivatives(model, q, qd, qdd, fext, mode=None):

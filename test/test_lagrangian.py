@@ -54,6 +54,14 @@ def test_coriolis_matrix_matches_pinocchio_and_rnea(name):
     g = model.gravity(q)
     h = model.inverse_dynamics(q, qd, np.zeros_like(qd)) - g
     assert rel_err(np.einsum('nij,nj->ni', C, qd), h, max(floor, 1e-5 * np.abs(g).max())) < 1e-10
+    # the same matrix as 1/2 dtau/dqd of the differentiated recursion: generated kernel state by
+    # state, on numpy rows, the vectorised form in between, and one state
+    from lie_dynamics import rnea_derivatives as rd
+    for N in (rd._LOOP_BELOW - 1, rd._LOOP_BELOW, len(q)):
+        assert rel_err(model.coriolis_matrix(q[:N], qd[:N], method='recursive'), ref[:N], floor) < 1e-10
+    rows = model.coriolis_matrix(np.tile(q, (2, 1)), np.tile(qd, (2, 1)), method='recursive')
+    assert len(rows) >= rd._ROWS_FROM and rel_err(rows[:len(q)], ref, floor) < 1e-10
+    assert rel_err(model.coriolis_matrix(q[0], qd[0], method='recursive')[None], ref[:1], floor) < 1e-10
 
 
 @pytest.mark.parametrize('name', ['chain2', 'chain7', 'tree12', 'tree20_mimic', 'mixed_types', 'arm7'])
@@ -181,6 +189,11 @@ def test_error_paths():
         model.coriolis_matrix(np.zeros((2, 7)), np.zeros(7))
     with pytest.raises(ValueError, match='q contains non-finite values'):
         model.christoffel(np.full(7, np.nan))
+    with pytest.raises(ValueError, match="unknown Coriolis matrix method 'lu'"):
+        model.coriolis_matrix(np.zeros(7), np.zeros(7), method='lu')
+    for bad in (np.full(7, np.nan), [0.0] * 6, np.zeros((2, 6))):
+        with pytest.raises(ValueError, match='qd'):
+            model.coriolis_matrix(np.zeros(7) if np.ndim(bad) == 1 else np.zeros((2, 7)), bad, method='recursive')
 
 
 def test_chunked_batches_agree(monkeypatch):
