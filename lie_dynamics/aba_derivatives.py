@@ -27,17 +27,21 @@ def forward_dynamics_derivatives(model, q, qd, tau, wrenches=None):
     qd = model._batch('qd', qd, N)
     tau = model._batch('tau', tau, N)
     n = model.n
-    if single:   # single-state calls below take the fast (kernel) paths
+    if single:   # one state: the kernel paths and 2-D LAPACK calls (no batch axis to carry)
         q, qd, tau = q[0], qd[0], tau[0]
-        M = crba.mass_matrix(model, q)[None]
-    else:
         M = crba.mass_matrix(model, q)
+        L = cholesky(M[None])[0]
+        h = rnea.inverse_dynamics(model, q, qd, np.zeros_like(qd), wrenches)
+        Lt = L.T
+        qdd = np.linalg.solve(Lt, np.linalg.solve(L, tau - h))
+        dq, dv = inverse_dynamics_derivatives(model, q, qd, qdd, wrenches)
+        sol = np.linalg.solve(Lt, np.linalg.solve(L, np.concatenate([dq, dv, np.eye(n)], axis=1)))
+        return -sol[:, :n], -sol[:, n:2 * n], sol[:, 2 * n:]
+    M = crba.mass_matrix(model, q)
     L = cholesky(M)
     h = rnea.inverse_dynamics(model, q, qd, np.zeros_like(qd), wrenches)
-    qdd = cho_solve(L, np.reshape(tau - h, (N, n)))
-    dq, dv = inverse_dynamics_derivatives(model, q, qd, qdd[0] if single else qdd, wrenches)
-    rhs = np.concatenate([np.reshape(dq, (N, n, n)), np.reshape(dv, (N, n, n)),
-                          np.broadcast_to(np.eye(n), (N, n, n))], axis=-1)
+    qdd = cho_solve(L, tau - h)
+    dq, dv = inverse_dynamics_derivatives(model, q, qd, qdd, wrenches)
+    rhs = np.concatenate([dq, dv, np.broadcast_to(np.eye(n), (N, n, n))], axis=-1)
     sol = cho_solve(L, rhs)
-    out = (-sol[..., :n], -sol[..., n:2 * n], sol[..., 2 * n:])
-    return tuple(o[0] for o in out) if single else out
+    return -sol[..., :n], -sol[..., n:2 * n], sol[..., 2 * n:]
