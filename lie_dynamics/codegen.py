@@ -481,14 +481,24 @@ class Frames:
             if p >= 0:
                 self.children[p].append(b)
 
-    def inertia_params(self, J):
-        """(nb * 10,) list: per body (m, h, I_xx, I_xy, I_xz, I_yy, I_yz, I_zz) in the primed frame."""
+    def inertia_table(self, J):
+        """(nb, 10) array: per body (m, h, I_xx, I_xy, I_xz, I_yy, I_yz, I_zz) in the primed frame."""
         Qt = np.swapaxes(self.Q, 1, 2)
         I = Qt @ J[:, :3, :3] @ self.Q
         h = np.einsum('bij,bj->bi', Qt, np.stack([J[:, 2, 4], J[:, 0, 5], J[:, 1, 3]], axis=1))
-        out = np.column_stack([J[:, 3, 3], h, I[:, 0, 0], I[:, 0, 1], I[:, 0, 2], I[:, 1, 1],
-                               I[:, 1, 2], I[:, 2, 2]])
-        return out.reshape(-1).tolist()
+        return np.column_stack([J[:, 3, 3], h, I[:, 0, 0], I[:, 0, 1], I[:, 0, 2], I[:, 1, 1],
+                                I[:, 1, 2], I[:, 2, 2]])
+
+    def inertia_params(self, J):
+        """inertia_table as one flat list (the P argument of the traced kernels)."""
+        return self.inertia_table(J).reshape(-1).tolist()
+
+    def wrench_params(self, fext):
+        """(..., nb, 6) body-frame wrenches (n, f) -> the same in the primed frames (Q^T n, Q^T f)."""
+        out = np.empty_like(fext)
+        out[..., :3] = np.einsum('bji,...bj->...bi', self.Q, fext[..., :3])
+        out[..., 3:] = np.einsum('bji,...bj->...bi', self.Q, fext[..., 3:])
+        return out
 
     def offsets(self, e0):
         return [float(e0[b]) for b in range(self.nb) if self.offset[b]]

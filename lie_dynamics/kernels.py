@@ -19,10 +19,8 @@ import math
 
 import numpy as np
 
-# Entries of constant rotations closer than this to 0 or +-1 are snapped: URDF rpy of
-# +-pi/2 give cos(pi/2) = 6e-17 instead of 0, and snapping lets whole products drop out.
-# The change is below the rounding of the rpy text itself.
-_SNAP = 1e-15
+from .codegen import Frames
+
 # Kernels for models larger than this are not generated (compile time grows with the
 # source); callers fall back to the vectorised reference implementation.
 MAX_BODIES = 256
@@ -41,26 +39,6 @@ def supports(model):
     rev = (np.abs(nw - 1) < 1e-12) & (nv == 0)
     pri = (nw == 0) & (np.abs(nv - 1) < 1e-12)
     return bool(np.all(rev | pri))
-
-
-def _axis_frame(a):
-    """Proper rotation Q = [u, a x u, a] with Q e_z = a; a signed permutation (so that products
-    with it fold away) when a is a coordinate axis."""
-    u = np.zeros(3)
-    if np.count_nonzero(a) == 1:
-        u[(int(np.flatnonzero(a)[0]) + 1) % 3] = 1.0
-    else:
-        u[int(np.argmin(np.abs(a)))] = 1.0
-        u = np.cross(u, a)
-        u /= np.linalg.norm(u)
-    return np.column_stack([u, np.cross(a, u), a])
-
-
-def _snap(R):
-    R = R.copy()
-    for t in (0.0, 1.0, -1.0):
-        R[np.abs(R - t) < _SNAP] = t
-    return R
 
 
 class _Code:
@@ -297,68 +275,32 @@ def _unpack(names, src):
     return f'    {", ".join(names)}{"," if len(names) == 1 else ""} = {src}\n'
 
 
-class Structure:
-    """Constant per-model data shared by all kernels: primed frames and folded home poses."""
+class Structure(Frames):
+    """Constant per-model data shared by all kernels: the primed frames of codegen.Frames
+    (every joint axis is z; the home poses M'_b = (R0, p0) folded in) and Ad_{M'^-1}."""
 
     def __init__(self, model):
-        self.nb, self.n = model.nb, model.n
-        self.parent = model.parent.tolist()
-        self.revolute = [bool(np.linalg.norm(model.S[b, :3]) > 0) for b in range(self.nb)]
-        self.Q = np.array([_axis_frame(model.S[b, :3] if self.revolute[b] else model.S[b, 3:])
-                           for b in range(self.nb)]).reshape(self.nb, 3, 3)
-        # M'_b = (Q_p^T R Q_b, Q_p^T p); Ad_{M'^-1} = [[R'^T, 0], [-R'^T [p'], R'^T]]
-        self.R0, self.p0, self.K = [], [], []
-        for b in range(self.nb):
-            p = self.parent[b]
-            Qp = self.Q[p] if p >= 0 else np.eye(3)
-            R = _snap(Qp.T @ model.M[b, :3, :3] @ self.Q[b])
-            t = Qp.T @ model.M[b, :3, 3]
+        super().__init__(model)
+        self.R0 = [np.array(R) for R in self.R]
+        self.p0 = [np.array(t) for t in self.t]
+        # Ad_{M'^-1} = [[R'^T, 0], [-R'^T [p'], R'^T]]
+        self.K = []
+        for R, t in zip(self.R0, self.p0):
             P = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
             K = np.zeros((6, 6))
             K[:3, :3] = K[3:, 3:] = R.T
             K[3:, :3] = -R.T @ P
-            self.R0.append(R)
-            self.p0.append(t)
             self.K.append(K)
-        self.E = model.E.copy()
-        # bodies whose coordinate has a runtime offset (locked masters, mimic offsets)
-        self.offset = [bool(np.any(model.L[b] != 0) or model.c0[b] != 0) for b in range(self.nb)]
-        self.children = [[] for _ in range(self.nb)]
-        for b, p in enumerate(self.parent):
-            if p >= 0:
-                self.children[p].append(b)
-
-    # ---- parameters (recomputed only when the model's inertia, gravity or offsets change)
-    def inertia_params(self, J):
-        """Per body (m, h, I_o) in the primed frame: 10 floats, I_o = (xx, xy, xz, yy, yz, zz)."""
-        Qt = np.swapaxes(self.Q, 1, 2)
-        I = Qt @ J[:, :3, :3] @ self.Q
-        H = J[:, :3, 3:]
-        h = np.stack([H[:, 2, 1], H[:, 0, 2], H[:, 1, 0]], axis=1)
-        h = np.einsum('bij,bj->bi', Qt, h)
-        out = np.column_stack([J[:, 3, 3], h, I[:, 0, 0], I[:, 0, 1], I[:, 0, 2], I[:, 1, 1],
-                               I[:, 1, 2], I[:, 2, 2]])
-        return out
 
     def gravity_params(self, J):
         """Per body (subtree mass, h_b + sum over children of m_sub p'_c): 4 floats."""
         m = J[:, 3, 3].copy()
-        h = self.inertia_params(J)[:, 1:4].copy()
+        h = self.inertia_table(J)[:, 1:4].copy()
         for b in range(self.nb - 1, -1, -1):  # children have larger indices
             for c in self.children[b]:
                 m[b] += m[c]
                 h[b] += m[c] * self.p0[c]
         return np.column_stack([m, h])
-
-    def offsets(self, e0):
-        return [float(e0[b]) for b in range(self.nb) if self.offset[b]]
-
-    def wrench_params(self, fext):
-        """(..., nb, 6) body-frame wrenches -> (..., nb, 6) in the primed frames."""
-        out = np.empty_like(fext)
-        out[..., :3] = np.einsum('bji,...bj->...bi', self.Q, fext[..., :3])
-        out[..., 3:] = np.einsum('bji,...bj->...bi', self.Q, fext[..., 3:])
-        return out
 
     # ---- code generation
     def _coordinates(self, C, header, order):
@@ -589,7 +531,7 @@ class Kernels:
         key, values = self._params
         if key is None or not (key[0] is model.J and key[1] is model._a0 and key[2] is model.e0):
             st = self.structure
-            values = (tuple(st.inertia_params(model.J).ravel().tolist()),
+            values = (tuple(st.inertia_params(model.J)),
                       tuple(st.gravity_params(model.J).ravel().tolist()),
                       tuple(model._a0[3:].tolist()), tuple(st.offsets(model.e0)))
             self._params = ((model.J, model._a0, model.e0), values)  # one assignment: thread-safe

@@ -366,10 +366,7 @@ def _kernel_derivatives(model, q, qd, qdd, fext, mode=None):
     N, n = q.shape
     extra = ()
     if fext is not None:
-        fx = np.empty_like(fext)   # to the primed frames: Q^T n, Q^T f
-        fx[..., :3] = np.einsum('bji,nbj->nbi', fr.Q, fext[..., :3])
-        fx[..., 3:] = np.einsum('bji,nbj->nbi', fr.Q, fext[..., 3:])
-        extra = (fx.reshape(N, -1),)
+        extra = (fr.wrench_params(fext).reshape(N, -1),)
     if mode == 'loop':
         rows = zip(q.tolist(), qd.tolist(), qdd.tolist(), *[e.tolist() for e in extra])
         vals = np.array([fn(*r[:3], P, A0, E0, *r[3:], sin=math.sin, cos=math.cos) for r in rows])
