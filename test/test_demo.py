@@ -99,3 +99,27 @@ def test_demo_main_writes_table_png_and_csv(tmp_path, monkeypatch, capsys):
     assert png.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n' and png.stat().st_size > 10000
     lines = (tmp_path / 'demo_metrics.csv').read_text().splitlines()
     assert lines[0] == 'scenario,samples,drift,rms_error,max_error' and lines[1].startswith('gravity compensation,')
+
+
+def test_unbounded_run_keeps_bounded_history_and_stops_cleanly(tmp_path, monkeypatch):
+    """duration 0 runs until interrupted: only the last HISTORY_S of samples are kept, the status
+    callback sees the last STATUS_WINDOW_S, and an interrupt stops every process cleanly."""
+    monkeypatch.setattr(demo, 'HISTORY_S', 0.05)   # 50 samples at 1 kHz
+    before = _shm_port_files()
+    windows = []
+
+    def status(name, window):   # called about once a second
+        windows.append(window)
+        if window['t'][-1] > 0.2 or len(windows) >= 60:   # well past the kept history (or give up)
+            raise KeyboardInterrupt   # what Ctrl-C does in the demo's loop
+
+    rec = demo.run_scenario('PD + feedforward', 0.0, status=status, domain=_domain(), log_dir=str(tmp_path))
+    assert rec['interrupted'] and len(windows) < 60
+    assert 0 < len(rec['t']) <= 50 and np.all(np.diff(rec['t']) > 0)
+    assert rec['t'][-1] > 0.05                           # it ran past the kept history
+    last = windows[-1]
+    assert 0 < len(last['t']) <= 50 and last['t'] == sorted(last['t'])
+    assert len(last['q']) == len(last['t']) and len(last['q'][-1]) == 7
+    assert rec['exit_codes'] and all(code == 0 for code in rec['exit_codes'].values()), rec['exit_codes']
+    if before is not None:
+        assert not _shm_port_files() - before
