@@ -22,10 +22,8 @@ def forward_dynamics_derivatives(model, q, qd, tau, wrenches=None):
     (Pinocchio's computeABADerivatives: ddq_dq, ddq_dv, Minv).
     """
     single = np.ndim(q) == 1
-    q = model._batch('q', q)
+    q, qd, tau = model._states(q=q, qd=qd, tau=tau)
     N = q.shape[0]
-    qd = model._batch('qd', qd, N)
-    tau = model._batch('tau', tau, N)
     n = model.n
     if single:   # one state: the kernel paths and 2-D LAPACK calls (no batch axis to carry)
         q, qd, tau = q[0], qd[0], tau[0]

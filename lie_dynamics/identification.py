@@ -96,11 +96,8 @@ def identify(model, q, qd, qdd, tau, prior=None, weights=None, rcond=1e-8):
     zero (directions the data do not determine).
     Returns an IdentificationResult; warns UnidentifiableWarning when rank < 10 nb.
     """
-    q = model._batch('q', q)
+    q, qd, qdd, tau = model._states(q=q, qd=qd, qdd=qdd, tau=tau)
     N = q.shape[0]
-    qd = model._batch('qd', qd, N)
-    qdd = model._batch('qdd', qdd, N)
-    tau = model._batch('tau', tau, N)
     n, p = model.n, 10 * model.nb
     if N * n < p:
         warnings.warn(f'{N} samples x {n} joints = {N * n} equations for {p} parameters: '

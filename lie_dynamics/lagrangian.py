@@ -127,10 +127,6 @@ def _christoffel_masks(anc):
     return mb, mc
 
 
-def _state(model, name, q, N=None):
-    return model._batch(name, q, N)
-
-
 def _to_joints_vec(model, c, X):
     """(N, nb) body quantity -> (N, n) joint quantity (tau = E^T tau_body)."""
     return X if c['identity'] else X @ model.E
@@ -185,7 +181,7 @@ def mass_matrix(model, q):
     q: (n,) or (N, n). Returns (n, n) or (N, n, n), symmetric positive (semi)definite.
     """
     single = np.ndim(q) == 1
-    q = _state(model, 'q', q)
+    q = model._batch('q', q)
     c = _constants(model)
     x = model.body_coordinates(q)
     N, nb = x.shape
@@ -205,7 +201,7 @@ def block_factors(model, q):
     block diagonal. Body coordinates: project with model.E for the joint-space M.
     Meant for inspection and teaching; mass_matrix() never forms these dense matrices.
     """
-    q = _state(model, 'q', q)
+    q = model._batch('q', q)
     if q.shape[0] != 1:
         raise ValueError('block_factors takes a single state q of shape (n,)')
     x = model.body_coordinates(q)
@@ -254,7 +250,7 @@ def mass_matrix_derivatives(model, q):
     Closed form from eq 39 and Proposition 1 (eq 41); see the module docstring.
     """
     single = np.ndim(q) == 1
-    q = _state(model, 'q', q)
+    q = model._batch('q', q)
     c = _constants(model)
     x = model.body_coordinates(q)
     N, nb = x.shape
@@ -286,8 +282,7 @@ def coriolis_matrix(model, q, qd):
     eq 40 contracted with qd before Gamma is formed. q, qd: (n,) or (N, n).
     """
     single = np.ndim(q) == 1
-    q = _state(model, 'q', q)
-    qd = _state(model, 'qd', qd, q.shape[0])
+    q, qd = model._states(q=q, qd=qd)
     c = _constants(model)
     x = model.body_coordinates(q)
     u = qd @ model.E.T
@@ -315,7 +310,7 @@ def _com_moments(model, c, x):
 def potential_energy(model, q):
     """U(q) = -sum_i m_i g . c_i(q) (paper eq 43, gravity as set on the model). (N,) or scalar."""
     single = np.ndim(q) == 1
-    q = _state(model, 'q', q)
+    q = model._batch('q', q)
     c = _constants(model)
     _, h = _com_moments(model, c, model.body_coordinates(q))
     U = -np.sum(h, axis=1) @ model.gravity_vector
@@ -325,7 +320,7 @@ def potential_energy(model, q):
 def gravity(model, q):
     """phi(q) = dU/dq from the potential energy (paper eqs 43-45); agrees with rnea.gravity."""
     single = np.ndim(q) == 1
-    q = _state(model, 'q', q)
+    q = model._batch('q', q)
     c = _constants(model)
     x = model.body_coordinates(q)
     T, h = _com_moments(model, c, x)
@@ -344,8 +339,7 @@ def gravity(model, q):
 def kinetic_energy(model, q, qd):
     """T = 1/2 qd^T M(q) qd (eq 23 with the 1/2 the notes drop). (N,) or scalar."""
     single = np.ndim(q) == 1
-    q = _state(model, 'q', q)
-    qd = _state(model, 'qd', qd, q.shape[0])
+    q, qd = model._states(q=q, qd=qd)
     M = mass_matrix(model, q)
     T = 0.5 * np.einsum('ni,nij,nj->n', qd, M, qd)
     return float(T[0]) if single else T

@@ -203,6 +203,16 @@ class Model:
             raise ValueError(f'{name} contains non-finite values')
         return a
 
+    def _states(self, **arrays):
+        """_batch for the state arguments of one call, in keyword order: the first sets the
+        number of states N, the others must match it. Returns the (N, n) arrays in that order."""
+        out, N = [], None
+        for name, x in arrays.items():
+            a = self._batch(name, x, N)
+            N = a.shape[0]
+            out.append(a)
+        return out
+
     def body_coordinates(self, q):
         """Body joint values x = E q + L q_locked + c0 for a batch q (N, n)."""
         return q @ self.E.T + self.e0

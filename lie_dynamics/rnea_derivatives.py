@@ -105,10 +105,8 @@ def inverse_dynamics_derivatives(model, q, qd, qdd, wrenches=None):
                                   2 * n * n).reshape(2, n, n)
                 return out[0], out[1]
     single = np.ndim(q) == 1
-    q = model._batch('q', q)
+    q, qd, qdd = model._states(q=q, qd=qd, qdd=qdd)
     N = q.shape[0]
-    qd = model._batch('qd', qd, N)
-    qdd = model._batch('qdd', qdd, N)
     fext = external_body_wrenches(model, wrenches, N)
     res = _kernel_derivatives(model, q, qd, qdd, fext)
     if res is None:
@@ -121,10 +119,8 @@ def inverse_dynamics_derivatives(model, q, qd, qdd, wrenches=None):
 def inverse_dynamics_derivatives_vectorized(model, q, qd, qdd, wrenches=None):
     """inverse_dynamics_derivatives by the vectorised form (numpy over bodies and states)."""
     single = np.ndim(q) == 1
-    q = model._batch('q', q)
+    q, qd, qdd = model._states(q=q, qd=qd, qdd=qdd)
     N = q.shape[0]
-    qd = model._batch('qd', qd, N)
-    qdd = model._batch('qdd', qdd, N)
     c = _constants(model)
     fext = external_body_wrenches(model, wrenches, N)
     x = model.body_coordinates(q)
@@ -332,9 +328,8 @@ def coriolis_matrix(model, q, qd):
             P, E0 = cg.model_params(model, fr)
             return np.fromiter(fn(a, b, P, E0, sin=math.sin, cos=math.cos), float, n * n).reshape(n, n)
     single = np.ndim(q) == 1
-    q = model._batch('q', q)
+    q, qd = model._states(q=q, qd=qd)
     N = q.shape[0]
-    qd = model._batch('qd', qd, N)
     k = _coriolis_kernel(model)
     if not k or _LOOP_BELOW <= N < _ROWS_FROM:
         C = 0.5 * inverse_dynamics_derivatives_vectorized(model, q, qd, np.zeros_like(qd))[1]
