@@ -1,10 +1,12 @@
 """Forward dynamics (Cholesky solve and articulated body algorithm) and its derivatives."""
+import copy
+
 import numpy as np
 import pinocchio as pin
 import pytest
 
 from dyn_cases import ARM, CASES, case, oracle_stack, rel_err, states, xml_of
-from lie_dynamics import aba, load_urdf
+from lie_dynamics import aba, load_urdf, rnea
 from oracle import Oracle
 from robots import random_urdf
 
@@ -167,3 +169,153 @@ def test_arm_file_in_package_matches_config():
     with open(default_urdf_path(), encoding='utf-8') as fh:
         packaged = fh.read()
     assert packaged == xml_of('arm7') or load_urdf(packaged).n == load_urdf(ARM).n
+
+
+# ---------------------------------------------------------------------------- generated ABA kernel
+ABA_CASES = [nm for nm in CASES if not load_urdf(xml_of(nm)).mimic_joints]
+
+
+def _with_payload(xml, link, mass, com, inertia):
+    """The URDF with a rigid payload fixed to `link` (what Model.set_payload adds)."""
+    ixx, ixy, ixz, iyy, iyz, izz = inertia
+    return xml.replace('</robot>', f'''
+  <link name="test_payload"><inertial><origin xyz="{com[0]} {com[1]} {com[2]}"/><mass value="{mass}"/>
+    <inertia ixx="{ixx}" ixy="{ixy}" ixz="{ixz}" iyy="{iyy}" iyz="{iyz}" izz="{izz}"/></inertial></link>
+  <joint name="test_payload_joint" type="fixed"><parent link="{link}"/><child link="test_payload"/></joint>
+</robot>''')
+
+
+def _aba_paths(model, q, qd, tau, fext=None):
+    """qdd from the ABA kernel forced to Python floats and to numpy rows (both must exist)."""
+    out = {}
+    for mode in ('loop', 'rows'):
+        out[mode] = aba._aba_kernel_forward_dynamics(model, q, qd, tau, fext, mode)
+        assert out[mode] is not None, mode
+    return out
+
+
+@pytest.mark.parametrize('name', ABA_CASES)
+def test_aba_kernel_paths_match_pinocchio(name):
+    model, oracle = case(name)
+    assert aba._aba_kernel(model), 'every supported case is within the size cap'
+    q, qd, tau = states(model, seed=21)
+    tau = tau * 10
+    ref = oracle_stack(oracle.aba, q, qd, tau)
+    paths = _aba_paths(model, q, qd, tau)
+    for mode, out in paths.items():
+        assert rel_err(out, ref) < 1e-10, mode
+    # default dispatch (the kernel, not the vectorised form): one state at a time on floats,
+    # a small batch state by state, a large batch on rows
+    one = np.array([model.forward_dynamics(a, b, c, method='aba') for a, b, c in zip(q, qd, tau)])
+    assert np.array_equal(one, paths['loop']) and rel_err(one, ref) < 1e-10
+    assert np.array_equal(model.forward_dynamics(q[:5].tolist(), qd[:5], tau[:5], method='aba'), paths['loop'][:5])
+    batch = model.forward_dynamics(q, qd, tau, method='aba')
+    assert len(q) >= aba._ABA_ROWS_FROM and np.array_equal(batch, paths['rows'])
+    assert rel_err(aba.aba_vectorized(model, q, qd, tau), ref) < 1e-10
+
+
+def test_aba_kernel_follows_payload_gravity_and_locked_joints_without_recompiling(monkeypatch):
+    xml = xml_of('arm7')
+    model = load_urdf(xml)
+    ctrl = model.joint_names[1::2]
+    part = load_urdf(xml, joints=ctrl)
+    for m in (model, part):
+        assert aba._aba_kernel(m)
+
+    def no_compile(*args, **kw):
+        raise AssertionError('the ABA kernel was rebuilt')
+    monkeypatch.setattr(aba, '_build_aba_kernel', no_compile)
+    payload = ('link7', 1.7, (0.05, -0.02, 0.1), (0.01, 0.001, 0.0, 0.02, 0.0, 0.015))
+    model.set_payload(*payload)
+    model.set_gravity((1.0, -2.0, -9.0))
+    oracle = Oracle(_with_payload(xml, *payload), joints=model.joint_names, gravity=(1.0, -2.0, -9.0))
+    q, qd, tau = states(model, seed=22)
+    ref = oracle_stack(oracle.aba, q, qd, tau)
+    for mode, out in _aba_paths(model, q, qd, tau).items():
+        assert rel_err(out, ref) < 1e-10, mode
+    assert rel_err(model.forward_dynamics(q[3], qd[3], tau[3], method='aba')[None], ref[3:4]) < 1e-10
+    assert part.locked_joint_names
+    for k, values in enumerate(((0.0,) * 4, (0.4, -1.1, 2.0, 0.3))):
+        part.set_locked(dict(zip(part.locked_joint_names, values)))
+        oracle = Oracle(xml, joints=ctrl, locked=part.locked_values)
+        q, qd, tau = states(part, seed=23 + k)
+        ref = oracle_stack(oracle.aba, q, qd, tau)
+        for mode, out in _aba_paths(part, q, qd, tau).items():
+            assert rel_err(out, ref) < 1e-10, mode
+        assert rel_err(part.forward_dynamics(q, qd, tau, method='aba'), ref) < 1e-10
+        assert rel_err(part.forward_dynamics(q[0], qd[0], tau[0], method='aba')[None], ref[:1]) < 1e-10
+
+
+@pytest.mark.parametrize('name', ['arm7', 'tree12', 'mixed_types'])
+def test_aba_kernel_with_wrenches(name):
+    model, _ = case(name)
+    N = 60
+    q, qd, tau = states(model, N, seed=24)
+    rng = np.random.default_rng(2)
+    links = [ln for ln, (b, _) in model.link_frames.items() if b >= 0]
+    w = {links[-1]: rng.normal(size=6), links[len(links) // 2]: rng.normal(size=(N, 6))}
+    fext = rnea.external_body_wrenches(model, w, N)
+    ref = aba.aba_vectorized(model, q, qd, tau, w)
+    for mode, out in _aba_paths(model, q, qd, tau, fext).items():
+        assert rel_err(out, ref) < 1e-10, mode
+        assert rel_err(model.inverse_dynamics(q, qd, out, w), tau, 1.0) < 1e-10
+    w1 = {k: (v if v.ndim == 1 else v[0]) for k, v in w.items()}
+    assert rel_err(model.forward_dynamics(q[0], qd[0], tau[0], w1, method='aba')[None], ref[:1]) < 1e-10
+
+
+def test_aba_falls_back_to_the_vectorised_form(monkeypatch):
+    model, oracle = case('chain7')
+    q, qd, tau = states(model, 40, seed=25)
+    ref = oracle_stack(oracle.aba, q, qd, tau)
+    # beyond the size cap
+    monkeypatch.setattr(aba, 'ABA_KERNEL_MAX_BODIES', model.nb - 1)
+    assert not aba._aba_kernel(model)
+    assert aba._aba_kernel_forward_dynamics(model, q, qd, tau, None, 'rows') is None
+    assert rel_err(model.forward_dynamics(q, qd, tau, method='aba'), ref) < 1e-10
+    assert rel_err(model.forward_dynamics(q[0], qd[0], tau[0], method='aba')[None], ref[:1]) < 1e-10
+    monkeypatch.undo()
+    # screws that are not unit revolute / prismatic axes: no kernel
+    other = copy.deepcopy(model)
+    other.S = other.S * 1.5
+    assert not aba._aba_kernel(other)
+    got = other.forward_dynamics(q, qd, tau, method='aba')
+    assert np.array_equal(got, aba.aba_vectorized(other, q, qd, tau)) and not np.allclose(got, ref)
+    # mimic joints: the same error on every path
+    mimic, _ = case('mimic')
+    z = np.zeros(mimic.n)
+    for args in ((z, z, z), (z[None], z[None], z[None]), (np.zeros((40, mimic.n)),) * 3):
+        with pytest.raises(ValueError, match="method='aba' does not support mimic joints"):
+            mimic.forward_dynamics(*args, method='aba')
+
+
+def test_aba_massless_chain_raises_on_every_path():
+    model = load_urdf(MASSLESS_TIP)
+    msg = "articulated inertia about joint 'j2' is zero"
+    for N in (1, 3, 60):   # float kernel, float kernel in a loop, numpy rows
+        z = np.zeros((N, 2))
+        q = np.full((N, 2), 0.3)
+        for mode in ('loop', 'rows'):
+            assert aba._aba_kernel_forward_dynamics(model, q, z, z, None, mode) is None
+        with pytest.raises(ValueError, match=msg):
+            model.forward_dynamics(q, z, z, method='aba')
+        with pytest.raises(ValueError, match=msg):
+            model.forward_dynamics(q[0], z[0], z[0], method='aba')
+
+
+def test_aba_bad_inputs_name_the_argument():
+    model, _ = case('arm7')
+    z = np.zeros(7)
+    bad = z.copy()
+    bad[3] = np.nan
+    with pytest.raises(ValueError, match='q contains non-finite values'):
+        model.forward_dynamics(bad, z, z, method='aba')
+    with pytest.raises(ValueError, match='qd contains non-finite values'):
+        model.forward_dynamics(z, bad, z, method='aba')
+    with pytest.raises(ValueError, match='tau contains non-finite values'):
+        model.forward_dynamics(np.zeros((30, 7)), np.zeros((30, 7)), np.full((30, 7), np.inf), method='aba')
+    with pytest.raises(ValueError, match=r'qd must have shape \(7,\)'):
+        model.forward_dynamics(z, np.zeros(6), z, method='aba')
+    with pytest.raises(ValueError, match=r'tau must have shape \(7,\)'):
+        model.forward_dynamics(z.tolist(), z.tolist(), [0.0] * 8, method='aba')
+    with pytest.raises(ValueError, match='tau has 3 states, expected 2'):
+        model.forward_dynamics(np.zeros((2, 7)), np.zeros((2, 7)), np.zeros((3, 7)), method='aba')
