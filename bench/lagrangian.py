@@ -81,7 +81,7 @@ def _sym(M):
 
 def arm_cases(model, xml, N, rng):
     """(name, ours(single), ours(batch), pin(state), check) for part 1."""
-    from lie_dynamics import crba, rnea_derivatives
+    from lie_dynamics import aba, crba, rnea_derivatives
     pin, pm, pd = _pin_setup(xml, model)
     n = model.n
     q = rng.uniform(-1.5, 1.5, (N, n))
@@ -123,11 +123,16 @@ def arm_cases(model, xml, N, rng):
          lambda: model.forward_dynamics(q[0], qd[0], tau[0]), lambda: model.forward_dynamics(q, qd, tau),
          lambda i: pin.aba(pm, pd, q[i], qd[i], tau[i]),
          lambda: (model.forward_dynamics(q[0], qd[0], tau[0]), pin.aba(pm, pd, q[0], qd[0], tau[0]))),
-        ('forward dynamics, ABA (vectorised numpy)', 'aba',
+        ('forward dynamics, ABA (generated kernel)', 'aba',
          lambda: model.forward_dynamics(q[0], qd[0], tau[0], method='aba'),
          lambda: model.forward_dynamics(q, qd, tau, method='aba'),
          lambda i: pin.aba(pm, pd, q[i], qd[i], tau[i]),
          lambda: (model.forward_dynamics(q[0], qd[0], tau[0], method='aba'), pin.aba(pm, pd, q[0], qd[0], tau[0]))),
+        ('forward dynamics, ABA (vectorised numpy)', 'aba',
+         lambda: aba.aba_vectorized(model, q[0], qd[0], tau[0]),
+         lambda: aba.aba_vectorized(model, q, qd, tau),
+         lambda i: pin.aba(pm, pd, q[i], qd[i], tau[i]),
+         lambda: (aba.aba_vectorized(model, q[0], qd[0], tau[0]), pin.aba(pm, pd, q[0], qd[0], tau[0]))),
         ('inverse dynamics derivatives (generated kernel)', 'computeRNEADerivatives',
          lambda: model.inverse_dynamics_derivatives(*s), lambda: model.inverse_dynamics_derivatives(q, qd, qdd),
          lambda i: pin.computeRNEADerivatives(pm, pd, q[i], qd[i], qdd[i]),
