@@ -144,7 +144,7 @@ def arm_cases(model, xml, N, rng):
          lambda i: pin.computeRNEADerivatives(pm, pd, q[i], qd[i], qdd[i]),
          lambda: (np.concatenate(rnea_derivatives.inverse_dynamics_derivatives_vectorized(model, *s)),
                   np.concatenate(pin.computeRNEADerivatives(pm, pd, *s)[:2]))),
-        ('forward dynamics derivatives', 'computeABADerivatives',
+        ('forward dynamics derivatives (generated kernel)', 'computeABADerivatives',
          lambda: model.forward_dynamics_derivatives(q[0], qd[0], tau[0]),
          lambda: model.forward_dynamics_derivatives(q, qd, tau),
          lambda i: pin.computeABADerivatives(pm, pd, q[i], qd[i], tau[i]),

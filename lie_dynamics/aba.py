@@ -290,18 +290,45 @@ def _build_kernel(fr):
     Outputs qdd, then the Cholesky pivots d_j^2 and the diagonal of M (the caller checks
     positive definiteness with them; a negative pivot makes sqrt fail on floats).
     """
-    from . import crba as crba_mod
     g = cg.Graph()
+    co, args, params, ga, taus = trace_inputs(fr, g)
+    z, M, L, inv_d, pivots = trace_forward_dynamics(fr, g, co['x'], co['xd'], params, ga, taus)
+    n = fr.n
+    outputs = z + pivots + [M[j][j] for j in range(n)]
+    src = cg.emit(g, 'forward_dynamics_kernel', args, outputs)
+    return cg.compile_function(src, 'forward_dynamics_kernel'), src
+
+
+def trace_inputs(fr, g):
+    """Symbols of a forward-dynamics kernel: (coordinates, argument lists (Q, QD, TAU, P, A0,
+    E0), inertia parameters, -g, joint torques)."""
     co = fr.trace_coordinates(g, rates=1)
     parg, params = fr.trace_params(g)
     ga = [g.input(f'g{k}') for k in range(3)]
     n = fr.n
     taus = [g.input(f'u{j}') for j in range(n)]
-    X = [fr.joint_transform(g, b, co['x'][b]) for b in range(fr.nb)]
+    args = co['args'] + [('TAU', [f'u{j}' for j in range(n)]), parg, ('A0', [f'g{k}' for k in range(3)]),
+                         co['offset_args']]
+    return co, args, params, ga, taus
+
+
+def trace_forward_dynamics(fr, g, x, xd, params, a0, taus):
+    """qdd = M^-1 (tau - h) traced: CRBA, the RNEA bias (eqs 16-21) with qdd = 0, Cholesky and
+    two triangular solves. Returns (qdd, M, L, 1 / diag(L), pivots)."""
+    from . import crba as crba_mod
+    n = fr.n
+    X = [fr.joint_transform(g, b, x[b]) for b in range(fr.nb)]
     M = crba_mod.trace_mass_matrix(fr, g, params, X)
-    tau_b = cg.trace_rnea(fr, g, co['x'], co['xd'], [0.0] * fr.nb, params, ga, X)
+    tau_b = cg.trace_rnea(fr, g, x, xd, [0.0] * fr.nb, params, a0, X)
     h = [sum((float(fr.E[b, j]) * tau_b[b] for b in range(fr.nb) if fr.E[b, j] != 0), 0.0) for j in range(n)]
-    rhs = [taus[j] - h[j] for j in range(n)]
+    L, inv_d, pivots = trace_cholesky(g, M)
+    return trace_cho_solve(L, inv_d, [taus[j] - h[j] for j in range(n)]), M, L, inv_d, pivots
+
+
+def trace_cholesky(g, M):
+    """M = L L^T traced (M: nested n x n list). Returns (L, 1 / diag(L), pivots d_j^2); a
+    negative pivot makes sqrt fail on floats, and the caller tests the pivots (PD check)."""
+    n = len(M)
     L = [[0.0] * n for _ in range(n)]
     inv_d, pivots = [0.0] * n, [0.0] * n
     for j in range(n):
@@ -317,9 +344,15 @@ def _build_kernel(fr):
             for k in range(j):
                 s = s - L[i][k] * L[j][k]
             L[i][j] = s * inv_d[j]
+    return L, inv_d, pivots
+
+
+def trace_cho_solve(L, inv_d, b):
+    """x with L L^T x = b, traced: forward then backward substitution."""
+    n = len(b)
     y = [0.0] * n
     for i in range(n):
-        s = rhs[i]
+        s = b[i]
         for k in range(i):
             s = s - L[i][k] * y[k]
         y[i] = s * inv_d[i]
@@ -329,11 +362,7 @@ def _build_kernel(fr):
         for k in range(i + 1, n):
             s = s - L[k][i] * z[k]
         z[i] = s * inv_d[i]
-    outputs = z + pivots + [M[j][j] for j in range(n)]
-    args = co['args'] + [('TAU', [f'u{j}' for j in range(n)]), parg, ('A0', [f'g{k}' for k in range(3)]),
-                         co['offset_args']]
-    src = cg.emit(g, 'forward_dynamics_kernel', args, outputs)
-    return cg.compile_function(src, 'forward_dynamics_kernel'), src
+    return z
 
 
 def _kernel(model):

@@ -7,12 +7,25 @@ identity ID(q, qd, FD(q, qd, tau)) = tau gives, with M = dID/dqdd,
 
 the partials of ID evaluated at qdd = FD(q, qd, tau) (rnea_derivatives.py). M^-1 is
 applied by Cholesky solves, and returned as dqdd/dtau (it is that derivative).
+
+Without wrenches, models of up to KERNEL_MAX_BODIES bodies run all of it as one generated
+kernel (codegen.py): the Cholesky forward dynamics of aba.py, the derivative recursion of
+rnea_derivatives.py at that qdd, and the 3n triangular solves, on Python floats for one
+state and small batches and on numpy rows for large ones.
 """
+import math
+
 import numpy as np
 
-from . import crba, rnea
+from . import aba, crba, rnea
+from . import codegen as cg
+from . import rnea_derivatives as rd
 from .aba import cho_solve, cholesky
 from .rnea_derivatives import inverse_dynamics_derivatives
+
+KERNEL_MAX_BODIES = rd.KERNEL_MAX_BODIES
+# Batches: the float kernel state by state below this many states, numpy rows from it (measured).
+_ROWS_FROM = 32
 
 
 def forward_dynamics_derivatives(model, q, qd, tau, wrenches=None):
@@ -21,10 +34,21 @@ def forward_dynamics_derivatives(model, q, qd, tau, wrenches=None):
     Single state (n,) -> three (n, n) arrays; batch (N, n) -> three (N, n, n) arrays
     (Pinocchio's computeABADerivatives: ddq_dq, ddq_dv, Minv).
     """
+    n = model.n
+    if not wrenches:
+        a, b, c = cg.is_fast_single(q, n), cg.is_fast_single(qd, n), cg.is_fast_single(tau, n)
+        if a is not None and b is not None and c is not None:
+            out = _kernel_single(model, a, b, c)
+            if out is not None:
+                return out[0], out[1], out[2]
     single = np.ndim(q) == 1
     q, qd, tau = model._states(q=q, qd=qd, tau=tau)
     N = q.shape[0]
-    n = model.n
+    if not wrenches:
+        out = _kernel_states(model, q, qd, tau)
+        if out is not None:
+            return tuple(o[0] for o in out) if single else out
+    # the general path; it also reports a mass matrix that is not positive definite
     if single:   # one state: the kernel paths and 2-D LAPACK calls (no batch axis to carry)
         q, qd, tau = q[0], qd[0], tau[0]
         M = crba.mass_matrix(model, q)
@@ -43,3 +67,85 @@ def forward_dynamics_derivatives(model, q, qd, tau, wrenches=None):
     rhs = np.concatenate([dq, dv, np.broadcast_to(np.eye(n), (N, n, n))], axis=-1)
     sol = cho_solve(L, rhs)
     return -sol[..., :n], -sol[..., n:2 * n], sol[..., 2 * n:]
+
+
+# ---------------------------------------------------------------------------- generated kernel
+def _build_kernel(fr):
+    """Trace qdd (aba.trace_forward_dynamics), dtau/dq and dtau/dqd at that qdd
+    (rnea_derivatives.trace_derivatives) and the solves with the same Cholesky factor.
+
+    Outputs dqdd/dq, dqdd/dqd, M^-1 (row-major), then the pivots and diag(M) for the
+    positive-definiteness check (as aba's Cholesky kernel).
+    """
+    g = cg.Graph()
+    co, args, params, ga, taus = aba.trace_inputs(fr, g)
+    qdd, M, L, inv_d, pivots = aba.trace_forward_dynamics(fr, g, co['x'], co['xd'], params, ga, taus)
+    n, nb = fr.n, fr.nb
+    xdd = [sum((float(fr.E[b, j]) * qdd[j] for j in range(n) if fr.E[b, j] != 0), 0.0) for b in range(nb)]
+    dq, dv = rd.trace_derivatives(fr, g, co['x'], co['xd'], xdd, params, ga)
+    cols = []
+    for D, sign in ((dq, -1.0), (dv, -1.0)):
+        cols += [[sign * v for v in aba.trace_cho_solve(L, inv_d, [D[r][c] for r in range(n)])] for c in range(n)]
+    cols += [aba.trace_cho_solve(L, inv_d, [1.0 if r == c else 0.0 for r in range(n)]) for c in range(n)]
+    outputs = []
+    for k in range(3):
+        outputs += [cols[k * n + c][r] for r in range(n) for c in range(n)]
+    outputs += pivots + [M[j][j] for j in range(n)]
+    src = cg.emit(g, 'forward_dynamics_derivatives_kernel', args, outputs)
+    return cg.compile_function(src, 'forward_dynamics_derivatives_kernel'), src
+
+
+def _kernel(model):
+    if model.nb > KERNEL_MAX_BODIES:
+        return False
+    return cg.compiled(model, 'forward_dynamics_derivatives', _build_kernel)
+
+
+def _kernel_single(model, q, qd, tau):
+    """One state (lists of floats) on Python floats: a (3, n, n) array, or None (see below)."""
+    k = _kernel(model)
+    if not k:
+        return None
+    fr, fn, _ = k
+    P, E0, A0 = cg.model_params(model, fr, gravity=True)
+    try:
+        vals = fn(q, qd, tau, P, A0, E0, sin=math.sin, cos=math.cos, sqrt=math.sqrt)
+    except (ValueError, ZeroDivisionError):
+        return None
+    n = model.n
+    m = 3 * n * n
+    s = sum(vals[:m])
+    if not (s - s == 0.0 and all(p > aba._PD_RTOL * d for p, d in zip(vals[m:m + n], vals[m + n:]))):
+        return None
+    return np.fromiter(vals, float, m).reshape(3, n, n)
+
+
+def _kernel_states(model, q, qd, tau, mode=None):
+    """Kernel path for validated (N, n) arrays, without wrenches.
+
+    mode: 'loop' (Python floats, state by state), 'rows' (numpy rows) or None (by batch size).
+    Returns three (N, n, n) arrays, or None when there is no kernel or some mass matrix fails
+    the positive-definiteness test (the general path then reports it).
+    """
+    k = _kernel(model)
+    if not k:
+        return None
+    fr, fn, _ = k
+    P, E0, A0 = cg.model_params(model, fr, gravity=True)
+    N, n = len(q), model.n
+    if mode is None:
+        mode = 'loop' if N < _ROWS_FROM else 'rows'
+    if mode == 'loop':
+        try:
+            vals = np.array([fn(a, b, c, P, A0, E0, sin=math.sin, cos=math.cos, sqrt=math.sqrt)
+                             for a, b, c in zip(q.tolist(), qd.tolist(), tau.tolist())])
+        except (ValueError, ZeroDivisionError):   # sqrt of a negative pivot, or a zero pivot
+            return None
+    else:
+        vals = cg.run_rows(lambda Q, QD, T, sin, cos, sqrt: fn(Q, QD, T, P, A0, E0, sin=sin, cos=cos, sqrt=sqrt),
+                           [q, qd, tau], (), 3 * n * n + 2 * n)
+    piv, diag = vals[:, 3 * n * n:3 * n * n + n], vals[:, 3 * n * n + n:]
+    if not (np.all(np.isfinite(vals[:, :3 * n * n])) and np.all(piv > aba._PD_RTOL * diag)):
+        return None
+    out = vals[:, :3 * n * n].reshape(N, 3, n, n)
+    return out[:, 0], out[:, 1], out[:, 2]

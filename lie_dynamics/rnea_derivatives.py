@@ -145,8 +145,8 @@ _LOOP_BELOW = 4
 _ROWS_FROM = 160
 
 
-def _build_kernel(fr, wrench, center=0, coriolis=False):
-    """Trace the O(n^2) derivative formulas of the module docstring.
+def trace_derivatives(fr, g, x, xd, xdd, params, a0, fext=None, center=0):
+    """The O(n^2) derivative formulas of the module docstring, traced.
 
     "Root frame" here is any fixed frame: the formulas are covariant, and the outputs are
     scalars. The kernel uses the frame that coincides with body `center`'s primed frame at
@@ -155,30 +155,15 @@ def _build_kernel(fr, wrench, center=0, coriolis=False):
     poses change. The first body gave the fewest operations on the arm and random chains.
     The 6x6 composite Bc_k = -d/dt Jc_k is carried as the rate of the 10 inertia
     parameters (codegen.inertia_rate), which is all Bc is applied through.
-    coriolis: only C = 1/2 dtau/dqd, which depends on neither qdd nor gravity; the kernel then
-    takes (Q, QD, P, E0) and everything only dtau/dq needs is pruned.
+
+    x, xd, xdd: traced body coordinates and rates; params: per body (m, h, I) in the primed
+    frames; a0: base linear acceleration -g (3 values); fext: optional per-body wrenches (n, f)
+    in the primed frames. Returns (dtau/dq, dtau/dqd) as nested n x n lists, joint coordinates.
     """
-    g = cg.Graph()
-    co = fr.trace_coordinates(g, rates=1 if coriolis else 2)
-    parg, params = fr.trace_params(g)
-    if coriolis:
-        ga = [0.0, 0.0, 0.0]
-        co['xdd'] = [0.0] * fr.nb
-        args = co['args'] + [parg, co['offset_args']]
-    else:
-        ga = [g.input(f'g{k}') for k in range(3)]
-        args = co['args'] + [parg, ('A0', [f'g{k}' for k in range(3)]), co['offset_args']]
-    fext = None
-    if wrench:
-        names = [f'f{b}_{k}' for b in range(fr.nb) for k in range(6)]
-        args.append(('FX', names))
-        fs = [g.input(nm) for nm in names]
-        fext = [(tuple(fs[6 * b:6 * b + 3]), tuple(fs[6 * b + 3:6 * b + 6])) for b in range(fr.nb)]
     nb = fr.nb
-    x, xd, xdd = co['x'], co['xd'], co['xdd']
     zero3 = (0.0, 0.0, 0.0)
     Rw, pw, Rb = _poses(fr, g, x, center)
-    ga = cg.mat_vec(Rb, ga)
+    ga = cg.mat_vec(Rb, a0)
     A, V, a, Z, Y = ([None] * nb for _ in range(5))
     for b in range(nb):   # forward: screws and twists
         p = fr.parent[b]
@@ -238,7 +223,33 @@ def _build_kernel(fr, wrench, center=0, coriolis=False):
             else:
                 Jc[p], Dc[p] = cg.inertia_add(Jc[p], Jc[m]), cg.inertia_add(Dc[p], Dc[m])
                 Hc[p], Fc[p] = cg.twist_add(Hc[p], Hc[m]), cg.twist_add(Fc[p], Fc[m])
-    dq, dv = fr.project(dq), fr.project(dv)
+    return fr.project(dq), fr.project(dv)
+
+
+def _build_kernel(fr, wrench, center=0, coriolis=False):
+    """The generated derivative kernel (trace_derivatives) of this tree: (Q, QD, QDD, P, A0,
+    E0[, FX]) -> dtau/dq then dtau/dqd, row-major.
+
+    coriolis: only C = 1/2 dtau/dqd, which depends on neither qdd nor gravity; the kernel then
+    takes (Q, QD, P, E0) and everything only dtau/dq needs is pruned.
+    """
+    g = cg.Graph()
+    co = fr.trace_coordinates(g, rates=1 if coriolis else 2)
+    parg, params = fr.trace_params(g)
+    if coriolis:
+        ga = [0.0, 0.0, 0.0]
+        co['xdd'] = [0.0] * fr.nb
+        args = co['args'] + [parg, co['offset_args']]
+    else:
+        ga = [g.input(f'g{k}') for k in range(3)]
+        args = co['args'] + [parg, ('A0', [f'g{k}' for k in range(3)]), co['offset_args']]
+    fext = None
+    if wrench:
+        names = [f'f{b}_{k}' for b in range(fr.nb) for k in range(6)]
+        args.append(('FX', names))
+        fs = [g.input(nm) for nm in names]
+        fext = [(tuple(fs[6 * b:6 * b + 3]), tuple(fs[6 * b + 3:6 * b + 6])) for b in range(fr.nb)]
+    dq, dv = trace_derivatives(fr, g, co['x'], co['xd'], co['xdd'], params, ga, fext, center)
     n = fr.n
     if coriolis:
         outputs = [0.5 * dv[r][c] for r in range(n) for c in range(n)]

@@ -103,6 +103,16 @@ def test_forward_dynamics_derivatives_match_pinocchio(name):
     assert rel_err(dq, ref[0]) < 1e-8
     assert rel_err(dv, ref[1]) < 1e-8
     assert rel_err(Minv, ref[2]) < 1e-8
+    # the generated kernel forced state by state and on numpy rows (None: no kernel for this
+    # model's size), and one state through the default dispatch
+    from lie_dynamics import aba_derivatives
+    for mode in ('loop', 'rows'):
+        out = aba_derivatives._kernel_states(model, q, qd, tau, mode)
+        assert (out is None) == (model.nb > aba_derivatives.KERNEL_MAX_BODIES)
+        if out is not None:
+            assert all(rel_err(o, r) < 1e-8 for o, r in zip(out, ref))
+    one = model.forward_dynamics_derivatives(q[0], qd[0], tau[0])
+    assert all(rel_err(o[None], r[:1]) < 1e-8 for o, r in zip(one, ref))
 
 
 @pytest.mark.parametrize('name', ['tree20_mimic', 'arm7'])
@@ -125,6 +135,26 @@ def test_forward_dynamics_derivatives_match_finite_differences(name):
     assert all(o.shape == (n, n) for o in one) and np.allclose(one[0], dq[0], rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize('name', ['mimic', 'fixed_heavy'])
+def test_forward_dynamics_derivatives_kernel_matches_finite_differences(name):
+    """The generated kernel (no wrenches) on models Pinocchio's ABA derivatives do not cover
+    directly (mimic joints couple the coordinates)."""
+    from lie_dynamics import aba_derivatives
+    model, _ = case(name)
+    assert aba_derivatives._kernel(model)
+    q, qd, tau = states(model, 5, seed=19)
+    h, n = 1e-6, model.n
+
+    def fd(fun):
+        return np.stack([(fun(h * e) - fun(-h * e)) / (2 * h) for e in np.eye(n)], axis=-1)
+
+    for mode in ('loop', 'rows'):
+        dq, dv, Minv = aba_derivatives._kernel_states(model, q, qd, tau, mode)
+        assert rel_err(dq, fd(lambda d: model.forward_dynamics(q + d, qd, tau)), 1e-3) < 1e-7
+        assert rel_err(dv, fd(lambda d: model.forward_dynamics(q, qd + d, tau)), 1e-3) < 1e-7
+        assert rel_err(Minv, np.linalg.inv(model.mass_matrix(q))) < 1e-10
+
+
 def test_massless_chain_raises():
     model = load_urdf(MASSLESS_TIP)
     q = np.array([0.1, 0.2])
@@ -141,6 +171,9 @@ def test_massless_chain_raises():
         model.forward_dynamics(q, np.zeros(2), np.zeros(2), method='aba')
     with pytest.raises(ValueError, match='mass matrix is not positive definite'):
         model.forward_dynamics_derivatives(q, np.zeros(2), np.zeros(2))
+    for N in (3, 60):   # the derivative kernel state by state and on rows: caught, then reported
+        with pytest.raises(ValueError, match='mass matrix is not positive definite at state 0'):
+            model.forward_dynamics_derivatives(np.zeros((N, 2)), np.zeros((N, 2)), np.zeros((N, 2)))
     # a singular matrix that LAPACK's Cholesky still factors is caught by the pivot test
     with pytest.raises(ValueError, match='mass matrix is not positive definite'):
         aba.cholesky(np.array([[[1.0, 1.0], [1.0, 1.0 + 1e-15]]]))
