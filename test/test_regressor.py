@@ -8,7 +8,10 @@ import pytest
 
 from dyn_cases import ARM, CASES, ROOT, case, pin_body_permutation, rel_err, states
 from lie_dynamics import identification, load_urdf
+from lie_dynamics import regressor as rg
 from lie_dynamics.regressor import inertia_to_parameters, parameters_to_inertia, physical_consistency
+from oracle import Oracle
+from robots import random_urdf
 
 
 @pytest.mark.parametrize('name', CASES)
@@ -24,6 +27,149 @@ def test_regressor_matches_pinocchio(name):
     assert np.allclose(pi, oracle.dynamic_parameters()[perm], rtol=1e-12, atol=1e-14)
     assert rel_err(Y @ pi, model.inverse_dynamics(q, qd, qdd), 1e-6) < 1e-10
     assert np.allclose(model.regressor(q[2], qd[2], qdd[2]), Y[2], rtol=1e-12, atol=1e-12)
+
+
+def _pin_regressor(model, oracle, q, qd, qdd):
+    perm = pin_body_permutation(model, oracle)
+    return np.array([oracle.regressor(*s)[:, perm] for s in zip(q, qd, qdd)])
+
+
+@pytest.mark.parametrize('name', CASES)
+def test_regressor_kernel_paths_match_pinocchio(name):
+    model, oracle = case(name)
+    q, qd, qdd = states(model, seed=21)
+    ref = _pin_regressor(model, oracle, q, qd, qdd)
+    if name == 'chain30':   # above the compile cap: no kernel, the vectorised form throughout
+        assert rg._pairs(model) > rg.KERNEL_MAX_PAIRS
+        assert rg.regressor_kernel(model, q, qd, qdd, 'rows') is None
+        assert rel_err(model.regressor(q[0], qd[0], qdd[0])[None], ref[:1]) < 1e-10
+        return
+    for mode in ('loop', 'rows'):   # forced paths
+        Y = rg.regressor_kernel(model, q, qd, qdd, mode)
+        assert Y.shape == (len(q), model.n, 10 * model.nb) and rel_err(Y, ref) < 1e-10
+    # default dispatch: a batch (numpy rows at this size), a small batch (float loop), one state
+    assert rg.regressor_kernel(model, q, qd, qdd) is not None
+    assert rel_err(model.regressor(q, qd, qdd), ref) < 1e-10
+    assert rel_err(model.regressor(q[:3], qd[:3], qdd[:3]), ref[:3]) < 1e-10
+    one = np.array([model.regressor(*s) for s in zip(q, qd, qdd)])
+    assert rel_err(one, ref) < 1e-10
+    assert rel_err(one @ model.inertial_parameters(), model.inverse_dynamics(q, qd, qdd), 1e-6) < 1e-10
+    # other input forms of one state: lists, integer arrays, a (1, n) batch
+    assert np.array_equal(model.regressor(q[0].tolist(), list(qd[0]), tuple(qdd[0])), one[0])
+    z = np.zeros(model.n, dtype=int)
+    assert rel_err(model.regressor(z, z, z)[None], _pin_regressor(model, oracle, [z], [z], [z])) < 1e-10
+    assert np.array_equal(model.regressor(q[:1], qd[:1], qdd[:1]), one[:1])
+
+
+def test_regressor_kernel_follows_payload_gravity_and_locked_joints(monkeypatch):
+    xml = random_urdf(22, 8, tree=True)
+    ctrl = load_urdf(xml).joint_names[1::2]
+    model = load_urdf(xml, joints=ctrl)
+    locked = {nm: -0.4 + 0.25 * k for k, nm in enumerate(model.locked_joint_names)}
+    assert locked
+    model.set_locked(locked)
+    q, qd, qdd = states(model, 100, seed=22)
+    model.regressor(q[0], qd[0], qdd[0])          # builds the kernel
+
+    def no_build(*args):
+        raise AssertionError('the regressor kernel was rebuilt')
+    monkeypatch.setattr(rg, '_build_kernel', no_build)
+
+    def check(oracle):
+        ref = _pin_regressor(model, oracle, q, qd, qdd)
+        for mode in ('loop', 'rows'):
+            assert rel_err(rg.regressor_kernel(model, q, qd, qdd, mode), ref) < 1e-10
+        one = np.array([model.regressor(*s) for s in zip(q, qd, qdd)])
+        assert rel_err(one, ref) < 1e-10
+        assert rel_err(one @ model.inertial_parameters(), model.inverse_dynamics(q, qd, qdd), 1e-6) < 1e-10
+        return one
+
+    Y0 = check(Oracle(xml, joints=ctrl, locked=locked))
+    # a payload changes the parameters, not the regressor
+    link = next(ln for ln, (b, _) in model.link_frames.items() if b == model.nb - 1)
+    model.set_payload(link, 0.9, (0.03, -0.02, 0.1), (0.002, 0.0, 0.0, 0.003, 0.0, 0.001))
+    assert np.array_equal(check(Oracle(xml, joints=ctrl, locked=locked)), Y0)
+    g = (1.5, -2.0, -9.0)
+    model.set_gravity(g)
+    check(Oracle(xml, joints=ctrl, locked=locked, gravity=g))
+    locked2 = {nm: v + 0.7 for nm, v in locked.items()}
+    model.set_locked(locked2)
+    check(Oracle(xml, joints=ctrl, locked=locked2, gravity=g))
+
+
+def test_regressor_dispatch_by_size(monkeypatch):
+    model, oracle = case('arm7')
+    assert rg._pairs(model) == 28 and 2 <= rg._LOOP_BELOW < rg._ROWS_FROM
+    mid = rg._LOOP_BELOW                                 # a batch between the crossovers
+    q, qd, qdd = states(model, mid, seed=23)
+    ref = _pin_regressor(model, oracle, q, qd, qdd)
+    calls = []
+    vec = rg._vectorized
+    monkeypatch.setattr(rg, '_vectorized', lambda *a: calls.append(len(a[1])) or vec(*a))
+    assert rel_err(model.regressor(q[:mid - 1], qd[:mid - 1], qdd[:mid - 1]), ref[:mid - 1]) < 1e-10
+    assert rel_err(np.array([model.regressor(*s) for s in zip(q, qd, qdd)]), ref) < 1e-10
+    assert calls == []                                   # float kernel
+    assert rel_err(model.regressor(q, qd, qdd), ref) < 1e-10
+    assert calls == [mid]                                # vectorised
+    monkeypatch.setattr(rg, 'FLOAT_MAX_PAIRS', 27)       # as if the arm were larger
+    monkeypatch.setattr(rg, '_LARGE_PAIRS', 27)
+    monkeypatch.setattr(rg, '_ROWS_FROM_LARGE', mid)
+    assert rel_err(model.regressor(q[0], qd[0], qdd[0])[None], ref[:1]) < 1e-10
+    assert rel_err(model.regressor(q[:1], qd[:1], qdd[:1]), ref[:1]) < 1e-10
+    assert calls == [mid, 1, 1]                          # one state and small batches: vectorised
+    assert rel_err(model.regressor(q, qd, qdd), ref) < 1e-10
+    assert calls == [mid, 1, 1]                          # from _ROWS_FROM_LARGE: numpy rows
+    monkeypatch.setattr(rg, '_ROWS_CHUNK', 4)            # rows in chunks of states, last one short
+    assert rel_err(rg.regressor_kernel(model, q, qd, qdd, 'rows'), ref) < 1e-10
+
+
+def test_regressor_kernel_copies_and_unsupported_screws():
+    import copy
+    import pickle
+    model, _ = case('chain7')
+    q, qd, qdd = states(model, 4, seed=25)
+    Y = model.regressor(q, qd, qdd)
+    # copies (pickle, deepcopy, new parameters) have the same structure: same kernel, no rebuild
+    for other in (pickle.loads(pickle.dumps(model)), copy.deepcopy(model),
+                  model.with_inertial_parameters(1.3 * model.inertial_parameters())):
+        assert rg._kernel(other) is rg._kernel(model)
+        assert np.array_equal(other.regressor(q, qd, qdd), Y)
+    # a screw that is not a unit URDF axis: no kernel, the vectorised form
+    odd = copy.deepcopy(model)
+    odd.S = odd.S * 1.5
+    assert rg.regressor_kernel(odd, q, qd, qdd, 'loop') is None
+    Yo = odd.regressor(q[0], qd[0], qdd[0])
+    assert np.array_equal(Yo, rg.regressor_vectorized(odd, q[0], qd[0], qdd[0]))
+    assert not np.allclose(Yo, Y[0])
+
+
+@pytest.mark.parametrize('kind', ['default', 'loop', 'rows', 'vectorized'])
+def test_regressor_rejects_bad_inputs(kind):
+    model, _ = case('arm7')
+    fn = {'default': model.regressor, 'vectorized': lambda *a: rg.regressor_vectorized(model, *a),
+          'loop': lambda *a: rg.regressor_kernel(model, *a, mode='loop'),
+          'rows': lambda *a: rg.regressor_kernel(model, *a, mode='rows')}[kind]
+    q, qd, qdd = states(model, 4, seed=24)
+    for k, name in enumerate(('q', 'qd', 'qdd')):
+        for args in ([q, qd, qdd], [q[0], qd[0], qdd[0]], [q[0].tolist(), qd[0].tolist(), qdd[0].tolist()]):
+            for bad_value in (np.nan, np.inf):
+                bad = [np.array(a, dtype=float) for a in args]
+                bad[k][..., 2] = bad_value
+                if isinstance(args[0], list):
+                    bad = [b.tolist() for b in bad]
+                with pytest.raises(ValueError, match=f'^{name} contains non-finite values'):
+                    fn(*bad)
+            short = list(args)
+            short[k] = np.asarray(args[k])[..., :-1]
+            with pytest.raises(ValueError, match=rf'^{name} must have shape \(7,\) or \(N, 7\)'):
+                fn(*short)
+    with pytest.raises(ValueError, match='^qdd has 3 states, expected 4'):
+        fn(q, qd, qdd[:3])
+    with pytest.raises(ValueError, match='^q must have shape'):
+        fn(np.zeros((2, 3, 7)), qd[:2], qdd[:2])
+    if kind == 'default':
+        with pytest.raises(ValueError, match="mode must be 'loop', 'rows' or None, got 'fast'"):
+            rg.regressor_kernel(model, q, qd, qdd, mode='fast')
 
 
 def test_parameter_round_trip_and_new_model():
