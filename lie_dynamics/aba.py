@@ -405,9 +405,10 @@ def _kernel_forward_dynamics(model, q, qd, tau):
 # first, like twists (w, v) and wrenches (n, f)), traced as nested lists.
 #
 # The source is O(n) (unlike the O(n^2) kernels capped at 24 bodies): build time grows by
-# ~12 ms per body (0.3 s at 24, 0.7 s at 60, measured) while the kernel stays ~10x faster
-# than the vectorised form; above this many bodies the vectorised form is used.
-ABA_KERNEL_MAX_BODIES = 60
+# ~12 ms per body (0.3 s at 24, 0.7 s at 60, 1.2 s at 120, measured) while the kernel stays
+# ~10x faster than the vectorised form, which on a chain goes level by level (8 ms at 64
+# joints against 0.6 ms); above this many bodies the vectorised form is used.
+ABA_KERNEL_MAX_BODIES = 128
 # Batches: the float kernel state by state below _ABA_LOOP_BELOW states, the kernel on numpy
 # rows from _ABA_ROWS_FROM states (measured crossovers 28-48 states for 2-24 bodies; the
 # vectorised form was never clearly faster in between).
