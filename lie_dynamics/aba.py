@@ -379,8 +379,16 @@ def _kernel_forward_dynamics(model, q, qd, tau):
         return None
     fr, fn, _ = k
     P, E0, A0 = cg.model_params(model, fr, gravity=True)
-    N, n = q.shape
-    if N < _KERNEL_ROWS_FROM:
+    return run_checked(fn, (P, A0, E0), q, qd, tau, model.n, q.shape[0] >= _KERNEL_ROWS_FROM)
+
+
+def run_checked(fn, params, q, qd, tau, n_out, rows):
+    """Run a Cholesky kernel (its outputs end with the pivots and diag(M), n each) on validated
+    (N, n) arrays: state by state on floats, or on numpy rows. Returns its first n_out outputs
+    (N, n_out), or None when some mass matrix fails the positive-definiteness test."""
+    n = q.shape[1]
+    P, A0, E0 = params
+    if not rows:
         try:
             vals = np.array([fn(a, b, c, P, A0, E0, sin=math.sin, cos=math.cos, sqrt=math.sqrt)
                              for a, b, c in zip(q.tolist(), qd.tolist(), tau.tolist())])
@@ -388,11 +396,11 @@ def _kernel_forward_dynamics(model, q, qd, tau):
             return None
     else:
         vals = cg.run_rows(lambda Q, QD, T, sin, cos, sqrt: fn(Q, QD, T, P, A0, E0, sin=sin, cos=cos, sqrt=sqrt),
-                           [q, qd, tau], (), 3 * n)
-    piv, diag = vals[:, n:2 * n], vals[:, 2 * n:]
-    if not (np.all(np.isfinite(vals[:, :n])) and np.all(piv > _PD_RTOL * diag)):
+                           [q, qd, tau], (), n_out + 2 * n)
+    piv, diag = vals[:, n_out:n_out + n], vals[:, n_out + n:]
+    if not (np.all(np.isfinite(vals[:, :n_out])) and np.all(piv > _PD_RTOL * diag)):
         return None
-    return vals[:, :n]
+    return vals[:, :n_out]
 
 
 # ---------------------------------------------------------------------------- generated ABA kernel

@@ -132,20 +132,11 @@ def _kernel_states(model, q, qd, tau, mode=None):
         return None
     fr, fn, _ = k
     P, E0, A0 = cg.model_params(model, fr, gravity=True)
-    N, n = len(q), model.n
+    N, n = q.shape
     if mode is None:
         mode = 'loop' if N < _ROWS_FROM else 'rows'
-    if mode == 'loop':
-        try:
-            vals = np.array([fn(a, b, c, P, A0, E0, sin=math.sin, cos=math.cos, sqrt=math.sqrt)
-                             for a, b, c in zip(q.tolist(), qd.tolist(), tau.tolist())])
-        except (ValueError, ZeroDivisionError):   # sqrt of a negative pivot, or a zero pivot
-            return None
-    else:
-        vals = cg.run_rows(lambda Q, QD, T, sin, cos, sqrt: fn(Q, QD, T, P, A0, E0, sin=sin, cos=cos, sqrt=sqrt),
-                           [q, qd, tau], (), 3 * n * n + 2 * n)
-    piv, diag = vals[:, 3 * n * n:3 * n * n + n], vals[:, 3 * n * n + n:]
-    if not (np.all(np.isfinite(vals[:, :3 * n * n])) and np.all(piv > aba._PD_RTOL * diag)):
+    vals = aba.run_checked(fn, (P, A0, E0), q, qd, tau, 3 * n * n, mode == 'rows')
+    if vals is None:
         return None
-    out = vals[:, :3 * n * n].reshape(N, 3, n, n)
+    out = vals.reshape(N, 3, n, n)
     return out[:, 0], out[:, 1], out[:, 2]

@@ -370,3 +370,14 @@ NAMED_CASES = {
 def named_urdf(name):
     """XML of one of NAMED_CASES."""
     return random_urdf(**NAMED_CASES[name])
+
+
+def with_payload(xml, link, mass, com, inertia):
+    """The URDF with a rigid payload fixed to `link` (what Model.set_payload adds), so that an
+    independent parser sees the same robot. inertia: (ixx, ixy, ixz, iyy, iyz, izz) about the CoM."""
+    ixx, ixy, ixz, iyy, iyz, izz = inertia
+    return xml.replace('</robot>', f'''
+  <link name="test_payload"><inertial><origin xyz="{com[0]} {com[1]} {com[2]}"/><mass value="{mass}"/>
+    <inertia ixx="{ixx}" ixy="{ixy}" ixz="{ixz}" iyy="{iyy}" iyz="{iyz}" izz="{izz}"/></inertial></link>
+  <joint name="test_payload_joint" type="fixed"><parent link="{link}"/><child link="test_payload"/></joint>
+</robot>''')

@@ -8,7 +8,7 @@ import pytest
 from dyn_cases import ARM, CASES, case, oracle_stack, rel_err, states, xml_of
 from lie_dynamics import aba, load_urdf, rnea
 from oracle import Oracle
-from robots import random_urdf
+from robots import random_urdf, with_payload
 
 MASSLESS_TIP = """<robot name="massless_tip">
   <link name="base"/>
@@ -208,16 +208,6 @@ def test_arm_file_in_package_matches_config():
 ABA_CASES = [nm for nm in CASES if not load_urdf(xml_of(nm)).mimic_joints]
 
 
-def _with_payload(xml, link, mass, com, inertia):
-    """The URDF with a rigid payload fixed to `link` (what Model.set_payload adds)."""
-    ixx, ixy, ixz, iyy, iyz, izz = inertia
-    return xml.replace('</robot>', f'''
-  <link name="test_payload"><inertial><origin xyz="{com[0]} {com[1]} {com[2]}"/><mass value="{mass}"/>
-    <inertia ixx="{ixx}" ixy="{ixy}" ixz="{ixz}" iyy="{iyy}" iyz="{iyz}" izz="{izz}"/></inertial></link>
-  <joint name="test_payload_joint" type="fixed"><parent link="{link}"/><child link="test_payload"/></joint>
-</robot>''')
-
-
 def _aba_paths(model, q, qd, tau, fext=None):
     """qdd from the ABA kernel forced to Python floats and to numpy rows (both must exist)."""
     out = {}
@@ -261,7 +251,7 @@ def test_aba_kernel_follows_payload_gravity_and_locked_joints_without_recompilin
     payload = ('link7', 1.7, (0.05, -0.02, 0.1), (0.01, 0.001, 0.0, 0.02, 0.0, 0.015))
     model.set_payload(*payload)
     model.set_gravity((1.0, -2.0, -9.0))
-    oracle = Oracle(_with_payload(xml, *payload), joints=model.joint_names, gravity=(1.0, -2.0, -9.0))
+    oracle = Oracle(with_payload(xml, *payload), joints=model.joint_names, gravity=(1.0, -2.0, -9.0))
     q, qd, tau = states(model, seed=22)
     ref = oracle_stack(oracle.aba, q, qd, tau)
     for mode, out in _aba_paths(model, q, qd, tau).items():

@@ -30,7 +30,7 @@ from std_srvs.srv import SetBool, Trigger  # noqa: E402
 from lie_dynamics import load_urdf  # noqa: E402
 from lie_dynamics.dynamics_node import DESCRIPTION_QOS, DynamicsNode  # noqa: E402
 from oracle import Oracle  # noqa: E402
-from robots import random_urdf  # noqa: E402
+from robots import random_urdf, with_payload  # noqa: E402
 
 TOL = 1e-9
 CMD = '/effort_controller/commands'
@@ -169,15 +169,6 @@ def chain():
     xml = big_limits(random_urdf(21, 5, joint_types=('revolute',)))
     names = load_urdf(xml).joint_names
     return xml, [names[0]] + names[2:], names[1]
-
-
-def with_payload(xml, link, mass, com, inertia):
-    ixx, ixy, ixz, iyy, iyz, izz = inertia
-    return xml.replace('</robot>', f'''
-  <link name="test_payload"><inertial><origin xyz="{com[0]} {com[1]} {com[2]}"/><mass value="{mass}"/>
-    <inertia ixx="{ixx}" ixy="{ixy}" ixz="{ixz}" iyy="{iyy}" iyz="{iyz}" izz="{izz}"/></inertial></link>
-  <joint name="test_payload_joint" type="fixed"><parent link="{link}"/><child link="test_payload"/></joint>
-</robot>''')
 
 
 def test_gravity_compensation_matches_pinocchio(ros, chain):
