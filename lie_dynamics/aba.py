@@ -295,8 +295,7 @@ def _build_kernel(fr):
     z, M, L, inv_d, pivots = trace_forward_dynamics(fr, g, co['x'], co['xd'], params, ga, taus)
     n = fr.n
     outputs = z + pivots + [M[j][j] for j in range(n)]
-    src = cg.emit(g, 'forward_dynamics_kernel', args, outputs)
-    return cg.compile_function(src, 'forward_dynamics_kernel'), src
+    return cg.kernel(g, 'forward_dynamics_kernel', args, outputs)
 
 
 def trace_inputs(fr, g):
@@ -395,8 +394,7 @@ def run_checked(fn, params, q, qd, tau, n_out, rows):
         except (ValueError, ZeroDivisionError):   # sqrt of a negative pivot, or a zero pivot
             return None
     else:
-        vals = cg.run_rows(lambda Q, QD, T, sin, cos, sqrt: fn(Q, QD, T, P, A0, E0, sin=sin, cos=cos, sqrt=sqrt),
-                           [q, qd, tau], (), n_out + 2 * n)
+        vals = cg.run_rows(fn, [q, qd, tau, P, A0, E0], n_out + 2 * n)
     piv, diag = vals[:, n_out:n_out + n], vals[:, n_out + n:]
     if not (np.all(np.isfinite(vals[:, :n_out])) and np.all(piv > _PD_RTOL * diag)):
         return None
@@ -836,8 +834,7 @@ def _build_aba_kernel(fr, wrench=False):
         if joint_of[b] is not None:
             per_joint[joint_of[b]] = res[b]
     outputs = [r[i] for i in range(3) for r in per_joint]
-    src = cg.emit(g, 'aba_kernel', args, outputs)
-    return cg.compile_function(src, 'aba_kernel'), src, geom
+    return cg.kernel(g, 'aba_kernel', args, outputs) + (geom,)
 
 
 def _aba_kernel(model, wrench=False):
@@ -912,10 +909,8 @@ def _aba_kernel_forward_dynamics(model, q, qd, tau, fext=None, mode=None):
             vals.append(out[:n])
         return np.array(vals).reshape(N, n)
 
-    def f(Q, QD, T, *rest, sin, cos, sqrt=None):
-        return fn(Q, QD, T, P, A0, E0, *rest, sin=sin, cos=cos)
     try:
-        vals = cg.run_rows(f, [q, qd, tau] + extra, (), 3 * n)
+        vals = cg.run_rows(fn, [q, qd, tau, P, A0, E0] + extra, 3 * n)
     except (ZeroDivisionError, OverflowError):   # D from parameters alone (Python floats) is 0
         return None
     D, scale = vals[:, n:2 * n], vals[:, 2 * n:]

@@ -24,8 +24,10 @@ from .aba import cho_solve, cholesky
 from .rnea_derivatives import inverse_dynamics_derivatives
 
 KERNEL_MAX_BODIES = rd.KERNEL_MAX_BODIES
-# Batches: the float kernel state by state below this many states, numpy rows from it (measured).
-_ROWS_FROM = 32
+# Batches: the float kernel state by state below _LOOP_BELOW states, numpy rows from _ROWS_FROM,
+# the general (vectorised) path in between (measured crossovers on the arm: ~8 and ~80).
+_LOOP_BELOW = 8
+_ROWS_FROM = 80
 
 
 def forward_dynamics_derivatives(model, q, qd, tau, wrenches=None):
@@ -91,8 +93,7 @@ def _build_kernel(fr):
     for k in range(3):
         outputs += [cols[k * n + c][r] for r in range(n) for c in range(n)]
     outputs += pivots + [M[j][j] for j in range(n)]
-    src = cg.emit(g, 'forward_dynamics_derivatives_kernel', args, outputs)
-    return cg.compile_function(src, 'forward_dynamics_derivatives_kernel'), src
+    return cg.kernel(g, 'forward_dynamics_derivatives_kernel', args, outputs)
 
 
 def _kernel(model):
@@ -124,17 +125,19 @@ def _kernel_states(model, q, qd, tau, mode=None):
     """Kernel path for validated (N, n) arrays, without wrenches.
 
     mode: 'loop' (Python floats, state by state), 'rows' (numpy rows) or None (by batch size).
-    Returns three (N, n, n) arrays, or None when there is no kernel or some mass matrix fails
-    the positive-definiteness test (the general path then reports it).
+    Returns three (N, n, n) arrays, or None when there is no kernel, the batch size is one
+    where the general path is faster, or some mass matrix fails the positive-definiteness
+    test (the general path then reports it).
     """
-    k = _kernel(model)
+    N = q.shape[0]
+    if mode is None:
+        mode = 'loop' if N < _LOOP_BELOW else 'rows' if N >= _ROWS_FROM else None
+    k = _kernel(model) if mode else False
     if not k:
         return None
     fr, fn, _ = k
     P, E0, A0 = cg.model_params(model, fr, gravity=True)
-    N, n = q.shape
-    if mode is None:
-        mode = 'loop' if N < _ROWS_FROM else 'rows'
+    n = q.shape[1]
     vals = aba.run_checked(fn, (P, A0, E0), q, qd, tau, 3 * n * n, mode == 'rows')
     if vals is None:
         return None

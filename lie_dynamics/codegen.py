@@ -182,6 +182,28 @@ class Graph:
     def sin(self, a):
         return self.fn('sin', a)
 
+    def deps(self, i):
+        """The atoms node i is computed from."""
+        op, data = self.nodes[i]
+        if op == 'in':
+            return []
+        if op == 'mul':
+            return list(data)
+        if op == 'lin':
+            return [a for a, _ in data[0]]
+        return [data]
+
+    def live(self, outputs):
+        """(atoms the outputs read directly, every atom they depend on)."""
+        roots = [a for o in outputs if isinstance(o, Sym) for a in o.terms]
+        live, stack = set(), list(roots)
+        while stack:
+            i = stack.pop()
+            if i not in live:
+                live.add(i)
+                stack.extend(self.deps(i))
+        return roots, live
+
     def cos(self, a):
         return self.fn('cos', a)
 
@@ -215,23 +237,8 @@ def emit(g, fname, arg_lists, outputs, inline_limit=24):
     arg_lists: [(list name, [input symbol names])]; outputs: Syms or floats. Dead nodes are
     dropped; intermediate atoms used once are inlined into their consumer (bounded length).
     """
-    def deps(i):
-        op, data = g.nodes[i]
-        if op == 'in':
-            return []
-        if op == 'mul':
-            return list(data)
-        if op == 'lin':
-            return [a for a, _ in data[0]]
-        return [data]
-
-    roots = [a for o in outputs if isinstance(o, Sym) for a in o.terms]
-    live, stack = set(), list(roots)
-    while stack:
-        i = stack.pop()
-        if i not in live:
-            live.add(i)
-            stack.extend(deps(i))
+    deps = g.deps
+    roots, live = g.live(outputs)
     uses = {}
     for i in live:
         for a in deps(i):
@@ -346,6 +353,134 @@ def compile_function(src, fname):
     return ns[fname]
 
 
+# Names of the argument lists that hold parameters (the same for every state of a batch);
+# every other list holds per-state values, rows in the numpy rendering.
+SCALAR_LISTS = ('P', 'A0', 'E0')
+
+
+def emit_rows(g, fname, arg_lists, outputs):
+    """(source, register count) of `def fname(*arg_lists, B)` for batches: per-state inputs
+    are numpy rows (one entry per state), parameters Python floats.
+
+    Every operation on rows is one ufunc writing into a register row of B (nreg + 1 rows, the
+    last a scratch row) with out=, so a chunk allocates nothing but its outputs. Nodes that
+    depend on parameters only are computed once per call as Python floats. A register is
+    reused once its value is dead, never as the target of an operation that reads it.
+    """
+    roots, live = g.live(outputs)
+    scalar_in = {nm for lname, syms in arg_lists if lname in SCALAR_LISTS for nm in syms}
+    is_row = {}
+    for i in sorted(live):
+        op, data = g.nodes[i]
+        is_row[i] = data not in scalar_in if op == 'in' else any(is_row[a] for a in g.deps(i))
+    last = {}
+    order = [i for i in sorted(live) if g.nodes[i][0] != 'in']
+    for k, i in enumerate(order):
+        for a in g.deps(i):
+            last[a] = k
+    for a in roots:
+        last[a] = len(order)
+    names, free, nreg, lines = {}, [], 0, []
+
+    def name(a):
+        return names[a] if a in names else g.nodes[a][1]
+
+    def scalar_part(terms, const):
+        parts = [repr(const)] if const != 0.0 else []
+        parts += [f'{c!r}*{name(a)}' for a, c in terms]
+        return ' + '.join(parts) if parts else None
+
+    for k, i in enumerate(order):
+        op, data = g.nodes[i]
+        if not is_row[i]:   # parameters only: a Python float
+            names[i] = f'u{i}'
+            if op == 'mul':
+                e = f'{name(data[0])}*{name(data[1])}'
+            elif op == 'lin':
+                e = scalar_part(data[0], data[1]) or '0.0'
+            elif op == 'inv':
+                e = f'1.0/{name(data)}'
+            else:
+                e = f'{op}_({name(data)})'
+            lines.append(f'{names[i]} = {e}')
+            continue
+        if free:
+            R = free.pop()
+        else:
+            R, nreg = f'r{nreg}', nreg + 1
+        if op == 'mul':
+            lines.append(f'multiply({name(data[0])}, {name(data[1])}, out={R})')
+        elif op == 'inv':
+            lines.append(f'divide(1.0, {name(data)}, out={R})')
+        elif op in ('sin', 'cos', 'sqrt'):
+            lines.append(f'{op}({name(data)}, out={R})')
+        else:
+            terms, const = data
+            rterms = [(a, c) for a, c in terms if is_row[a]]
+            S = scalar_part([(a, c) for a, c in terms if not is_row[a]], const)
+            rterms.sort(key=lambda t: t[1] != 1.0)          # a +1 term first when there is one
+            (a1, c1), rest = rterms[0], rterms[1:]
+            if c1 == 1.0 and rest and abs(rest[0][1]) == 1.0:
+                (a2, c2), rest = rest[0], rest[1:]
+                lines.append(f'{"add" if c2 > 0 else "subtract"}({name(a1)}, {name(a2)}, out={R})')
+            elif c1 == 1.0 and rest:   # a1 + c2 a2 + ...: the scaled term first, then a1
+                (a2, c2), rest = rest[0], rest[1:]
+                lines.append(f'multiply({name(a2)}, {c2!r}, out={R})')
+                lines.append(f'{R} += {name(a1)}')
+            elif c1 == 1.0 and S is not None:
+                lines.append(f'add({name(a1)}, {S}, out={R})')
+                S = None
+            elif c1 == -1.0 and S is not None:
+                lines.append(f'subtract({S}, {name(a1)}, out={R})')
+                S = None
+            else:
+                lines.append(f'multiply({name(a1)}, {c1!r}, out={R})')
+            for a, c in rest:
+                if abs(c) == 1.0:
+                    lines.append(f'{R} {"+" if c > 0 else "-"}= {name(a)}')
+                else:
+                    lines.append(f'multiply({name(a)}, {abs(c)!r}, out=TMP)')
+                    lines.append(f'{R} {"+" if c > 0 else "-"}= TMP')
+            if S is not None:
+                lines.append(f'{R} += {S}')
+        names[i] = R
+        for a in dict.fromkeys(g.deps(i)):   # after the target: it must differ from its operands
+            if a in names and is_row[a] and last.get(a) == k:
+                free.append(names[a])
+
+    def out(o):
+        if not isinstance(o, Sym):
+            return repr(float(o))
+        if o.const == 0.0 and len(o.terms) == 1 and next(iter(o.terms.values())) == 1.0:
+            return name(next(iter(o.terms)))
+        return '(' + ' + '.join([f'{c!r}*{name(a)}' for a, c in o.terms.items()]
+                                + ([repr(o.const)] if o.const != 0.0 else [])) + ')'
+
+    head = [f'def {fname}({", ".join(n for n, _ in arg_lists)}, B):']
+    for lname, syms in arg_lists:
+        if syms:
+            head.append(f'    {", ".join(syms)}{"," if len(syms) == 1 else ""} = {lname}')
+    head.append(f'    {", ".join([f"r{k}" for k in range(nreg)] + ["TMP"])}, = B')
+    ret = f'    return ({", ".join(out(o) for o in outputs)}{"," if len(outputs) == 1 else ""})'
+    return '\n'.join(head + [f'    {x}' for x in lines] + [ret]) + '\n', nreg
+
+
+_ROWS_ENV = dict(multiply=np.multiply, add=np.add, subtract=np.subtract, divide=np.divide,
+                 sin=np.sin, cos=np.cos, sqrt=np.sqrt, sin_=math.sin, cos_=math.cos, sqrt_=math.sqrt)
+
+
+def kernel(g, fname, arg_lists, outputs):
+    """(function, float source): the traced outputs compiled for Python floats (one state) and,
+    as the function's attributes rows / nreg, for numpy rows (run_rows)."""
+    src = emit(g, fname, arg_lists, outputs)
+    fn = compile_function(src, fname)
+    rsrc, nreg = emit_rows(g, fname + '_rows', arg_lists, outputs)
+    ns = dict(_ROWS_ENV)
+    exec(compile(rsrc, f'<lie_dynamics generated {fname} (rows)>', 'exec'), ns)
+    fn.rows, fn.nreg, fn.rows_source = ns[fname + '_rows'], nreg, rsrc
+    return fn, src
+
+
 # ---------------------------------------------------------------------------- small linear algebra
 # 3-vectors are tuples, 3x3 matrices tuples of rows; entries are floats or Syms.
 def mat_vec(R, v):
@@ -416,15 +551,25 @@ def is_fast_single(x, n):
     return lst if s - s == 0.0 else None
 
 
-def run_rows(fn, arrays, params, n_out, chunk=2048):
-    """Run a compiled kernel on a batch: arrays (k, N, n) state-last rows -> (N, n_out)."""
-    N = arrays[0].shape[0]
+def run_rows(fn, args, n_out, chunk=None):
+    """Run a kernel (`kernel`) on a batch: args in the kernel's argument order, (N, k) arrays for
+    the per-state lists and lists of floats for the parameters -> (N, n_out).
+
+    States go in chunks, transposed to state-last rows, through fn.rows with one preallocated
+    register block. The chunk is large enough that each ufunc's fixed cost is shared, small
+    enough that the rows stay in cache (at most ~8 MB of registers).
+    """
+    idx = [i for i, a in enumerate(args) if isinstance(a, np.ndarray)]
+    N = args[idx[0]].shape[0]
+    rows = {i: np.ascontiguousarray(args[i].T) for i in idx}
+    size = chunk or int(min(4096, max(256, (8 << 20) // (8 * (fn.nreg + 1)))))
+    B = np.empty((fn.nreg + 1, min(size, N)))
     out = np.empty((n_out, N))
-    rows = [np.ascontiguousarray(a.T) for a in arrays]
-    for s in range(0, N, chunk):
-        sl = slice(s, min(N, s + chunk))
+    for s in range(0, N, size):
+        sl = slice(s, min(N, s + size))
+        call = [list(rows[i][:, sl]) if i in rows else a for i, a in enumerate(args)]
         with np.errstate(all='ignore'):   # callers check the results (e.g. Cholesky pivots)
-            res = fn(*[list(r[:, sl]) for r in rows], *params, sin=np.sin, cos=np.cos, sqrt=np.sqrt)
+            res = fn.rows(*call, list(B[:, :sl.stop - s]))
         for k, v in enumerate(res):
             out[k, sl] = v
     return out.T

@@ -67,9 +67,10 @@ def mass_matrix_vectorized(model, q):
 # vectorised path above is used instead.
 KERNEL_MAX_BODIES = 24
 # Batches: the float kernel state by state below _LOOP_BELOW states, the kernel on numpy rows
-# from _ROWS_FROM states, the vectorised form in between (measured crossovers, 7-20 bodies).
-_LOOP_BELOW = 16
-_ROWS_FROM = 48
+# from _ROWS_FROM states, the vectorised form in between (measured on the arm: the float loop
+# beats the vectorised form up to ~40 states, where the in-place rows take over).
+_LOOP_BELOW = 40
+_ROWS_FROM = 40
 
 
 def trace_mass_matrix(fr, g, params, X):
@@ -117,8 +118,7 @@ def _build_kernel(fr):
     X = [fr.joint_transform(g, b, co['x'][b]) for b in range(fr.nb)]
     M = trace_mass_matrix(fr, g, params, X)
     outputs = [v for row in M for v in row]
-    src = cg.emit(g, 'mass_kernel', co['args'] + [parg, co['offset_args']], outputs)
-    return cg.compile_function(src, 'mass_kernel'), src
+    return cg.kernel(g, 'mass_kernel', co['args'] + [parg, co['offset_args']], outputs)
 
 
 def _kernel(model):
@@ -130,7 +130,7 @@ def _kernel(model):
 def mass_matrix_kernel(model, q):
     """M(q) from the generated CRBA kernel, or None when the model has none (too large).
 
-    One state runs on Python floats; batches state by state below 24 states, else on rows.
+    One state runs on Python floats; batches state by state below _ROWS_FROM states, else on rows.
     """
     k = _kernel(model)
     if not k:
@@ -146,8 +146,8 @@ def mass_matrix_kernel(model, q):
     if single:
         return np.array(fn(qb[0].tolist(), P, E0, sin=math.sin, cos=math.cos)).reshape(n, n)
     N = qb.shape[0]
-    if N < 24:
+    if N < _ROWS_FROM:
         vals = np.array([fn(row, P, E0, sin=math.sin, cos=math.cos) for row in qb.tolist()])
     else:
-        vals = cg.run_rows(fn, [qb], (P, E0), n * n)
+        vals = cg.run_rows(fn, [qb, P, E0], n * n)
     return vals.reshape(N, n, n)

@@ -368,8 +368,7 @@ def _build_kernel(fr, M, S):
         i = j
     packer = struct.Struct('=' + ''.join(fmt))   # native byte order, no alignment
     args = co['args'] + [('A0', [f'g{k}' for k in range(3)]), co['offset_args']]
-    src = cg.emit(g, 'regressor_kernel', args, [flat[i] for i in idx])
-    return cg.compile_function(src, 'regressor_kernel'), src, np.array(idx, dtype=np.intp), packer
+    return cg.kernel(g, 'regressor_kernel', args, [flat[i] for i in idx]) + (np.array(idx, dtype=np.intp), packer)
 
 
 def _pairs(model):
@@ -438,5 +437,5 @@ def _kernel_regressor(model, q, qd, qdd, mode=None):
     out = np.zeros((N, m))
     for s in range(0, N, _ROWS_CHUNK):   # bounds the (outputs, states) work array of run_rows
         sl = slice(s, s + _ROWS_CHUNK)
-        out[sl, idx] = cg.run_rows(fn, [q[sl], qd[sl], qdd[sl]], (A0, E0), len(idx))
+        out[sl, idx] = cg.run_rows(fn, [q[sl], qd[sl], qdd[sl], A0, E0], len(idx))
     return out.reshape(N, n, 10 * model.nb)

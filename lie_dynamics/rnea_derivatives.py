@@ -142,7 +142,7 @@ KERNEL_MAX_BODIES = 16
 # Batches: the float kernel state by state below _LOOP_BELOW states, the kernel on numpy rows
 # from _ROWS_FROM states, the vectorised form in between (measured crossovers, 7-20 bodies).
 _LOOP_BELOW = 4
-_ROWS_FROM = 160
+_ROWS_FROM = 128
 
 
 def trace_derivatives(fr, g, x, xd, xdd, params, a0, fext=None, center=0):
@@ -255,8 +255,7 @@ def _build_kernel(fr, wrench, center=0, coriolis=False):
         outputs = [0.5 * dv[r][c] for r in range(n) for c in range(n)]
     else:
         outputs = [dq[r][c] for r in range(n) for c in range(n)] + [dv[r][c] for r in range(n) for c in range(n)]
-    src = cg.emit(g, 'rnea_derivatives_kernel', args, outputs)
-    return cg.compile_function(src, 'rnea_derivatives_kernel'), src
+    return cg.kernel(g, 'rnea_derivatives_kernel', args, outputs)
 
 
 def _poses(fr, g, x, r):
@@ -350,7 +349,7 @@ def coriolis_matrix(model, q, qd):
         if N < _LOOP_BELOW:
             C = np.array([fn(a, b, P, E0, sin=math.sin, cos=math.cos) for a, b in zip(q.tolist(), qd.tolist())])
         else:
-            C = cg.run_rows(fn, [q, qd], (P, E0), n * n)
+            C = cg.run_rows(fn, [q, qd, P, E0], n * n)
         C = C.reshape(N, n, n)
     return C[0] if single else C
 
@@ -377,10 +376,6 @@ def _kernel_derivatives(model, q, qd, qdd, fext, mode=None):
         rows = zip(q.tolist(), qd.tolist(), qdd.tolist(), *[e.tolist() for e in extra])
         vals = np.array([fn(*r[:3], P, A0, E0, *r[3:], sin=math.sin, cos=math.cos) for r in rows])
     else:
-        def f(Q, QD, QDD, *rest, sin, cos, sqrt=None):
-            if extra:
-                return fn(Q, QD, QDD, P, A0, E0, rest[0], sin=sin, cos=cos)
-            return fn(Q, QD, QDD, P, A0, E0, sin=sin, cos=cos)
-        vals = cg.run_rows(f, [q, qd, qdd] + list(extra), (), 2 * n * n)
+        vals = cg.run_rows(fn, [q, qd, qdd, P, A0, E0] + list(extra), 2 * n * n)
     vals = vals.reshape(N, 2, n, n)
     return vals[:, 0], vals[:, 1]

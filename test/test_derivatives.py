@@ -158,9 +158,35 @@ def test_codegen_tracer_folds_and_matches_float_evaluation():
         return (-a, b, a * a - b * b, math.sin(a) * b + 2.0 / (a * a + 1.0), math.sqrt(b * b + 1.0))
 
     outs = list(z) + [g.sin(x) * y + 2.0 * g.inv(x * x + 1.0), g.sqrt(y * y + 1.0)]
-    fn = cg.compile_function(cg.emit(g, 'k', [('A', ['x', 'y'])], outs), 'k')
+    fn, _ = cg.kernel(g, 'k', [('A', ['x', 'y'])], outs)
     for a, b in [(0.3, -1.2), (2.0, 0.5)]:
         assert np.allclose(fn([a, b], sin=math.sin, cos=math.cos, sqrt=math.sqrt), direct(a, b), rtol=1e-15)
-    rows = cg.run_rows(lambda A, sin, cos, sqrt: fn(A, sin=sin, cos=cos, sqrt=sqrt),
-                       [np.array([[0.3, -1.2], [2.0, 0.5]])], (), 5)
+    rows = cg.run_rows(fn, [np.array([[0.3, -1.2], [2.0, 0.5]])], 5)
     assert np.allclose(rows, [direct(0.3, -1.2), direct(2.0, 0.5)], rtol=1e-15)
+
+
+def test_codegen_rows_rendering_registers_and_parameters():
+    """The numpy-rows rendering: parameter-only values as floats, every row operation in place
+    into a reused register that is never one of its own operands, chunks with a short last one."""
+    import math
+
+    from lie_dynamics import codegen as cg
+    g = cg.Graph()
+    a, b = g.input('a'), g.input('b')            # per state
+    p, k = g.input('p'), g.input('k')            # parameters
+    s = a
+    for i in range(30):                          # a long chain: registers must be reused
+        s = g.cos(s * p + b) * (1.5 + 0.1 * i) - a * k
+    pk = p * k + 2.0                             # parameters only
+    outs = [s, pk * a - 3.0 * b, g.inv(pk), g.sqrt(a * a + k * k), -(a - 2.0 * b) + pk]
+    fn, _ = cg.kernel(g, 'k', [('X', ['a', 'b']), ('P', ['p', 'k'])], outs)
+    assert fn.nreg < 10 and 'u' in fn.rows_source      # registers reused; a hoisted parameter value
+    for line in fn.rows_source.splitlines():
+        if 'out=' in line:                       # the target is not read by the same ufunc
+            target = line.split('out=')[1].rstrip(')')
+            assert target not in line.split('(', 1)[1].split('out=')[0]
+    X = np.random.default_rng(0).uniform(-1, 1, (11, 2))
+    P = [0.7, -1.3]
+    ref = np.array([fn(list(x), P, sin=math.sin, cos=math.cos, sqrt=math.sqrt) for x in X])
+    for chunk in (None, 4):
+        assert np.allclose(cg.run_rows(fn, [X, P], len(outs), chunk=chunk), ref, rtol=1e-14, atol=1e-14)
