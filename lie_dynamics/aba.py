@@ -238,12 +238,9 @@ def forward_dynamics(model, q, qd, tau, wrenches=None, method='cholesky'):
             if k:   # one state through the generated kernel, on Python floats
                 fr, fn, _ = k
                 P, E0, A0 = cg.model_params(model, fr, gravity=True)
-                try:
-                    out = fn(a, b, c, P, A0, E0, sin=math.sin, cos=math.cos, sqrt=math.sqrt)
-                except (ValueError, ZeroDivisionError):
-                    out = None
-                if out is not None and all(d > _PD_RTOL * m for d, m in zip(out[n:2 * n], out[2 * n:])):
-                    return np.array(out[:n])
+                out = single_checked(fn, (P, A0, E0), a, b, c, n)
+                if out is not None:
+                    return np.array(out)
             # not positive definite, or no kernel: plain 2-D calls (checked, with the message)
             M = crba.mass_matrix(model, q)
             h = rnea.inverse_dynamics(model, q, qd, np.zeros(n))
@@ -379,6 +376,21 @@ def _kernel_forward_dynamics(model, q, qd, tau):
     fr, fn, _ = k
     P, E0, A0 = cg.model_params(model, fr, gravity=True)
     return run_checked(fn, (P, A0, E0), q, qd, tau, model.n, q.shape[0] >= _KERNEL_ROWS_FROM)
+
+
+def single_checked(fn, params, q, qd, tau, n_out):
+    """One state (lists of floats) through a Cholesky kernel (see run_checked): its first n_out
+    outputs, or None when the mass matrix fails the positive-definiteness test."""
+    P, A0, E0 = params
+    try:
+        vals = fn(q, qd, tau, P, A0, E0, sin=math.sin, cos=math.cos, sqrt=math.sqrt)
+    except (ValueError, ZeroDivisionError):   # sqrt of a negative pivot, or a zero pivot
+        return None
+    n = len(q)
+    s = sum(vals[:n_out])
+    if s - s == 0.0 and all(p > _PD_RTOL * d for p, d in zip(vals[n_out:n_out + n], vals[n_out + n:])):
+        return vals[:n_out]
+    return None
 
 
 def run_checked(fn, params, q, qd, tau, n_out, rows):

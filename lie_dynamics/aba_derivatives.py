@@ -13,8 +13,6 @@ kernel (codegen.py): the Cholesky forward dynamics of aba.py, the derivative rec
 rnea_derivatives.py at that qdd, and the 3n triangular solves, on Python floats for one
 state and small batches and on numpy rows for large ones.
 """
-import math
-
 import numpy as np
 
 from . import aba, crba, rnea
@@ -103,22 +101,16 @@ def _kernel(model):
 
 
 def _kernel_single(model, q, qd, tau):
-    """One state (lists of floats) on Python floats: a (3, n, n) array, or None (see below)."""
+    """One state (lists of floats) on Python floats: a (3, n, n) array, or None (no kernel, or
+    the mass matrix fails the positive-definiteness test)."""
     k = _kernel(model)
     if not k:
         return None
     fr, fn, _ = k
     P, E0, A0 = cg.model_params(model, fr, gravity=True)
-    try:
-        vals = fn(q, qd, tau, P, A0, E0, sin=math.sin, cos=math.cos, sqrt=math.sqrt)
-    except (ValueError, ZeroDivisionError):
-        return None
     n = model.n
-    m = 3 * n * n
-    s = sum(vals[:m])
-    if not (s - s == 0.0 and all(p > aba._PD_RTOL * d for p, d in zip(vals[m:m + n], vals[m + n:]))):
-        return None
-    return np.fromiter(vals, float, m).reshape(3, n, n)
+    vals = aba.single_checked(fn, (P, A0, E0), q, qd, tau, 3 * n * n)
+    return None if vals is None else np.fromiter(vals, float, 3 * n * n).reshape(3, n, n)
 
 
 def _kernel_states(model, q, qd, tau, mode=None):
