@@ -342,3 +342,21 @@ def test_aba_bad_inputs_name_the_argument():
         model.forward_dynamics(z.tolist(), z.tolist(), [0.0] * 8, method='aba')
     with pytest.raises(ValueError, match='tau has 3 states, expected 2'):
         model.forward_dynamics(np.zeros((2, 7)), np.zeros((2, 7)), np.zeros((3, 7)), method='aba')
+
+
+def test_forward_dynamics_derivatives_bad_inputs_name_the_argument():
+    """Every dispatch (one state on the kernel, a small batch, the general path, rows) validates."""
+    model, _ = case('arm7')
+    for N in (None, 3, 20, 100):
+        z = np.zeros(7) if N is None else np.zeros((N, 7))
+        for k, name in enumerate(('q', 'qd', 'tau')):
+            args = [z.copy(), z.copy(), z.copy()]
+            args[k][..., 2] = np.nan
+            with pytest.raises(ValueError, match=f'{name} contains non-finite values'):
+                model.forward_dynamics_derivatives(*args)
+            args = [z, z, z]
+            args[k] = z[..., :6]
+            with pytest.raises(ValueError, match=fr'{name} must have shape \(7,\)'):
+                model.forward_dynamics_derivatives(*args)
+    with pytest.raises(ValueError, match='tau has 2 states, expected 3'):
+        model.forward_dynamics_derivatives(np.zeros((3, 7)), np.zeros((3, 7)), np.zeros((2, 7)))
