@@ -232,7 +232,8 @@ _PREC_ATOM = 4
 
 
 def emit(g, fname, arg_lists, outputs, inline_limit=24):
-    """Python source of `def fname(*arg_lists, sin, cos, sqrt=None)` returning the tuple `outputs`.
+    """Python source of `def fname(*arg_lists, sin, cos, sqrt)` returning the tuple `outputs`
+    (sin, cos, sqrt default to math's; callers may pass others).
 
     arg_lists: [(list name, [input symbol names])]; outputs: Syms or floats. Dead nodes are
     dropped; intermediate atoms used once are inlined into their consumer (bounded length).
@@ -280,7 +281,7 @@ def emit(g, fname, arg_lists, outputs, inline_limit=24):
 
     ret = f'({", ".join(out(o) for o in outputs)}{"," if len(outputs) == 1 else ""})'
     lines, ret = _registers(lines, ret)
-    params = [n for n, _ in arg_lists] + ['sin', 'cos', 'sqrt=None']
+    params = [n for n, _ in arg_lists] + ['sin=sin_', 'cos=cos_', 'sqrt=sqrt_']
     hot = _hot_locals(lines, ret, [nm for _, syms in arg_lists for nm in syms], _MAX_FAST - len(params))
     head = [f'def {fname}({", ".join(params + [f"{h}=0.0" for h in hot])}):']
     for lname, syms in arg_lists:
@@ -348,7 +349,7 @@ def _hot_locals(lines, ret, inputs, k):
 
 
 def compile_function(src, fname):
-    ns = {}
+    ns = dict(sin_=math.sin, cos_=math.cos, sqrt_=math.sqrt)   # the defaults of sin, cos, sqrt
     exec(compile(src, f'<lie_dynamics generated {fname}>', 'exec'), ns)
     return ns[fname]
 
