@@ -471,15 +471,24 @@ _ROWS_ENV = dict(multiply=np.multiply, add=np.add, subtract=np.subtract, divide=
 
 
 def kernel(g, fname, arg_lists, outputs):
-    """(function, float source): the traced outputs compiled for Python floats (one state) and,
-    as the function's attributes rows / nreg, for numpy rows (run_rows)."""
+    """(function, float source): the traced outputs compiled for Python floats (one state),
+    with the numpy-rows rendering as attributes rows_source / nreg (see rows_function)."""
     src = emit(g, fname, arg_lists, outputs)
     fn = compile_function(src, fname)
-    rsrc, nreg = emit_rows(g, fname + '_rows', arg_lists, outputs)
-    ns = dict(_ROWS_ENV)
-    exec(compile(rsrc, f'<lie_dynamics generated {fname} (rows)>', 'exec'), ns)
-    fn.rows, fn.nreg, fn.rows_source = ns[fname + '_rows'], nreg, rsrc
+    fn.rows_source, fn.nreg = emit_rows(g, fname + '_rows', arg_lists, outputs)
+    fn.rows = None
     return fn, src
+
+
+def rows_function(fn):
+    """The compiled numpy-rows rendering of a kernel, compiled on first use: callers that
+    only ever run one state (a controller) do not pay for it (about a sixth of a build)."""
+    if fn.rows is None:
+        ns = dict(_ROWS_ENV)
+        name = fn.__name__ + '_rows'
+        exec(compile(fn.rows_source, f'<lie_dynamics generated {name}>', 'exec'), ns)
+        fn.rows = ns[name]
+    return fn.rows
 
 
 # ---------------------------------------------------------------------------- small linear algebra
@@ -556,10 +565,11 @@ def run_rows(fn, args, n_out, chunk=None):
     """Run a kernel (`kernel`) on a batch: args in the kernel's argument order, (N, k) arrays for
     the per-state lists and lists of floats for the parameters -> (N, n_out).
 
-    States go in chunks, transposed to state-last rows, through fn.rows with one preallocated
+    States go in chunks, transposed to state-last rows, through rows_function(fn) with one preallocated
     register block. The chunk is large enough that each ufunc's fixed cost is shared, small
     enough that the rows stay in cache (at most ~8 MB of registers).
     """
+    rows_fn = rows_function(fn)
     idx = [i for i, a in enumerate(args) if isinstance(a, np.ndarray)]
     N = args[idx[0]].shape[0]
     rows = {i: np.ascontiguousarray(args[i].T) for i in idx}
@@ -570,7 +580,7 @@ def run_rows(fn, args, n_out, chunk=None):
         sl = slice(s, min(N, s + size))
         call = [list(rows[i][:, sl]) if i in rows else a for i, a in enumerate(args)]
         with np.errstate(all='ignore'):   # callers check the results (e.g. Cholesky pivots)
-            res = fn.rows(*call, list(B[:, :sl.stop - s]))
+            res = rows_fn(*call, list(B[:, :sl.stop - s]))
         for k, v in enumerate(res):
             out[k, sl] = v
     return out.T

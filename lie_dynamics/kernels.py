@@ -220,14 +220,15 @@ class Kernels:
         self._params, self._row_params = (None, None), None
 
     def function(self, kind):
-        """(scalar, numpy) versions of kernel `kind`: 'id', 'id_wrench' or 'gravity'."""
-        fns = self._fns.get(kind)
-        if fns is None:
+        """The generated kernel `kind` (float function; cg.rows_function gives its rows form):
+        'id', 'id_wrench' or 'gravity'."""
+        fn = self._fns.get(kind)
+        if fn is None:
             st = self.structure
             fn = st.gravity_kernel() if kind == 'gravity' else st.inverse_dynamics_kernel(kind == 'id_wrench')
             self._regs[kind] = fn.nreg
-            fns = self._fns[kind] = (fn, fn.rows)
-        return fns
+            self._fns[kind] = fn
+        return fn
 
     def rows(self, kind, inputs):
         """Run the rows kernel `kind` over batches; yields (slice, outputs) chunk by chunk.
@@ -237,7 +238,7 @@ class Kernels:
         calls, so a call allocates nothing per operation and touches no fresh pages. They
         come from a pool, so concurrent callers never share them.
         """
-        fn = self.function(kind)[1]
+        fn = cg.rows_function(self.function(kind))
         N = inputs[0].shape[0]
         widths = [a.shape[1] for a in inputs]
         regs = self._regs[kind] + 1

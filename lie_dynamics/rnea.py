@@ -96,7 +96,7 @@ def inverse_dynamics(model, q, qd, qdd, wrenches=None, with_gravity=True):
         lists = _fast_single(model.n, (q, qd, qdd))
         if lists is not None:
             P, _, A0, E0 = K.params(model)
-            return np.array(K.function('id')[0](*lists, P, A0 if with_gravity else _NO_GRAVITY, E0))
+            return np.array(K.function('id')(*lists, P, A0 if with_gravity else _NO_GRAVITY, E0))
     arrs = _states(model, (q, qd, qdd), ('q', 'qd', 'qdd'))
     single = arrs[0].ndim == 1
     N = 1 if single else len(arrs[0])
@@ -109,7 +109,7 @@ def inverse_dynamics(model, q, qd, qdd, wrenches=None, with_gravity=True):
     if single or N < _SMALL_BATCH:  # the float kernel, state by state
         P, _, A0, E0 = K.params(model)
         A0 = A0 if with_gravity else _NO_GRAVITY
-        f_float = K.function(kind)[0]
+        f_float = K.function(kind)
         lists = [x.reshape(N, model.n).tolist() for x in arrs] + ([] if fext is None else [fext.tolist()])
         tau = np.array([f_float(x, y, z, P, A0, E0, *w) for x, y, z, *w in zip(*lists)]).reshape(N, model.n)
         return tau[0] if single else tau
@@ -130,13 +130,13 @@ def gravity(model, q):
         lists = _fast_single(model.n, (q,))
         if lists is not None:
             _, P, A0, E0 = K.params(model)
-            return np.array(K.function('gravity')[0](lists[0], P, A0, E0))
+            return np.array(K.function('gravity')(lists[0], P, A0, E0))
     a = _states(model, (q,), ('q',))[0]
     if K is None:
         return _reference_gravity(model, a)
     if a.ndim == 1 or len(a) < _SMALL_BATCH:  # the float kernel, state by state
         _, P, A0, E0 = K.params(model)
-        f_float = K.function('gravity')[0]
+        f_float = K.function('gravity')
         if a.ndim == 1:
             return np.array(f_float(a.tolist(), P, A0, E0))
         return np.array([f_float(x, P, A0, E0) for x in a.tolist()]).reshape(a.shape)
