@@ -23,7 +23,7 @@ import math
 import numpy as np
 
 from . import codegen as cg
-from .lagrangian import _chunks, _constants, _swap, _to_joints_mat, kinematic_state, subtree_sum, \
+from .lagrangian import _swap, body_matrices, kinematic_state, subtree_sum, \
     world_inertias
 
 
@@ -50,16 +50,8 @@ def mass_matrix(model, q):
 
 def mass_matrix_vectorized(model, q):
     """M(q) by the vectorised composite rigid body algorithm (numpy over bodies and states)."""
-    single = np.ndim(q) == 1
-    q = model._batch('q', q)
-    c = _constants(model)
-    x = model.body_coordinates(q)
-    N, nb = x.shape
-    out = np.empty((N, nb, nb))
-    for sl in _chunks(N, 150 * nb + nb * nb):
-        out[sl] = _crba(model, x[sl])
-    out = _to_joints_mat(model, c, out)
-    return out[0] if single else out
+    nb = model.nb
+    return body_matrices(model, q, _crba, 150 * nb + nb * nb)
 
 
 # ---------------------------------------------------------------------------- generated kernel

@@ -180,14 +180,23 @@ def mass_matrix(model, q):
 
     q: (n,) or (N, n). Returns (n, n) or (N, n, n), symmetric positive (semi)definite.
     """
+    nb = model.nb
+    return body_matrices(model, q, _mass_closed_form, 12 * nb * nb + 72 * nb)
+
+
+def body_matrices(model, q, fn, per_state):
+    """fn(model, x) -> (N, nb, nb) body-coordinate matrices, evaluated on the states of q in
+    chunks (per_state: floats of work arrays per state, see _chunks) and projected to joints
+    (E^T X E).
+    q: (n,) or (N, n) -> (n, n) or (N, n, n)."""
     single = np.ndim(q) == 1
     q = model._batch('q', q)
     c = _constants(model)
     x = model.body_coordinates(q)
     N, nb = x.shape
     out = np.empty((N, nb, nb))
-    for sl in _chunks(N, 12 * nb * nb + 72 * nb):
-        out[sl] = _mass_closed_form(model, x[sl])
+    for sl in _chunks(N, per_state):
+        out[sl] = fn(model, x[sl])
     out = _to_joints_mat(model, c, out)
     return out[0] if single else out
 
