@@ -13,8 +13,6 @@ counterpart, medians of per-round ratios.
 Writes accuracy.{md,csv,json} and accuracy_<robot>.png.
 """
 import argparse
-import csv
-import json
 import os
 
 import numpy as np
@@ -312,15 +310,7 @@ def chart(res, robot, path):
 
 
 def write(res, out):
-    os.makedirs(out, exist_ok=True)
-    with open(os.path.join(out, 'accuracy.md'), 'w', encoding='utf-8') as fh:
-        fh.write(markdown(res))
-    with open(os.path.join(out, 'accuracy.csv'), 'w', newline='', encoding='utf-8') as fh:
-        w = csv.DictWriter(fh, fieldnames=list(res['rows'][0]))
-        w.writeheader()
-        w.writerows(res['rows'])
-    with open(os.path.join(out, 'accuracy.json'), 'w', encoding='utf-8') as fh:
-        json.dump(res, fh, indent=1)
+    common.write_tables(out, 'accuracy', markdown(res), res, res['rows'])
     for robot in dict.fromkeys(r['robot'] for r in res['rows']):
         chart(res, robot, os.path.join(out, f'accuracy_{robot}.png'))
 

@@ -12,6 +12,8 @@ the RNEA of paper eqs 16-21 (and an articulated-body forward dynamics) written o
 any numpy dtype: longdouble for references, clongdouble for complex-step reference
 derivatives, float32 / complex128 as benchmarked methods of their own.
 """
+import csv
+import json
 import os
 import time
 import xml.etree.ElementTree as ET
@@ -483,6 +485,22 @@ def boundary(xs, errs, tol):
     if not bad.any():
         return None
     return float(xs[bad].min()), float(xs[bad].max())
+
+
+def write_tables(out, name, md, data, rows=None, fields=None):
+    """A section's files in `out`: name.md (md), name.json (data) and, given rows (dicts),
+    name.csv with columns `fields` (default: the first row's keys; other keys are left out)."""
+    os.makedirs(out, exist_ok=True)
+    with open(os.path.join(out, f'{name}.md'), 'w', encoding='utf-8') as fh:
+        fh.write(md)
+    if rows is not None:
+        rows = list(rows)
+        with open(os.path.join(out, f'{name}.csv'), 'w', newline='', encoding='utf-8') as fh:
+            w = csv.DictWriter(fh, fieldnames=fields or list(rows[0]), extrasaction='ignore')
+            w.writeheader()
+            w.writerows(rows)
+    with open(os.path.join(out, f'{name}.json'), 'w', encoding='utf-8') as fh:
+        json.dump(data, fh, indent=1)
 
 
 def savefig(fig, path):

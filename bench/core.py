@@ -16,7 +16,6 @@ Writes bench/out/core.{md,csv,json,png}; `--json` also prints the JSON. `run()` 
 the same dict for an aggregating "make bench".
 """
 import argparse
-import csv
 import json
 import os
 import platform
@@ -175,15 +174,7 @@ def markdown(result):
 
 
 def write(result, out_dir):
-    os.makedirs(out_dir, exist_ok=True)
-    with open(os.path.join(out_dir, 'core.md'), 'w', encoding='utf-8') as fh:
-        fh.write(markdown(result))
-    with open(os.path.join(out_dir, 'core.csv'), 'w', newline='', encoding='utf-8') as fh:
-        w = csv.DictWriter(fh, fieldnames=list(result['rows'][0]))
-        w.writeheader()
-        w.writerows(result['rows'])
-    with open(os.path.join(out_dir, 'core.json'), 'w', encoding='utf-8') as fh:
-        json.dump(result, fh, indent=1)
+    common.write_tables(out_dir, 'core', markdown(result), result, result['rows'])
     plot(result, os.path.join(out_dir, 'core.png'))
 
 

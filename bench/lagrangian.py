@@ -32,6 +32,7 @@ for _var in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
 
 import numpy as np  # noqa: E402
 
+from bench import common  # noqa: E402
 from bench.common import default_urdf  # noqa: E402
 from bench.common import pinocchio_model as _pin_setup  # noqa: E402
 from bench.common import time_interleaved as _time_rounds  # noqa: E402
@@ -358,11 +359,7 @@ def run(quick=False, out=None):
     res['meta'] = dict(quick=quick, rounds=rounds, python=platform.python_version(), numpy=np.__version__,
                        pinocchio=pin.__version__, machine=platform.machine(), cpu_count=os.cpu_count())
     out = out or os.path.join(HERE, 'out')
-    os.makedirs(out, exist_ok=True)
-    with open(os.path.join(out, 'lagrangian.md'), 'w', encoding='utf-8') as fh:
-        fh.write(markdown(res))
-    with open(os.path.join(out, 'lagrangian.json'), 'w', encoding='utf-8') as fh:
-        json.dump(res, fh, indent=1)
+    common.write_tables(out, 'lagrangian', markdown(res), res)
     chart(res, os.path.join(out, 'lagrangian.png'))
     return res
 

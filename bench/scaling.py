@@ -11,8 +11,6 @@ shows as kinks. Kernel compile times (once per robot structure) are listed, not 
 Writes scaling.{md,csv,json,png}.
 """
 import argparse
-import csv
-import json
 import os
 import time
 
@@ -126,16 +124,8 @@ def chart(res, path):
 
 
 def write(res, out):
-    os.makedirs(out, exist_ok=True)
-    with open(os.path.join(out, 'scaling.md'), 'w', encoding='utf-8') as fh:
-        fh.write(markdown(res))
-    with open(os.path.join(out, 'scaling.csv'), 'w', newline='', encoding='utf-8') as fh:
-        w = csv.DictWriter(fh, fieldnames=['kind', 'n', 'algorithm', 'us', 'slope'])
-        w.writeheader()
-        for r in res['rows']:
-            w.writerow(dict(r, slope=res['slopes'][f"{r['kind']}/{r['algorithm']}"]))
-    with open(os.path.join(out, 'scaling.json'), 'w', encoding='utf-8') as fh:
-        json.dump(res, fh, indent=1)
+    rows = [dict(r, slope=res['slopes'][f"{r['kind']}/{r['algorithm']}"]) for r in res['rows']]
+    common.write_tables(out, 'scaling', markdown(res), res, rows, ['kind', 'n', 'algorithm', 'us', 'slope'])
     chart(res, os.path.join(out, 'scaling.png'))
 
 

@@ -26,7 +26,6 @@ Writes stability.{md,csv,json} and stability_*.png. The CSV has one row per meas
 scan, method, x_name, x, error, status.
 """
 import argparse
-import csv
 import json
 import os
 import time
@@ -576,16 +575,8 @@ def _json_safe(x):
 
 
 def write(res, out):
-    os.makedirs(out, exist_ok=True)
-    with open(os.path.join(out, 'stability.md'), 'w', encoding='utf-8') as fh:
-        fh.write(markdown(res))
-    with open(os.path.join(out, 'stability.csv'), 'w', newline='', encoding='utf-8') as fh:
-        w = csv.DictWriter(fh, fieldnames=['scan', 'method', 'x_name', 'x', 'error', 'status'], extrasaction='ignore')
-        w.writeheader()
-        for k in SCANS:
-            w.writerows(res[k]['rows'])
-    with open(os.path.join(out, 'stability.json'), 'w', encoding='utf-8') as fh:
-        json.dump(_json_safe(res), fh, indent=1)
+    common.write_tables(out, 'stability', markdown(res), _json_safe(res), (r for k in SCANS for r in res[k]['rows']),
+                        ['scan', 'method', 'x_name', 'x', 'error', 'status'])
     return charts(res, out)
 
 

@@ -1,7 +1,6 @@
 """Feedforward / computed-torque / PD laws, the desired-state stream and trajectory effort fill
 in the node's decision logic without ROS (lie_dynamics.ros_core), checked against Pinocchio."""
 import math
-import re
 from types import SimpleNamespace as NS
 
 import numpy as np
@@ -12,33 +11,18 @@ from lie_dynamics.ros_core import OK, WARN, Compensator
 from lie_dynamics.ros_params import check_value
 from lie_dynamics.ros_trajectory import set_point_efforts, trajectory_arrays, trajectory_message
 from oracle import Oracle
+from core_cases import Clock, big_limits, make
 from robots import random_urdf
 
 TOL = 1e-9
 
 
-class Clock:
-    def __init__(self):
-        self.t = 100.0
-
-    def __call__(self):
-        return self.t
-
-
 @pytest.fixture(scope='module')
 def chain():
     """5 revolute joints; joints[1] is not controlled (locked, fed by joint_states)."""
-    xml = re.sub(r'effort="[^"]*"', 'effort="1e6"', random_urdf(33, 5, joint_types=('revolute',), mimic=False))
+    xml = big_limits(random_urdf(33, 5, joint_types=('revolute',), mimic=False))
     names = load_urdf(xml).joint_names
     return xml, [names[0]] + names[2:], names[1]
-
-
-def make(xml, ctrl, clock=None, **settings):
-    settings.setdefault('friction.viscous', [0.0])
-    settings.setdefault('friction.coulomb', [0.0])
-    c = Compensator(dict(joints=ctrl, **settings), clock=clock or Clock())
-    c.set_model(load_urdf(xml, joints=ctrl))
-    return c
 
 
 def point(q=(), qd=(), qdd=(), t=0.0):
@@ -173,7 +157,7 @@ def test_mode_switch_stale_desired_fallback_and_recovery(chain):
 
 def test_output_is_clamped_in_every_mode(chain):
     xml, ctrl, locked = chain
-    xml = re.sub(r'effort="[^"]*"', 'effort="2.0"', xml)
+    xml = big_limits(xml, '2.0')
     n = len(ctrl)
     c = make(xml, ctrl, mode='pd', kp=[1000.0], effort_limit_scale=0.5)
     c.on_desired(ctrl, [point(np.ones(n))])

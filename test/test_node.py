@@ -30,15 +30,12 @@ from std_srvs.srv import SetBool, Trigger  # noqa: E402
 from lie_dynamics import load_urdf  # noqa: E402
 from lie_dynamics.dynamics_node import DESCRIPTION_QOS, DynamicsNode  # noqa: E402
 from oracle import Oracle  # noqa: E402
+from core_cases import big_limits  # noqa: E402
 from robots import random_urdf, with_payload  # noqa: E402
 
 TOL = 1e-9
 CMD = '/effort_controller/commands'
 TIMEOUT = 10.0
-
-
-def big_limits(xml, effort='1e6'):
-    return re.sub(r'effort="[^"]*"', f'effort="{effort}"', xml)
 
 
 _current = None

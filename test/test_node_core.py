@@ -9,21 +9,10 @@ from lie_dynamics import load_urdf
 from lie_dynamics.ros_core import ERROR, OK, WARN, Compensator, Throttle
 from lie_dynamics.ros_params import PARAMS, check_value, defaults
 from oracle import Oracle
+from core_cases import Clock, big_limits, make
 from robots import random_urdf
 
 TOL = 1e-9
-
-
-def big_limits(xml):
-    return re.sub(r'effort="[^"]*"', 'effort="1e6"', xml)
-
-
-class Clock:
-    def __init__(self):
-        self.t = 100.0
-
-    def __call__(self):
-        return self.t
 
 
 @pytest.fixture
@@ -33,14 +22,6 @@ def chain():
     names = load_urdf(xml).joint_names
     ctrl = [names[0]] + names[2:]
     return xml, ctrl, names[1]
-
-
-def make(xml, ctrl, clock=None, **settings):
-    settings.setdefault('friction.viscous', [0.0])
-    settings.setdefault('friction.coulomb', [0.0])
-    c = Compensator(dict(joints=ctrl, **settings), clock=clock or Clock())
-    c.set_model(load_urdf(xml, joints=ctrl))
-    return c
 
 
 def test_gravity_with_moving_locked_joint_in_any_message_order(chain):
@@ -154,7 +135,7 @@ def test_rejections_publish_nothing_and_name_the_problem(chain):
 
 def test_clamp_and_nonfinite_output(chain):
     xml, ctrl, locked = chain
-    xml = re.sub(r'effort="[^"]*"', 'effort="2.0"', xml)
+    xml = big_limits(xml, '2.0')
     c = make(xml, ctrl, effort_limit_scale=0.5)
     q = np.full(len(ctrl), 0.7)
     tau = c.on_joint_state(ctrl, q)
