@@ -1,6 +1,6 @@
 """All benchmarks in one command: tables (Markdown + CSV/JSON) and PNG charts in one folder.
 
-    python -m bench [--quick] [--out DIR] [--only core,lagrangian,accuracy,scaling,stability,node]
+    python -m bench [--quick] [--out DIR] [--only core,lagrangian,accuracy,scaling,stability,robots,node]
                     [--docs-img DIR]
     make bench ARGS="--quick"
 
@@ -11,6 +11,8 @@ Sections (each writes its own files into DIR, default bench/out/):
   scaling     time against number of joints, chains and trees, fitted slopes (bench/scaling.py)
   stability   where methods fail: exp/log, chain length, ill-conditioned M, FD step, energy
               drift (bench/stability.py)
+  robots      real vendor robots (example-robot-data) beside Pinocchio; the locked-finger Panda
+              (fingers folded) beside the fixed-finger Panda (bench/robots.py)
   node        the ROS node: trajectory effort fill against a Pinocchio loop, and joint_states ->
               effort latency in gravity and feedforward modes beside a bare echo node (real
               processes over DDS; bench/feedforward.py, bench/node_latency.py)
@@ -27,7 +29,7 @@ import time
 import traceback
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-SECTIONS = ('core', 'lagrangian', 'accuracy', 'scaling', 'stability', 'node')
+SECTIONS = ('core', 'lagrangian', 'accuracy', 'scaling', 'stability', 'robots', 'node')
 
 
 def _core(quick, out):
@@ -59,6 +61,11 @@ def _stability(quick, out):
     stability.run(quick=quick, out=out)
 
 
+def _robots(quick, out):
+    from bench import robots
+    robots.run(quick=quick, out=out)
+
+
 def _node(quick, out):
     import contextlib
     import io
@@ -88,7 +95,7 @@ def _small_copy(src, dst):
 
 
 RUNNERS = {'core': _core, 'lagrangian': _lagrangian, 'accuracy': _accuracy, 'scaling': _scaling,
-           'stability': _stability, 'node': _node}
+           'stability': _stability, 'robots': _robots, 'node': _node}
 
 
 def main(argv=None):

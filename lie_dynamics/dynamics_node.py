@@ -25,7 +25,13 @@ Behaviour (the effort controller holds the last command forever and does not cla
   the model, as does setting either parameter. A description that fails to load (or does not
   contain the controlled joints) is rejected: the previous model keeps running. The command
   layout (`joints`, or the first model's joints when empty) never changes at run time.
-  ~/reload_model re-reads the current source (last topic message, parameter, or the file).
+  ~/reload_model re-reads the current source (last topic message, parameter, or the file;
+  before any model loaded: the last topic message, else the start-up parameters).
+* Inertia: `inertia_policy` (warn, strict, repair; live) is load_urdf's policy for physically
+  inconsistent link inertias. warn/repair: one log line per offending link and load (at most
+  20, then a count), and a WARN in the diagnostics; strict: the description is rejected like
+  any bad one. Setting it reloads the current source; if that fails while a model runs, the
+  change is rejected and model and policy stay as they were.
 * No model yet: nothing is published (said once in the log). No valid joint_states yet:
   nothing is published.
 * Invalid joint_states (array lengths, duplicate names, non-finite positions of used joints,
@@ -77,7 +83,7 @@ from std_srvs.srv import SetBool, Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from .ros_core import Compensator, Throttle
-from .ros_params import PARAMS, SPECS
+from .ros_params import PARAMS, SPECS, check_value
 from .ros_run import run
 from .ros_trajectory import set_point_efforts
 
@@ -196,23 +202,20 @@ class DynamicsNode(Node):
                 '(publishing nothing until a model is loaded)')
 
     # ------------------------------------------------------------------ model
-    def _load(self, kind, text):
-        """Load a description; on failure keep the current model. Returns None or the error text."""
+    def _load(self, kind, text, inertia=None):
+        """Load a description (`inertia`: policy other than the current inertia_policy); on failure
+        keep the current model. Returns None or the error text."""
         label = {'topic': 'topic robot_description', 'parameter': 'parameter robot_description',
                  'file': f'file {text}'}[kind]
         try:
-            from . import load_urdf
             if kind != 'file' and not text.lstrip().startswith('<'):
                 raise ValueError('not URDF XML')
             source = resolve_path(text) if kind == 'file' else text
             if source != text:
                 label = f'{label} ({source})'
-            model = load_urdf(source, joints=self.core.layout, gravity=self.core.settings['gravity'])
-            self.core.set_model(model, label)
+            self.core.load(source, label, inertia)
         except Exception as exc:  # any bad input: log, keep the previous model, never die
-            err = f'{label}: {exc}'
-            self.core.note_description_error(err)
-            return err
+            return self.core.note_description_error(f'{label}: {exc}')
         self._source = (kind, text)
         self._out_names = list(self.core.layout)
         return None
@@ -340,12 +343,25 @@ class DynamicsNode(Node):
             return SetParametersResult(successful=True)
         with self._lock:
             try:
+                # a description set together with the policy is loaded under the new one
+                policy = changes.get('inertia_policy')
+                if policy is not None:
+                    policy = check_value('inertia_policy', policy)
+                loaded = False
                 for key, kind in (('robot_description', 'parameter'), ('urdf_path', 'file')):
                     text = changes.pop(key, None)
                     if text:
-                        err = self._load(kind, text)
+                        err = self._load(kind, text, policy)
                         if err is not None:
                             raise ValueError(err)
+                        loaded = True
+                if policy not in (None, self.core.settings['inertia_policy']) and not loaded:
+                    kind, text = self._current_source()
+                    err = self._load(kind, text, policy) if kind is not None else None
+                    # without a running model there is nothing to keep consistent: the failure
+                    # is reported (log, diagnostics) and the policy applies to what comes next
+                    if err is not None and self.core.model is not None:
+                        raise ValueError(err)
                 cmd = self.core.update(changes)
             except ValueError as exc:
                 self._drain_events()
@@ -366,18 +382,28 @@ class DynamicsNode(Node):
         response.message = ('enabled' if request.data else 'disabled') if result.successful else result.reason
         return response
 
+    def _current_source(self):
+        """(kind, text) to reload: the loaded model's source as it is now; before any model
+        loaded, the last topic message, else the start-up parameters. (None, None) if none."""
+        if self._source is not None:
+            kind, text = self._source
+            if kind == 'topic':
+                text = self._topic_xml
+            elif kind == 'parameter':
+                text = self.get_parameter('robot_description').value
+            return (kind, text) if text else (None, None)
+        for kind, text in (('topic', self._topic_xml),
+                           ('parameter', self.get_parameter('robot_description').value),
+                           ('file', self.get_parameter('urdf_path').value)):
+            if text:
+                return kind, text
+        return None, None
+
     @_guarded
     def _srv_reload(self, request, response):
         with self._lock:
-            if self._source is None:
-                kind, text = ('topic', self._topic_xml) if self._topic_xml else (None, None)
-            else:
-                kind, text = self._source
-                if kind == 'topic':
-                    text = self._topic_xml
-                elif kind == 'parameter':
-                    text = self.get_parameter('robot_description').value
-            if kind is None or not text:
+            kind, text = self._current_source()
+            if kind is None:
                 response.success, response.message = False, 'no robot description to reload'
                 return response
             err = self._load(kind, text)

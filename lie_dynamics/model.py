@@ -11,10 +11,24 @@ which carries mimic joints (a row with the multiplier in the master's column) an
 locked joints (a row in L). Joint torques are tau = E^T tau_body: the master collects
 multiplier * tau_mimic.
 """
+import copy
+import functools
+
 import numpy as np
 
 from . import aba, aba_derivatives, crba, kinematics, lagrangian, regressor, rnea, rnea_derivatives
-from .se3 import hat3, spatial_inertia
+from .inertia import RTOL, inertia_scale as _inertia_scale, link_inertia as _inertia_in, violations
+from .se3 import exp6, hat3
+
+
+def _frozen(x):
+    """A read-only float (or int) array: the generated kernels read the model's constants
+    once, so an in-place edit would be silently ignored by them; now it raises."""
+    a = np.array(x, dtype=float if np.asarray(x).dtype.kind != 'i' else int)
+    a.flags.writeable = False
+    return a
+
+
 
 
 def _vector(name, x, n):
@@ -26,13 +40,36 @@ def _vector(name, x, n):
     return a
 
 
+def _jointless(states, *shapes):
+    """A robot without movable joints (a URDF that only welds links together) is a valid model:
+    its calls check their state arguments and return empty results of the usual shapes."""
+    def wrap(method):
+        @functools.wraps(method)
+        def call(self, *args, **kwargs):
+            if self.n:
+                return method(self, *args, **kwargs)
+            given = dict(zip(states, args))
+            given.update((k, kwargs[k]) for k in states if k in kwargs)
+            first = self._states(**given)[0]
+            lead = () if np.ndim(given[states[0]]) == 1 else (first.shape[0],)
+            out = tuple(np.zeros(lead + sh) for sh in shapes)
+            return out if len(out) > 1 else out[0]
+        return call
+    return wrap
+
+
 class Model:
     """Fixed-base kinematic tree for the Lie-group dynamics algorithms."""
 
     def __init__(self, *, name, joint_names, joint_types, locked_joint_names, lockable_joint_names,
-                 mimic_joints, body_joint_names, parent, M, S, J, E, L, c0, link_frames,
+                 mimic_joints, body_joint_names, parent, M, S, E, L, c0, link_frames, link_inertias,
                  effort_limits, velocity_limits, position_lower, position_upper, damping, friction,
-                 gravity=(0.0, 0.0, -9.81)):
+                 folded_bodies=(), gravity=(0.0, 0.0, -9.81), inertia_scale=None):
+        """Built by urdf.load_urdf. link_frames: link -> (kind, index, T) with kind 'kept' (index:
+        body, -1 the world), 'folded' (index into folded_bodies) or 'dropped'; T the link's pose in
+        that frame. link_inertias: link -> (mass, CoM, inertia about the CoM) in the link frame.
+        folded_bodies: locked bodies folded into a parent's inertia (parents first), dicts with
+        parent ('kept' | 'folded', index), M, S, column (locked joint), multiplier, offset."""
         self.name = name
         self.joint_names = list(joint_names)
         self.joint_types = list(joint_types)
@@ -41,27 +78,37 @@ class Model:
         self.lockable_joint_names = list(lockable_joint_names)
         self.mimic_joints = dict(mimic_joints)
         self.body_joint_names = list(body_joint_names)
-        self.parent = np.asarray(parent, dtype=int)
+        self.parent = _frozen(np.asarray(parent, dtype=int))
         self.nb = len(self.parent)
-        self.M = np.asarray(M, dtype=float)
-        self.S = np.asarray(S, dtype=float)
-        self.J_links = np.asarray(J, dtype=float)  # from the URDF, without payloads
-        self.E = np.asarray(E, dtype=float).reshape(self.nb, self.n)
-        self.L = np.asarray(L, dtype=float).reshape(self.nb, len(self.locked_joint_names))
-        self.c0 = np.asarray(c0, dtype=float)
-        self.link_frames = dict(link_frames)
-        self.effort_limits = np.asarray(effort_limits, dtype=float)
-        self.velocity_limits = np.asarray(velocity_limits, dtype=float)
-        self.position_lower = np.asarray(position_lower, dtype=float)
-        self.position_upper = np.asarray(position_upper, dtype=float)
-        self.damping = np.asarray(damping, dtype=float)
-        self.friction = np.asarray(friction, dtype=float)
-        self._payloads = {}
+        self.M = _frozen(M).reshape(self.nb, 4, 4)
+        self.S = _frozen(S).reshape(self.nb, 6)
+        self.E = _frozen(E).reshape(self.nb, self.n)
+        self.L = _frozen(L).reshape(self.nb, len(self.locked_joint_names))
+        self.c0 = _frozen(c0).reshape(self.nb)
+        self.effort_limits = _frozen(effort_limits)
+        self.velocity_limits = _frozen(velocity_limits)
+        self.position_lower = _frozen(position_lower)
+        self.position_upper = _frozen(position_upper)
+        self.damping = _frozen(damping)
+        self.friction = _frozen(friction)
+        self._places = dict(link_frames)
+        self._link_inertias = dict(link_inertias)
+        self._folded = [dict(f) for f in folded_bodies]
+        self.folded_joint_names = [f['joint'] for f in self._folded]
+        # links on kept bodies never move in their body's frame: their inertia is summed once
+        J = np.zeros((self.nb, 6, 6))
+        for link, (kind, b, T) in self._places.items():
+            if kind == 'kept' and b >= 0 and link in self._link_inertias:
+                J[b] += _inertia_in(T, self._link_inertias[link])
+        self._J_static = J
+        self.inertia_scale = float(inertia_scale) if inertia_scale else _inertia_scale(J)
+        self._inertia_report = []
+        self._J_override = None  # with_body_inertias: J as given, whatever the locked values
+        self._payloads = {}  # link -> (mass, CoM, inertia about the CoM) in the link frame
         self._locked_values = np.zeros(len(self.locked_joint_names))
         self._locked_index = {name: k for k, name in enumerate(self.locked_joint_names)}
         self.gravity_vector = gravity
         self._precompute()
-        self._update_inertia()
         self._update_offsets()
 
     # ------------------------------------------------------------------ structure
@@ -72,8 +119,8 @@ class Model:
         for i in range(nb):
             if self.parent[i] >= 0:
                 anc[i] += anc[self.parent[i]]
-        self.ancestors = anc
-        self.depth = anc.sum(axis=1).astype(int)
+        self.ancestors = _frozen(anc)
+        self.depth = _frozen(anc.sum(axis=1).astype(int))
         # Pointer jumping: world poses in ceil(log2(depth)) batched products instead of nb.
         jump = self.parent.copy()
         self._jumps = []
@@ -105,7 +152,7 @@ class Model:
     @gravity_vector.setter
     def gravity_vector(self, g):
         self._g = _vector('gravity', g, 3)
-        self._a0 = np.concatenate([np.zeros(3), -self._g])
+        self._a0 = _frozen(np.concatenate([np.zeros(3), -self._g]))
 
     def set_gravity(self, g):
         self.gravity_vector = g
@@ -141,13 +188,39 @@ class Model:
         return dict(zip(self.locked_joint_names, self._locked_values.tolist()))
 
     def _update_offsets(self):
-        self.e0 = self.L @ self._locked_values + self.c0
+        """Locked values changed: body offsets, folded-body poses, link frames, inertias."""
+        self.e0 = _frozen(self.L @ self._locked_values + self.c0)
+        folded = []  # (kept body, pose in its frame) per folded body
+        for f in self._folded:
+            kind, p = f['parent']
+            b, X = (p, np.eye(4)) if kind == 'kept' else folded[p]
+            x = f['multiplier'] * self._locked_values[f['column']] + f['offset']
+            folded.append((b, X @ f['M'] @ exp6(f['S'] * x)))
+        frames = {}
+        for link, (kind, b, T) in self._places.items():
+            if kind == 'folded':
+                fb, X = folded[b]
+                frames[link] = (fb, _frozen(X @ T))
+            else:
+                frames[link] = (b if kind == 'kept' else -2, _frozen(T))
+        self.link_frames = frames
+        if self._J_override is not None:
+            self.J_links = self._J_override
+        elif self._folded or not hasattr(self, 'J_links'):
+            J = self._J_static.copy()
+            for link, (kind, _, _) in self._places.items():
+                if kind == 'folded' and link in self._link_inertias:
+                    b, T = frames[link]
+                    J[b] += _inertia_in(T, self._link_inertias[link])
+            self.J_links = _frozen(J)  # links as written in the URDF (folded ones included), no payloads
+        self._update_inertia()
 
     def set_payload(self, link, mass, com, inertia=None):
         """Attach a rigid payload to `link` (replaces any previous one on that link).
 
         com: CoM in the link frame (m). inertia: about the CoM in the link frame, a 3x3
-        matrix or (ixx, ixy, ixz, iyy, iyz, izz); None = point mass.
+        matrix or (ixx, ixy, ixz, iyy, iyz, izz); None = point mass. Checked by the one
+        consistency rule (inertia.violations) at the model's own scale.
         """
         if link not in self.link_frames:
             raise ValueError(f"unknown link '{link}' for payload")
@@ -165,12 +238,11 @@ class Model:
             if I.shape != (3, 3) or not np.all(np.isfinite(I)):
                 raise ValueError('payload inertia must be a finite 3x3 matrix or 6 values '
                                  '(ixx, ixy, ixz, iyy, iyz, izz)')
-            ev = np.linalg.eigvalsh(0.5 * (I + I.T))
-            if ev[0] < -1e-12 * max(1.0, ev[-1]) or ev[0] + ev[1] < ev[2] - 1e-12 * max(1.0, ev[-1]):
-                raise ValueError(f'payload inertia is not physically valid (principal moments {ev.tolist()})')
-        b, T = self.link_frames[link]
-        R, p = T[:3, :3], T[:3, 3]
-        self._payloads[link] = (b, spatial_inertia(m, R @ c + p, R @ I @ R.T))
+            bad = violations(m, I, RTOL * self.inertia_scale)
+            if bad:
+                raise ValueError('payload inertia is not physically valid: '
+                                 + '; '.join(f'{rule}: {detail}' for rule, detail in bad))
+        self._payloads[link] = (m, c, 0.5 * (I + I.T))
         self._update_inertia()
 
     def clear_payload(self, link=None):
@@ -183,10 +255,28 @@ class Model:
 
     def _update_inertia(self):
         J = self.J_links.copy()
-        for b, Jp in self._payloads.values():
+        for link, mic in self._payloads.items():
+            b, T = self.link_frames[link]
             if b >= 0:  # payloads on the world or on dropped bodies change no controlled torque
-                J[b] += Jp
-        self.J = J
+                J[b] += _inertia_in(T, mic)
+        self.J = _frozen(J)
+
+    def with_body_inertias(self, J):
+        """A copy whose bodies carry the spatial inertias J (nb, 6, 6) as written (payloads and
+        folded links included in J: the copy has neither)."""
+        new = copy.deepcopy(self)  # (generated kernels are not copied: see kernels.Kernels.__reduce__)
+        new._payloads = {}
+        new._J_override = _frozen(np.asarray(J, dtype=float).reshape(self.nb, 6, 6))
+        new._update_offsets()
+        return new
+
+    def physical_consistency(self):
+        """Per-link report of the load's inertia check (inertia policy of load_urdf): a list of
+        dicts with link, rule, message and repaired; empty when every modelled link is consistent."""
+        return [dict(e) for e in self._inertia_report]
+
+    def _set_inertia_report(self, report):
+        self._inertia_report = [dict(e) for e in report]
 
     # ------------------------------------------------------------------ input checks
     def _batch(self, name, x, N=None):
@@ -218,6 +308,7 @@ class Model:
         return q @ self.E.T + self.e0
 
     # ------------------------------------------------------------------ algorithms
+    @_jointless(('q', 'qd', 'qdd'), (0,))
     def inverse_dynamics(self, q, qd, qdd, wrenches=None):
         """tau = M(q) qdd + C(q, qd) qd + g(q) - J^T F_ext: the Lie-group RNEA (paper eqs 16-21).
 
@@ -226,10 +317,12 @@ class Model:
         """
         return rnea.inverse_dynamics(self, q, qd, qdd, wrenches)
 
+    @_jointless(('q',), (0,))
     def gravity(self, q):
         """Gravity compensation torques g(q) (RNEA with V = 0, Vdot_0 = (0, -g))."""
         return rnea.gravity(self, q)
 
+    @_jointless(('q', 'qd'), (0,))
     def coriolis_term(self, q, qd):
         """C(q, qd) qd = inverse_dynamics(q, qd, 0) without gravity."""
         return rnea.inverse_dynamics(self, q, qd, np.zeros_like(np.asarray(qd, dtype=float)), None,
@@ -257,6 +350,7 @@ class Model:
                 f'locked={self.locked_joint_names})')
 
     # --- Lagrangian dynamics, forward dynamics, derivatives, regressor (lagrangian.py, crba.py, aba.py, ...) ---
+    @_jointless(('q',), (0, 0))
     def mass_matrix(self, q, method='crba'):
         """M(q), (n, n) or (N, n, n). method: 'crba' (composite rigid body, O(n^2); a generated
         kernel for small models, the fastest) or 'closed_form' (S^T G^T J G S, paper eq 39, O(n^3))."""
@@ -266,10 +360,12 @@ class Model:
             return crba.mass_matrix(self, q)
         raise ValueError(f"unknown mass matrix method {method!r}: use 'closed_form' or 'crba'")
 
+    @_jointless(('q',), (0, 0, 0))
     def christoffel(self, q):
         """Christoffel symbols of the first kind Gamma[i, j, k] (paper eq 40), (n, n, n) or (N, n, n, n)."""
         return lagrangian.christoffel(self, q)
 
+    @_jointless(('q', 'qd'), (0, 0))
     def coriolis_matrix(self, q, qd, method='christoffel'):
         """C(q, qd) from the Christoffel symbols: C qd = coriolis_term(q, qd), Mdot - 2C skew.
 
@@ -282,34 +378,42 @@ class Model:
             return rnea_derivatives.coriolis_matrix(self, q, qd)
         raise ValueError(f"unknown Coriolis matrix method {method!r}: use 'christoffel' or 'recursive'")
 
+    @_jointless(('q',), (0, 0, 0))
     def mass_matrix_derivatives(self, q):
         """dM/dq: D[..., a, :, :] = dM/dq_a (Proposition 1 applied to eq 39)."""
         return lagrangian.mass_matrix_derivatives(self, q)
 
+    @_jointless(('q',), (0,))
     def gravity_potential(self, q):
         """g(q) = dU/dq from the potential energy (paper eqs 43-45); equals gravity(q)."""
         return lagrangian.gravity(self, q)
 
+    @_jointless(('q',), ())
     def potential_energy(self, q):
         """U(q) = -sum_i m_i g . c_i (paper eq 43)."""
         return lagrangian.potential_energy(self, q)
 
+    @_jointless(('q', 'qd'), ())
     def kinetic_energy(self, q, qd):
         """1/2 qd^T M(q) qd."""
         return lagrangian.kinetic_energy(self, q, qd)
 
+    @_jointless(('q', 'qd', 'tau'), (0,))
     def forward_dynamics(self, q, qd, tau, wrenches=None, method='cholesky'):
         """qdd with inverse_dynamics(q, qd, qdd, wrenches) = tau; method 'cholesky' or 'aba' (O(n))."""
         return aba.forward_dynamics(self, q, qd, tau, wrenches, method)
 
+    @_jointless(('q', 'qd', 'qdd'), (0, 0), (0, 0))
     def inverse_dynamics_derivatives(self, q, qd, qdd, wrenches=None):
         """(dtau/dq, dtau/dqd), analytic (rnea_derivatives.py)."""
         return rnea_derivatives.inverse_dynamics_derivatives(self, q, qd, qdd, wrenches)
 
+    @_jointless(('q', 'qd', 'tau'), (0, 0), (0, 0), (0, 0))
     def forward_dynamics_derivatives(self, q, qd, tau, wrenches=None):
         """(dqdd/dq, dqdd/dqd, dqdd/dtau = M^-1) at qdd = forward_dynamics(q, qd, tau)."""
         return aba_derivatives.forward_dynamics_derivatives(self, q, qd, tau, wrenches)
 
+    @_jointless(('q', 'qd', 'qdd'), (0, 0))
     def regressor(self, q, qd, qdd):
         """Y with inverse_dynamics(q, qd, qdd) = Y @ inertial_parameters(), (n, 10 nb) or (N, n, 10 nb)."""
         return regressor.regressor(self, q, qd, qdd)

@@ -25,7 +25,6 @@ generated straight-line code (codegen.py, `regressor_kernel`) for models of up t
 KERNEL_MAX_PAIRS (body, ancestor) pairs, used for one state, small batches (state by state)
 and large batches (numpy rows) where the measured crossovers say it is faster.
 """
-import copy
 import math
 import struct
 
@@ -34,9 +33,8 @@ import numpy as np
 from . import codegen as cg
 from .kinematics import ad_matrices
 from .se3 import hat3
+from .inertia import PARAMETER_NAMES, inertia_to_parameters, parameter_consistency, parameters_to_inertia  # noqa: F401
 from .lagrangian import _chunks, _constants, _cross, _swap, kinematic_state
-
-PARAMETER_NAMES = ('m', 'mcx', 'mcy', 'mcz', 'Ixx', 'Ixy', 'Iyy', 'Ixz', 'Iyz', 'Izz')
 
 # L(u): I u = L(u) iota, iota = (xx, xy, yy, xz, yz, zz); entry (row, col) <- u[idx]
 _L_ROW = np.array([0, 0, 0, 1, 1, 1, 2, 2, 2])
@@ -44,63 +42,10 @@ _L_COL = np.array([0, 1, 3, 1, 2, 4, 3, 4, 5])
 _L_IDX = np.array([0, 1, 2, 0, 1, 2, 0, 1, 2])
 
 
-def inertia_to_parameters(J):
-    """Spatial inertias (..., 6, 6) about the body frames -> parameters (..., 10)."""
-    J = np.asarray(J, dtype=float)
-    I = J[..., :3, :3]
-    return np.stack([J[..., 3, 3], J[..., 2, 4], J[..., 0, 5], J[..., 1, 3],
-                     I[..., 0, 0], I[..., 0, 1], I[..., 1, 1], I[..., 0, 2], I[..., 1, 2], I[..., 2, 2]],
-                    axis=-1)
-
-
-def parameters_to_inertia(pi):
-    """Parameters (..., 10) -> spatial inertias (..., 6, 6) = [[I, [h]], [-[h], m 1]]."""
-    pi = np.asarray(pi, dtype=float)
-    m, hx, hy, hz, xx, xy, yy, xz, yz, zz = np.moveaxis(pi, -1, 0)
-    J = np.zeros(pi.shape[:-1] + (6, 6))
-    J[..., 0, 0], J[..., 0, 1], J[..., 0, 2] = xx, xy, xz
-    J[..., 1, 0], J[..., 1, 1], J[..., 1, 2] = xy, yy, yz
-    J[..., 2, 0], J[..., 2, 1], J[..., 2, 2] = xz, yz, zz
-    H = np.zeros(pi.shape[:-1] + (3, 3))
-    H[..., 0, 1], H[..., 0, 2], H[..., 1, 2] = -hz, hy, -hx
-    H = H - _swap(H)
-    J[..., :3, 3:] = H
-    J[..., 3:, :3] = -H
-    J[..., 3, 3] = J[..., 4, 4] = J[..., 5, 5] = m
-    return J
-
-
 def physical_consistency(pi):
-    """Per body: (ok, reason) for parameters (nb, 10): m >= 0 and, for m > 0, an inertia about
-    the CoM that is positive semidefinite and obeys the triangle inequality."""
-    pi = np.atleast_2d(np.asarray(pi, dtype=float))
-    out = []
-    for i, p in enumerate(pi):
-        m = p[0]
-        if not np.isfinite(p).all():
-            out.append((False, f'body {i}: non-finite parameters'))
-            continue
-        if m < 0:
-            out.append((False, f'body {i}: negative mass {m:g}'))
-            continue
-        J = parameters_to_inertia(p)
-        if m == 0:
-            ok = np.allclose(J, 0.0)
-            out.append((ok, '' if ok else f'body {i}: zero mass with non-zero first moment or inertia'))
-            continue
-        c = p[1:4] / m
-        C = np.array([[0, -c[2], c[1]], [c[2], 0, -c[0]], [-c[1], c[0], 0]])
-        Ic = J[:3, :3] + m * C @ C
-        ev = np.linalg.eigvalsh(0.5 * (Ic + Ic.T))
-        tol = 1e-9 * max(1.0, abs(ev[-1]))
-        if ev[0] < -tol:
-            out.append((False, f'body {i}: inertia about the CoM is not positive semidefinite '
-                               f'(principal moments {ev.tolist()})'))
-        elif ev[0] + ev[1] < ev[2] - tol:
-            out.append((False, f'body {i}: principal moments {ev.tolist()} violate the triangle inequality'))
-        else:
-            out.append((True, ''))
-    return out
+    """Per body: (ok, reason) for parameters (nb, 10): the one consistency check
+    (inertia.violations) applied to the inertia about each body's CoM."""
+    return parameter_consistency(pi)
 
 
 def inertial_parameters(model):
@@ -129,11 +74,7 @@ def with_inertial_parameters(model, pi, check=True):
         if bad:
             raise ValueError('inertial parameters are not physically consistent: ' + '; '.join(bad)
                              + ' (pass check=False to accept them)')
-    new = copy.deepcopy(model)
-    new._payloads = {}
-    new.J_links = parameters_to_inertia(p)
-    new._update_inertia()
-    return new
+    return model.with_body_inertias(parameters_to_inertia(p))
 
 
 def _K(Vb, Ab):

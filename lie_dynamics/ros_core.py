@@ -21,11 +21,17 @@ terms use the measured velocity; a NaN/inf (or absent) velocity of a joint count
 unavailable and is used as 0. Locked joints are treated as stationary at their measured value
 (desired values for them are ignored). Commands are computed for joint_states messages only:
 a desired message updates the set-point, it does not trigger a command.
+
+Inertia: `load` applies `inertia_policy` (load_urdf's `inertia`). The loaded model's
+physical_consistency() report is logged once per load (one line per offending link, at most
+INERTIA_LOG_LINES) and kept for the diagnostics (WARN while it is non-empty).
 """
 import time
+import warnings
 
 import numpy as np
 
+from . import InertiaWarning, load_urdf
 from .ros_params import check_value, defaults
 from .ros_trajectory import trajectory_arrays
 from .trajectory import fill_trajectory_efforts
@@ -34,6 +40,17 @@ NEEDS_DESIRED = ('feedforward', 'computed_torque', 'pd')
 
 # diagnostic_msgs/DiagnosticStatus levels
 OK, WARN, ERROR = 0, 1, 2
+
+# Bounds of the inertia report: a URDF with thousands of bad links must not flood the log or
+# /diagnostics (log lines per load, characters per line, messages in the diagnostics value).
+INERTIA_LOG_LINES = 20
+INERTIA_TEXT_MAX = 300
+INERTIA_DIAG_MESSAGES = 3
+DIAG_TEXT_MAX = 1000
+
+
+def _clip(text, n):
+    return text if len(text) <= n else text[:n - 3] + '...'
 
 
 class Throttle:
@@ -129,6 +146,8 @@ class Compensator:
             _gains(self.settings['kp'], len(self.layout), 'kp')
             _gains(self.settings['kd'], len(self.layout), 'kd')
         self.model_info = ''          # where the current model came from
+        self.inertia_report = []      # physical_consistency() of the current model
+        self.inertia_repaired = 0     # entries of it with repaired=True
         self.events = []
         # derived from (model, settings)
         self._limit = None
@@ -215,6 +234,21 @@ class Compensator:
         self._need_velocity = (self.settings['include_velocity_terms'] or viscous is not None
                                or coulomb is not None)
 
+    def load(self, source, info='', inertia=None):
+        """load_urdf(source) for the command layout with the configured gravity and inertia
+        policy (`inertia` overrides `inertia_policy`), then `set_model`. Raises ValueError (also
+        for a strict refusal) and keeps the previous model."""
+        policy = check_value('inertia_policy', self.settings['inertia_policy'] if inertia is None else inertia)
+        with warnings.catch_warnings(record=True) as caught:
+            # set_model reports the model's own report once per link: nothing raw on stderr
+            warnings.simplefilter('always', InertiaWarning)
+            model = load_urdf(source, joints=self.layout, gravity=self.settings['gravity'], inertia=policy)
+        for w in caught:  # other warnings are not ours to swallow
+            if not issubclass(w.category, InertiaWarning):
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        self.set_model(model, info)
+        return model
+
     def set_model(self, model, info=''):
         """Make `model` current (its joint_names must equal the fixed layout). Raises ValueError
         and keeps the previous model if the new one does not fit the settings."""
@@ -239,12 +273,26 @@ class Compensator:
         unlimited = [j for j, e in zip(model.joint_names, lim) if not np.isfinite(e)]
         if unlimited:
             self.events.append(('warn', None, f'no URDF effort limit for {unlimited}: not clamped'))
+        self._note_inertia(model.physical_consistency())
+
+    def _note_inertia(self, report):
+        """Keep the model's inertia report; one warn event per offending link (this load only)."""
+        self.inertia_report = list(report)
+        self.inertia_repaired = sum(bool(r['repaired']) for r in self.inertia_report)
+        for item in self.inertia_report[:INERTIA_LOG_LINES]:
+            self.events.append(('warn', None, _clip(f"inertia: {item['message']}", INERTIA_TEXT_MAX)))
+        more = len(self.inertia_report) - INERTIA_LOG_LINES
+        if more > 0:
+            self.events.append(('warn', None, f'inertia: ... and {more} more links with inconsistent inertia'))
 
     def note_description_error(self, text):
+        """Record a refused description; returns the text as kept (bounded)."""
+        text = _clip(text, DIAG_TEXT_MAX)  # e.g. a strict refusal listing thousands of links
         self.description_error = text
         self.last_error = text
         kept = f" (keeping model '{self.model.name}')" if self.model is not None else ''
         self.events.append(('error', None, f'robot description rejected: {text}{kept}'))
+        return text
 
     def update(self, changes):
         """Validate and apply parameter changes atomically. Raises ValueError with the reason."""
@@ -572,6 +620,7 @@ class Compensator:
         m = self.model
         s = self.settings
         msgs, level = [], OK
+        report, repaired = self.inertia_report, self.inertia_repaired
         if m is None:
             level, msgs = ERROR, ['no robot model (waiting for robot_description)']
         else:
@@ -588,6 +637,10 @@ class Compensator:
             if self.description_error:
                 level = max(level, WARN)
                 msgs.append('last robot description rejected, previous model kept')
+            if report:
+                level = max(level, WARN)
+                msgs.append(f'{len(report)} link(s) with inconsistent inertia'
+                            + (f' ({repaired} repaired)' if repaired else ''))
             if self._win_rejected:
                 level = max(level, WARN)
                 msgs.append(f'{self._win_rejected} joint_states rejected')
@@ -631,6 +684,11 @@ class Compensator:
             ('velocity_unavailable_count', str(self.velocity_unavailable)),
             ('last_error', self.last_error),
             ('description_error', self.description_error),
+            ('inertia_policy', s['inertia_policy']),
+            ('inertia_warnings', str(len(report))),
+            ('inertia_repaired', str(repaired)),
+            ('inertia_report', _clip(' | '.join(r['message'] for r in report[:INERTIA_DIAG_MESSAGES]),
+                                     DIAG_TEXT_MAX)),
         ]
         self._win_start = now
         self._win_accepted = self._win_rejected = self._win_clamped = self._win_desired_rejected = 0

@@ -11,6 +11,8 @@ from typing import Optional, Tuple
 STALE_ACTIONS = ('hold_gravity_at_last_state', 'zero')
 # Torque laws (see ros_core). Every mode but `gravity` needs the desired-state stream.
 MODES = ('gravity', 'feedforward', 'computed_torque', 'pd')
+# load_urdf's policy for physically inconsistent link inertias.
+INERTIA_POLICIES = ('warn', 'strict', 'repair')
 
 # kinds: 'bool', 'double', 'string', 'double_array', 'string_array'
 
@@ -84,6 +86,11 @@ PARAMS = (
     ParamSpec('stale_action', 'string', 'hold_gravity_at_last_state',
               'On stale input publish once: gravity torques at the last valid state '
               '(hold_gravity_at_last_state) or zeros (zero).', True, constraints=' or '.join(STALE_ACTIONS)),
+    ParamSpec('inertia_policy', 'string', 'warn',
+              'Physically inconsistent link inertias in the description (see load_urdf). warn: use them as '
+              'written, one log line per link and a WARN in the diagnostics. strict: reject the description '
+              '(the previous model keeps running). repair: replace them by consistent ones, log before/after. '
+              'Setting it reloads the current description.', True, constraints=' or '.join(INERTIA_POLICIES)),
     ParamSpec('payload.link', 'string', '', 'Link the payload is rigidly attached to (empty: none).', True),
     ParamSpec('payload.mass', 'double', 0.0, 'Payload mass, kg (0: no payload).', True, (0.0, 1000.0)),
     ParamSpec('payload.com', 'double_array', [0.0, 0.0, 0.0],
@@ -126,6 +133,8 @@ def check_value(name, value):
             raise ValueError(f'stale_action must be one of {list(STALE_ACTIONS)}, got {value!r}')
         if name == 'mode' and value not in MODES:
             raise ValueError(f'mode must be one of {list(MODES)}, got {value!r}')
+        if name == 'inertia_policy' and value not in INERTIA_POLICIES:
+            raise ValueError(f'inertia_policy must be one of {list(INERTIA_POLICIES)}, got {value!r}')
         if name in ('command_topic', 'desired_topic') and not value.strip():
             raise ValueError(f'{name} must not be empty')
         return value

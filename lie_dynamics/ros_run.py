@@ -1,8 +1,13 @@
-"""The process shell shared by the package's nodes: init, spin, stop cleanly on SIGINT/SIGTERM.
+"""The process shell shared by the package's nodes: arguments, init, spin, stop cleanly on SIGINT/SIGTERM.
 
 rclpy's own signal handler raises KeyboardInterrupt wherever the process happens to be
 (a second Ctrl-C inside destroy_node leaves DDS shared-memory files behind), so signals
 only set a flag here and the spin loop ends in its own time.
+
+Bad arguments or parameters end in one line on stderr and exit status 2, never in a
+traceback: malformed --ros-args (`<node>: error: ...`), arguments outside --ros-args that
+the node's parser refuses (`<node>: error: ... (see --help)`), and a node that cannot be
+built from its parameters (`<node>: invalid configuration: ...`).
 """
 import signal
 import sys
@@ -11,24 +16,76 @@ import threading
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
+
+from .cli import CliParser, one_line
+
+PARAMETERS_HELP = ('parameters (--ros-args -p name:=value ..., or --ros-args --params-file file.yaml;\n'
+                   'doubles need a decimal point: 1.0, not 1; arrays: "name:=[0.0,1.5]"), defaults shown:')
 
 
-def run(make_node, name, args=None, done=None, on_stop=None):
+def _literal(value):
+    """A parameter value the way `-p name:=value` writes it."""
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, (list, tuple)):
+        return '[' + ','.join(_literal(v) for v in value) + ']'
+    if isinstance(value, str):
+        return value if value else "''"
+    return repr(value)
+
+
+def node_parser(name, description, parameters, example):
+    """The --help of a node: description, its ROS parameters and an example.
+
+    parameters: (name, default, meaning) rows, the node's declaration table. The parser
+    accepts no argument of its own: everything else goes after --ros-args.
+    """
+    lines = [PARAMETERS_HELP]
+    for pname, default, meaning in parameters:
+        setting = f'  {pname}:={_literal(default)}'
+        lines.append(f'{setting:<34}{meaning}' if len(setting) < 34 else f'{setting}\n{"":34}{meaning}')
+    epilog = '\n'.join(lines) + '\nexample:\n' + '\n'.join('  ' + e for e in example.strip().splitlines()) + '\n'
+    return CliParser(name, prog=name, description=description, epilog=epilog,
+                     usage='%(prog)s [-h] [--ros-args [-p NAME:=VALUE ...] [--params-file FILE] ...]')
+
+
+def _refuse(name, what, exc):
+    print(f'{name}: {what}: {one_line(exc)}', file=sys.stderr)
+    return 2
+
+
+def run(make_node, name, args=None, done=None, on_stop=None, parser=None):
     """Spin make_node() on a SingleThreadedExecutor until a signal, done(node) or rclpy shutdown.
 
-    A node that cannot be built (invalid parameters) exits with code 2 and says why.
-    on_stop(node) runs once before the node is destroyed (e.g. a last safe command).
+    args: the command line, program name first (default sys.argv). parser (node_parser):
+    prints --help and refuses arguments outside --ros-args; without one they are ignored.
+    Malformed ROS arguments, and a node that cannot be built (invalid parameters), exit with
+    code 2 and one line saying why. on_stop(node) runs once before the node is destroyed
+    (e.g. a last safe command).
     """
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    argv = list(sys.argv if args is None else args)
+    try:
+        # rcl parses here without logging; rclpy.init would log an error and raise a long message
+        rest = remove_ros_args(argv)
+    except RuntimeError as exc:
+        if type(exc).__name__ == 'UnknownROSArgsError':  # its message is just the list of arguments
+            exc = ValueError(f'unknown ROS arguments {exc} (see --help)')
+        return _refuse(name, 'error', exc)
+    if parser is not None:
+        parser.parse_args(rest[1:])  # --help: prints and exits 0; anything else: one line, exit 2
+    try:
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    except RuntimeError as exc:  # e.g. an invalid ROS_DOMAIN_ID
+        return _refuse(name, 'error', exc)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     try:
         node = make_node()
-    except Exception as exc:  # invalid configuration: refuse to start, say why
-        print(f'{name}: invalid configuration: {exc}', file=sys.stderr)
+    except Exception as exc:  # noqa: BLE001 - any failure to build the node: refuse to start, say why
         rclpy.try_shutdown()
-        return 2
+        return _refuse(name, 'invalid configuration', exc)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     try:

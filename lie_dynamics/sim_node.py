@@ -10,15 +10,12 @@ Subscribes  <command_topic> (std_msgs/Float64MultiArray, ordered as `joints`), h
             next one like JointGroupEffortController; a message of the wrong length or with a
             non-finite value is dropped with a log line (recent controllers drop them too).
 
-Parameters  urdf_path (default: the bundled arm), joints (default: all), rate (Hz, 1000),
-            initial_positions, damping (URDF joint damping on/off), command_topic,
-            lockstep (hold the initial state until the first command arrives, then wait for
-            the command answering each published state, re-sending the state every
-            `resend_period` s and stepping anyway after `lockstep_timeout` s: results then do
-            not depend on machine load), min_subscribers (do not start before this many
-            joint_states readers are matched, so no reader misses the start),
-            max_steps (0 = run until shut down).
+Parameters: see PARAMETERS below, or `python -m lie_dynamics.sim_node --help`. With lockstep
+the simulator holds the initial state until the first command arrives, then waits for the
+command answering each published state, re-sending the state every `resend_period` s and
+stepping anyway after `lockstep_timeout` s: results then do not depend on machine load.
 """
+import math
 import sys
 
 import numpy as np
@@ -30,38 +27,71 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 
 from . import default_urdf_path
-from .ros_run import run
+from .ros_run import node_parser, run
 from .sim import ArmSim
 from .urdf import load_urdf
 
 DESCRIPTION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
+# (name, default, meaning): declared in this order; --help lists them.
+PARAMETERS = (
+    ('urdf_path', '', 'URDF file (empty: the bundled 7-DoF arm)'),
+    ('joints', [''], "simulated joints, the order of commands (['']: every movable joint)"),
+    ('rate', 1000.0, 'simulation rate, Hz, > 0'),
+    ('initial_positions', [0.0], 'start pose, rad (m): one value for every joint, or one per joint'),
+    ('damping', True, 'apply the URDF joint damping'),
+    ('command_topic', '/effort_controller/commands', 'std_msgs/Float64MultiArray effort commands'),
+    ('lockstep', False, 'step only once the command answering the last state has arrived'),
+    ('lockstep_timeout', 0.05, 'lockstep: step with the held command after this many s, > 0'),
+    ('resend_period', 0.01, 'lockstep: re-send an unanswered state every this many s, > 0'),
+    ('min_subscribers', 0, 'do not start before this many joint_states readers match, >= 0'),
+    ('max_steps', 0, 'exit after this many steps, >= 0 (0: run until shut down)'),
+)
+EXAMPLE = """
+ros2 run lie_dynamics sim_node --ros-args -p rate:=500.0 -p "initial_positions:=[0.0,-0.6,0.0,2.0,0.0,1.6,0.8]"
+python -m lie_dynamics.sim_node --ros-args -p lockstep:=true -p max_steps:=5000
+"""
+
 
 class SimNode(Node):
     def __init__(self, **kwargs):
         super().__init__('sim_node', **kwargs)
-        p = self.declare_parameter
-        urdf_path = p('urdf_path', default_urdf_path()).value or default_urdf_path()
-        joints = list(p('joints', ['']).value)
-        rate = float(p('rate', 1000.0).value)
-        q0 = list(p('initial_positions', [0.0]).value)
-        damping = bool(p('damping', True).value)
-        self.command_topic = p('command_topic', '/effort_controller/commands').value
-        self.lockstep = bool(p('lockstep', False).value)
-        self.lockstep_timeout = float(p('lockstep_timeout', 0.05).value)
-        self.resend_period = float(p('resend_period', 0.01).value)
-        self.max_steps = int(p('max_steps', 0).value)
-        self.min_subscribers = int(p('min_subscribers', 0).value)
-        with open(urdf_path, encoding='utf-8') as fh:
-            self.xml = fh.read()
+        v = {name: self.declare_parameter(name, default).value for name, default, _ in PARAMETERS}
+        urdf_path = v['urdf_path'] or default_urdf_path()
+        joints = list(v['joints'] or [])  # an empty override ([]) comes as None
+        rate = float(v['rate'])
+        q0 = list(v['initial_positions'] or [])
+        damping = bool(v['damping'])
+        self.command_topic = v['command_topic']
+        self.lockstep = bool(v['lockstep'])
+        self.lockstep_timeout = float(v['lockstep_timeout'])
+        self.resend_period = float(v['resend_period'])
+        self.max_steps = int(v['max_steps'])
+        self.min_subscribers = int(v['min_subscribers'])
+        # refuse at start-up what would only fail (or misbehave silently) once running
+        if not (math.isfinite(rate) and rate > 0):
+            raise ValueError(f'rate must be positive, got {rate}')
+        for name in ('lockstep_timeout', 'resend_period'):
+            if not (math.isfinite(v[name]) and v[name] > 0):
+                raise ValueError(f'{name} must be positive, got {v[name]}')
+        for name in ('max_steps', 'min_subscribers'):
+            if v[name] < 0:
+                raise ValueError(f'{name} must be >= 0, got {v[name]}')
+        if not self.command_topic.strip():
+            raise ValueError('command_topic must not be empty')
+        if not all(math.isfinite(x) for x in q0):
+            raise ValueError(f'initial_positions must be finite, got {q0}')
+        try:
+            with open(urdf_path, encoding='utf-8') as fh:
+                self.xml = fh.read()
+        except OSError as exc:
+            raise ValueError(f'urdf_path {urdf_path!r}: {exc.strerror or exc}') from None
         model = load_urdf(self.xml, joints=[j for j in joints if j] or None)
         if len(q0) == 1 and model.n != 1:
             q0 = q0 * model.n
         if len(q0) != model.n:
             raise ValueError(f'initial_positions needs {model.n} values, got {len(q0)}')
-        if rate <= 0:
-            raise ValueError(f'rate must be positive, got {rate}')
         self.sim = ArmSim(model, dt=1.0 / rate, q0=q0, damping=damping)
         self.names = model.joint_names
         self.desc_pub = self.create_publisher(String, 'robot_description', DESCRIPTION_QOS)
@@ -137,7 +167,10 @@ class SimNode(Node):
 
 
 def main(args=None):
-    return run(SimNode, 'sim_node', args, done=lambda n: bool(n.max_steps) and n.steps >= n.max_steps)
+    """Run the simulator until shut down (or max_steps); 2 on bad arguments or parameters."""
+    parser = node_parser('sim_node', __doc__.split('\nParameters:')[0], PARAMETERS, EXAMPLE)
+    return run(SimNode, 'sim_node', args, done=lambda n: bool(n.max_steps) and n.steps >= n.max_steps,
+               parser=parser)
 
 
 if __name__ == '__main__':

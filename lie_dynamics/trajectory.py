@@ -14,10 +14,12 @@ trajectory has only two points). A single point without accelerations gets zero.
 CSV form (offline use): a header `time, pos.<joint>..., [vel.<joint>...], [acc.<joint>...]`;
 `python -m lie_dynamics.trajectory robot.urdf traj.csv -o out.csv` adds `eff.<joint>` columns.
 """
-import argparse
 import csv
+import sys
 
 import numpy as np
+
+from .cli import CliParser, run_cli
 
 
 def _derivative(y, t):
@@ -91,27 +93,60 @@ def fill_trajectory_efforts(model, traj, friction=False):
     return {'efforts': tau, 'positions': q, 'velocities': qd, 'accelerations': qdd}
 
 
+KINDS = {'pos.': 'positions', 'vel.': 'velocities', 'acc.': 'accelerations'}
+
+
 def read_csv(path):
-    """Trajectory arrays from a CSV with columns time, pos.<j>, [vel.<j>], [acc.<j>]."""
-    with open(path, newline='') as fh:
-        rows = list(csv.reader(fh))
+    """Trajectory arrays from a CSV with columns time, pos.<j>, [vel.<j>], [acc.<j>].
+
+    eff.<j> columns (what `write_csv` adds) are accepted and ignored, so an output can be
+    read back. Raises ValueError naming the file, line and column of the first problem.
+    """
+    try:
+        with open(path, newline='', encoding='utf-8-sig') as fh:  # -sig: spreadsheets write a BOM
+            rows = list(csv.reader(fh))
+    except csv.Error as exc:  # e.g. a NUL byte: not a text CSV
+        raise ValueError(f'{path}: not a readable CSV ({exc})') from None
     if not rows:
         raise ValueError(f'{path}: empty CSV')
     header, body = [h.strip() for h in rows[0]], rows[1:]
-    try:
-        data = np.array([[float(x) for x in r] for r in body if r], dtype=float).reshape(-1, len(header))
-    except ValueError as exc:
-        raise ValueError(f'{path}: non-numeric or ragged row ({exc})') from None
+    # The header first: a file without the pos.<joint> convention fails on its first column,
+    # whatever its numbers.
+    for i, h in enumerate(header):
+        if h != 'time' and not (h[:4] in ('pos.', 'vel.', 'acc.', 'eff.') and len(h) > 4):
+            hint = f' (a position column is named pos.{h})' if h and '.' not in h and h.lower() != 'time' else ''
+            raise ValueError(f'{path}: column {i + 1} ({h!r}) is not time, pos.<joint>, vel.<joint>, '
+                             f'acc.<joint> or eff.<joint>{hint}')
+        if header.index(h) != i:
+            raise ValueError(f'{path}: column {h!r} appears twice')
     if 'time' not in header:
         raise ValueError(f"{path}: no 'time' column")
     joints = [h[4:] for h in header if h.startswith('pos.')]
     if not joints:
         raise ValueError(f"{path}: no 'pos.<joint>' columns")
+    for h in header:
+        if h[:4] in ('vel.', 'acc.') and h[4:] not in joints:
+            raise ValueError(f'{path}: column {h!r} has no pos.{h[4:]} column')
+    values = []
+    for line, r in enumerate(body, start=2):
+        if not any(x.strip() for x in r):
+            continue
+        if len(r) != len(header):
+            raise ValueError(f'{path}: line {line} has {len(r)} values, the header has {len(header)} columns')
+        row = []
+        for name, x in zip(header, r):
+            try:
+                row.append(float(x))
+            except ValueError:
+                raise ValueError(f'{path}: line {line}: non-numeric value {x!r} in column {name!r}') from None
+        values.append(row)
+    data = np.array(values, dtype=float).reshape(-1, len(header))
     out = {'joint_names': joints, 'time_from_start': data[:, header.index('time')]}
-    for prefix, key in (('pos.', 'positions'), ('vel.', 'velocities'), ('acc.', 'accelerations')):
+    for prefix, key in KINDS.items():
         idx = [header.index(prefix + j) for j in joints if prefix + j in header]
         if idx and len(idx) != len(joints):
-            raise ValueError(f'{path}: {prefix}* columns do not cover every joint')
+            missing = [prefix + j for j in joints if prefix + j not in header]
+            raise ValueError(f'{path}: {prefix}<joint> columns must cover every joint or none; missing {missing}')
         if idx:
             out[key] = data[:, idx]
     return out
@@ -129,21 +164,48 @@ def write_csv(path, traj, result, joint_names):
         w.writerows(table.tolist())
 
 
+CSV_FORMAT = """\
+input CSV: a header row, then one row per trajectory point
+  time, pos.<joint>..., [vel.<joint>...], [acc.<joint>...]
+  time in s, strictly increasing; positions in rad (m for prismatic joints). Every joint
+  that has a pos.<joint> column is controlled; the URDF's other movable joints are held at
+  0. vel.* and acc.* are optional (all joints or none); what is missing is derived from the
+  positions by finite differences. Columns may come in any order.
+example (two joints, velocities given, accelerations derived):
+  time,pos.joint1,pos.joint2,vel.joint1,vel.joint2
+  0.00,0.0,0.50,0.0,0.0
+  0.01,0.001,0.50,0.2,0.0
+output CSV: time, pos.<joint>, vel.<joint>, acc.<joint>, eff.<joint> (N m, or N for prismatic
+  joints), in the same joint order.
+usage example:
+  python -m lie_dynamics.trajectory config/arm7.urdf traj.csv -o traj_eff.csv
+"""
+
+
 def main(argv=None):
+    """fill_trajectory: add inverse-dynamics efforts to a trajectory CSV."""
+    ap = CliParser('lie_dynamics.trajectory', description='Fill a trajectory CSV with inverse-dynamics efforts.',
+                   epilog=CSV_FORMAT)
+    ap.add_argument('urdf', help='robot description (URDF file)')
+    ap.add_argument('csv', help='input trajectory (format below)')
+    ap.add_argument('-o', '--output', required=True, help='output CSV (input columns + eff.<joint>)')
+    ap.add_argument('--friction', action='store_true', help='add URDF damping and Coulomb friction')
+    return run_cli(ap, _fill, argv)
+
+
+def _fill(args):
     from .urdf import load_urdf
 
-    ap = argparse.ArgumentParser(description='Fill a trajectory CSV with inverse-dynamics efforts.')
-    ap.add_argument('urdf')
-    ap.add_argument('csv')
-    ap.add_argument('-o', '--output', required=True)
-    ap.add_argument('--friction', action='store_true', help='add URDF damping and Coulomb friction')
-    args = ap.parse_args(argv)
     traj = read_csv(args.csv)
     model = load_urdf(args.urdf, joints=traj['joint_names'])
-    result = fill_trajectory_efforts(model, traj, friction=args.friction)
+    try:
+        result = fill_trajectory_efforts(model, traj, friction=args.friction)
+    except ValueError as exc:
+        raise ValueError(f'{args.csv}: {exc}') from None
     write_csv(args.output, traj, result, model.joint_names)
     print(f'{len(result["efforts"])} points -> {args.output}')
+    return 0
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

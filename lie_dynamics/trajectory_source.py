@@ -7,8 +7,10 @@ trajectory_msgs/JointTrajectory point with the desired positions, velocities and
 accelerations at t + lead (default: one simulator step ahead, the moment the command
 computed from that state is applied):
     q_d(t) = q_home + a * (1 - cos(2 pi f t)) / 2
-which starts at rest at q_home and stays within q_home +- a (kept inside the joint limits).
+which starts at rest at q_home and stays between q_home and q_home + a (keep that inside the
+joint limits).
 """
+import math
 import sys
 
 import numpy as np
@@ -16,7 +18,21 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from .ros_run import run
+from .ros_run import node_parser, run
+
+# (name, default, meaning): declared in this order; --help lists them. Arrays: one value for
+# every joint, or one per joint (in the order of joint_states).
+PARAMETERS = (
+    ('home', [0.0], 'q_home, rad (m): where the motion starts, at rest'),
+    ('amplitude', [0.3], 'a, rad (m): the motion spans q_home .. q_home + a'),
+    ('frequency', [0.25], 'f, Hz'),
+    ('lead', 1e-3, 's ahead of each joint_states stamp (one simulator step)'),
+    ('desired_topic', '/dynamics_node/desired', 'trajectory_msgs/JointTrajectory output'),
+)
+EXAMPLE = """
+python -m lie_dynamics.trajectory_source --ros-args -p "home:=[0.0,-0.6,0.0,2.0,0.0,1.6,0.8]" \\
+    -p "amplitude:=[0.4]" -p "frequency:=[0.3]" -p desired_topic:=/dynamics_node/desired
+"""
 
 
 def desired_state(t, q_home, amplitude, frequency):
@@ -40,12 +56,25 @@ def per_joint(values, n, name):
 class TrajectorySource(Node):
     def __init__(self, **kwargs):
         super().__init__('trajectory_source', **kwargs)
-        p = self.declare_parameter
-        self.home = np.array(p('home', [0.0]).value, dtype=float)
-        self.amplitude = np.array(p('amplitude', [0.3]).value, dtype=float)
-        self.frequency = np.array(p('frequency', [0.25]).value, dtype=float)
-        self.lead = float(p('lead', 1e-3).value)
-        topic = p('desired_topic', '/dynamics_node/desired').value
+        v = {name: self.declare_parameter(name, default).value for name, default, _ in PARAMETERS}
+        self.home, self.amplitude, self.frequency = (np.array(v[k], dtype=float)
+                                                     for k in ('home', 'amplitude', 'frequency'))
+        self.lead = float(v['lead'])
+        topic = v['desired_topic']
+        # The joint count is only known from joint_states: refuse now what no count can fix.
+        sizes = {}
+        for k in ('home', 'amplitude', 'frequency'):
+            a = getattr(self, k)
+            if a.size == 0 or not np.all(np.isfinite(a)):
+                raise ValueError(f'{k} must be 1 or one-per-joint finite values, got {list(v[k] or [])}')
+            if a.size > 1:
+                sizes[k] = a.size
+        if len(set(sizes.values())) > 1:
+            raise ValueError(f'home, amplitude and frequency give different joint counts: {sizes}')
+        if not math.isfinite(self.lead):
+            raise ValueError(f'lead must be finite, got {self.lead}')
+        if not topic.strip():
+            raise ValueError('desired_topic must not be empty')
         self.pub = self.create_publisher(JointTrajectory, topic, 10)
         self.create_subscription(JointState, 'joint_states', self._on_state, 10)
 
@@ -69,7 +98,9 @@ class TrajectorySource(Node):
 
 
 def main(args=None):
-    return run(TrajectorySource, 'trajectory_source', args)
+    """Publish desired states until shut down; 2 on bad arguments or parameters."""
+    parser = node_parser('trajectory_source', __doc__, PARAMETERS, EXAMPLE)
+    return run(TrajectorySource, 'trajectory_source', args, parser=parser)
 
 
 if __name__ == '__main__':

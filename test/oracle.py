@@ -49,13 +49,15 @@ MOVABLE = ("revolute", "continuous", "prismatic")
 
 
 def parse_joints(xml):
-    """Joints of a URDF in file order: list of dicts (name, type, parent, child, mimic)."""
+    """Joints of a URDF in file order: list of dicts (name, type, parent, child, mimic). A mimic
+    of a joint that is not a movable joint of the URDF is an independent joint (as in KDL)."""
     root = ET.fromstring(xml)
+    movable = {j.get("name") for j in root.findall("joint") if j.get("type") in MOVABLE}
     out = []
     for j in root.findall("joint"):
         mimic = None
         m = j.find("mimic")
-        if m is not None:
+        if m is not None and m.get("joint") in movable:
             mimic = dict(joint=m.get("joint"), multiplier=float(m.get("multiplier", 1.0)),
                          offset=float(m.get("offset", 0.0)))
         out.append(dict(name=j.get("name"), type=j.get("type"),

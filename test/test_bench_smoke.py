@@ -64,6 +64,17 @@ def test_every_method_is_measured(out):
         assert float(r['err_max']) < 1e-5 or r['method'] == 'forward differences', r
 
 
+def test_robots_benchmark_compares_the_two_pandas(tmp_path):
+    from bench import robots
+    rows = robots.run(quick=True, out=str(tmp_path), rounds=1)
+    labels = {r['robot'] for r in rows}
+    assert {'panda, fingers locked (folded)', 'panda, fingers fixed in the URDF'} <= labels
+    assert all(r['bodies'] == 7 for r in rows if r['robot'].startswith('panda'))
+    assert all(r['ratio_median'] > 0 for r in rows)
+    with open(tmp_path / 'robots.png', 'rb') as fh:
+        assert fh.read(8) == PNG_MAGIC
+
+
 def test_core_benchmark_still_runs(tmp_path):
     res = core.run(quick=True, sizes=(1, 100), rounds=2)
     core.write(res, str(tmp_path))

@@ -305,10 +305,12 @@ def test_bad_description_keeps_previous_model(ros, chain):
     names = ctrl + [locked]
     ref = Oracle(xml, joints=ctrl, locked={locked: 0.2}).gravity(q)
     np.testing.assert_allclose(ros.send(names, list(q) + [0.2]), ref, atol=TOL, rtol=0)
-    children = set(re.findall(r'<child link="([^"]+)"', xml))
-    root = [lk for lk in re.findall(r'<link name="([^"]+)"', xml) if lk not in children][0]
-    floating = xml.replace('</robot>', '<link name="world"/><joint name="float_j" type="floating">'
-                                       f'<parent link="world"/><child link="{root}"/></joint></robot>')
+    # a floating joint below the controlled ones (above them it is taken as fixed, as kdl_parser does)
+    tip = re.search(rf'<joint name="{ctrl[-1]}".*?<child link="([^"]+)"', xml, re.DOTALL).group(1)
+    floating = xml.replace('</robot>', '<link name="free_body"><inertial><mass value="1"/><inertia ixx="0.01" '
+                                       'ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.01"/></inertial></link>'
+                                       '<joint name="float_j" type="floating">'
+                                       f'<parent link="{tip}"/><child link="free_body"/></joint></robot>')
     bad = {
         'malformed': '<robot name="x"><link name="a"></robot',
         'floating': floating,
@@ -392,6 +394,37 @@ def test_no_model_publishes_nothing_and_parameter_validation(ros, chain):
         res = node.set_parameters_atomically([Parameter(k, value=v) for k, v in change.items()])
         assert not res.successful, change
     np.testing.assert_allclose(ros.send(ctrl, q), Oracle(xml, joints=ctrl).gravity(q), atol=TOL, rtol=0)
+
+
+# Link `tip` breaks the triangle inequality of its inertia (0.001 + 0.001 < 0.01 kg m^2).
+BAD_INERTIA = (
+    '<robot name="bad_inertia"><link name="base_link"/>'
+    '<link name="arm"><inertial><origin xyz="0 0 0.1"/><mass value="1"/>'
+    '<inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.005"/></inertial></link>'
+    '<joint name="j1" type="revolute"><parent link="base_link"/><child link="arm"/><axis xyz="0 1 0"/>'
+    '<limit effort="100" velocity="1" lower="-3" upper="3"/></joint>'
+    '<link name="tip"><inertial><mass value="0.05"/>'
+    '<inertia ixx="0.001" ixy="0" ixz="0" iyy="0.001" iyz="0" izz="0.01"/></inertial></link>'
+    '<joint name="j2" type="revolute"><parent link="arm"/><child link="tip"/><origin xyz="0 0 0.2"/>'
+    '<axis xyz="0 1 0"/><limit effort="100" velocity="1" lower="-3" upper="3"/></joint></robot>')
+
+
+def test_inertia_policy_strict_refuses_then_warn_loads(ros):
+    node = ros.start(wait_model=False, robot_description=BAD_INERTIA, inertia_policy='strict',
+                     diagnostics_period=0.1)
+    assert node.core.model is None and 'tip' in node.core.description_error   # start-up load is synchronous
+    wait_until(lambda: ros.diag_level() == 2 and 'tip' in ros.diag_values().get('description_error', ''),
+               what='strict refusal in the diagnostics')
+    # the policy change reloads the start-up description
+    assert all(r.successful for r in ros.set_params(inertia_policy='warn'))
+    assert node.core.model is not None and node.core.model.name == 'bad_inertia'
+    wait_until(lambda: ros.diag_values().get('inertia_warnings') == '1', what='inertia diagnostics')
+    wait_until(lambda: any('tip' in line and 'triangle inequality' in line for line in ros.logs),
+               what='inertia log line')
+    # strict while that model runs: refused, model and policy stay
+    res = ros.set_params(inertia_policy='strict')[0]
+    assert not res.successful and 'tip' in res.reason
+    assert node.get_parameter('inertia_policy').value == 'warn' and node.core.model.name == 'bad_inertia'
 
 
 def test_shipped_wall_mount_config(ros):

@@ -1,12 +1,14 @@
 """Decision logic of the dynamics node without ROS: lie_dynamics.ros_core / ros_params."""
 import math
 import re
+import warnings
 
 import numpy as np
 import pytest
 
 from lie_dynamics import load_urdf
-from lie_dynamics.ros_core import ERROR, OK, WARN, Compensator, Throttle
+from lie_dynamics.ros_core import (DIAG_TEXT_MAX, ERROR, INERTIA_LOG_LINES, INERTIA_TEXT_MAX, OK, WARN, Compensator,
+                                   Throttle)
 from lie_dynamics.ros_params import PARAMS, check_value, defaults
 from oracle import Oracle
 from core_cases import Clock, big_limits, make
@@ -218,7 +220,8 @@ def test_parameter_checks():
     assert set(defaults()) == {p.name for p in PARAMS}
     bad = [('gravity_scale', 1.5), ('gravity', [0.0, 9.81]), ('gravity', [0.0, 0.0, math.nan]),
            ('gravity', [0.0, 0.0, -981.0]), ('stale_action', 'freeze'), ('payload.inertia', [1.0, 2.0]),
-           ('friction.viscous', [-1.0]), ('joints', ['a', 'a']), ('enabled', 1), ('stale_timeout', 0.0)]
+           ('friction.viscous', [-1.0]), ('joints', ['a', 'a']), ('enabled', 1), ('stale_timeout', 0.0),
+           ('inertia_policy', 'lenient'), ('inertia_policy', 'Warn')]
     for name, value in bad:
         with pytest.raises(ValueError):
             check_value(name, value)
@@ -249,3 +252,89 @@ def test_throttle():
     assert t.ready('a') and not t.ready('a') and t.ready('b')
     clock.t += 2.0
     assert t.ready('a')
+
+
+def inertia_chain(k, bad=()):
+    """k revolute joints j1..jk moving links link_1..link_k (0.05 kg); the links numbered in `bad`
+    break the triangle inequality (0.001 + 0.001 < 0.01 kg m^2)."""
+    parts = ['<robot name="inertia_chain"><link name="base_link"/>']
+    for i in range(1, k + 1):
+        izz = '0.01' if i in bad else '0.001'
+        parts.append(
+            f'<link name="link_{i}"><inertial><origin xyz="0 0 0.05"/><mass value="0.05"/>'
+            f'<inertia ixx="0.001" ixy="0" ixz="0" iyy="0.001" iyz="0" izz="{izz}"/></inertial></link>'
+            f'<joint name="j{i}" type="revolute"><parent link="{"base_link" if i == 1 else f"link_{i - 1}"}"/>'
+            f'<child link="link_{i}"/><origin xyz="0 0 0.1"/><axis xyz="0 1 0"/>'
+            '<limit effort="1e6" velocity="1" lower="-3" upper="3"/></joint>')
+    return ''.join(parts) + '</robot>'
+
+
+def _inertia_events(c):
+    return [e for e in c.events if e[2].startswith('inertia')]
+
+
+def test_inertia_warn_logs_each_bad_link_once_and_diagnoses():
+    c = Compensator(clock=Clock())
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')  # no InertiaWarning may escape raw (stderr)
+        c.load(inertia_chain(2, bad={2}), 'test')
+    [(severity, key, text)] = _inertia_events(c)
+    assert severity == 'warn' and key is None
+    assert 'link_2' in text and 'triangle inequality' in text and 'link_1' not in text
+    assert [(r['link'], r['rule'], r['repaired']) for r in c.inertia_report] == [('link_2', 'triangle inequality',
+                                                                                  False)]
+    c.events.clear()
+    for q in (0.0, 0.5, 1.0):  # per load, not per message
+        assert c.on_joint_state(['j1', 'j2'], [q, q]) is not None
+    assert not _inertia_events(c)
+    level, msg, values = c.diagnostics()
+    v = dict(values)
+    assert level == WARN and '1 link(s) with inconsistent inertia' in msg
+    assert v['inertia_policy'] == 'warn' and v['inertia_warnings'] == '1' and v['inertia_repaired'] == '0'
+    assert 'link_2' in v['inertia_report']
+    c.load(inertia_chain(2), 'test')  # a consistent model clears the report
+    assert not _inertia_events(c) and c.inertia_report == []
+    c.on_joint_state(['j1', 'j2'], [0.0, 0.0])
+    level, msg, values = c.diagnostics()
+    assert level == OK and dict(values)['inertia_warnings'] == '0' and dict(values)['inertia_report'] == ''
+
+
+def test_inertia_strict_refuses_and_keeps_previous_model():
+    c = Compensator({'inertia_policy': 'strict'}, clock=Clock())
+    good = c.load(inertia_chain(2), 'good')
+    with pytest.raises(ValueError, match='link_2') as info:
+        c.load(inertia_chain(2, bad={2}), 'bad')
+    assert 'triangle inequality' in str(info.value)
+    assert c.model is good and c.inertia_report == []
+    c.note_description_error(f'bad: {info.value}')  # as the node does with any refused description
+    c.on_joint_state(['j1', 'j2'], [0.0, 0.0])
+    level, msg, values = c.diagnostics()
+    assert level == WARN and 'previous model kept' in msg and 'link_2' in dict(values)['description_error']
+    # `inertia` overrides the setting for one load (the node's reload on a policy change)
+    c.load(inertia_chain(2, bad={2}), 'bad', inertia='warn')
+    assert c.model is not good and len(c.inertia_report) == 1
+
+
+def test_inertia_repair_reports_repaired():
+    c = Compensator({'inertia_policy': 'repair'}, clock=Clock())
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        c.load(inertia_chain(2, bad={2}), 'test')
+    assert [(r['link'], r['repaired']) for r in c.inertia_report] == [('link_2', True)]
+    [(severity, _, text)] = _inertia_events(c)
+    assert severity == 'warn' and 'link_2' in text
+    c.on_joint_state(['j1', 'j2'], [0.0, 0.0])
+    level, msg, values = c.diagnostics()
+    assert level == WARN and '(1 repaired)' in msg and dict(values)['inertia_repaired'] == '1'
+
+
+def test_inertia_log_and_diagnostics_are_bounded():
+    k = INERTIA_LOG_LINES + 10
+    c = Compensator(clock=Clock())
+    c.load(inertia_chain(k, bad=set(range(1, k + 1))), 'test')
+    events = _inertia_events(c)
+    assert len(events) == INERTIA_LOG_LINES + 1
+    assert events[-1][2].endswith('... and 10 more links with inconsistent inertia')
+    assert all(len(e[2]) <= INERTIA_TEXT_MAX for e in events)
+    v = dict(c.diagnostics()[2])
+    assert v['inertia_warnings'] == str(k) and 0 < len(v['inertia_report']) <= DIAG_TEXT_MAX

@@ -201,18 +201,18 @@ def test_physical_consistency_checks():
         model.with_inertial_parameters(bad)
     bad = pi.copy()
     bad[1, 4] = -1.0   # I_xx < 0
-    with pytest.raises(ValueError, match='body 1: inertia about the CoM is not positive semidefinite'):
+    with pytest.raises(ValueError, match='body 1: negative principal moment'):
         model.with_inertial_parameters(bad)
     bad = pi.copy()
     bad[0, 4:] = 0
     bad[0, 4], bad[0, 6], bad[0, 9] = 1.0, 1.0, 3.0   # about the CoM roughly (1, 1, 3): triangle fails
-    with pytest.raises(ValueError, match='body 0: principal moments .* violate the triangle inequality'):
+    with pytest.raises(ValueError, match='body 0: triangle inequality: principal moments'):
         model.with_inertial_parameters(bad)
     assert model.with_inertial_parameters(bad, check=False).nb == model.nb
     zero = pi.copy()
     zero[0] = 0
     zero[0, 1] = 0.1
-    with pytest.raises(ValueError, match='body 0: zero mass with non-zero first moment'):
+    with pytest.raises(ValueError, match='body 0: massless with inertia: mass 0 with non-zero first moment'):
         model.with_inertial_parameters(zero)
     with pytest.raises(ValueError, match=r'inertial parameters must have shape \(70,\) or \(7, 10\)'):
         model.with_inertial_parameters(np.zeros(69))
