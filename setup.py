@@ -24,10 +24,10 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'dynamics_node = lie_dynamics.dynamics_node:main',
-            'sim_node = lie_dynamics.sim_node:main',
-            'trajectory_source = lie_dynamics.trajectory_source:main',
-            'demo = lie_dynamics.demo:main',
+            'dynamics_node = lie_dynamics.ros.node:main',
+            'sim_node = lie_dynamics.sim.sim_node:main',
+            'trajectory_source = lie_dynamics.sim.trajectory_source:main',
+            'demo = lie_dynamics.sim.demo:main',
             'fill_trajectory = lie_dynamics.trajectory:main',
         ],
     },

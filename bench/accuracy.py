@@ -38,7 +38,7 @@ def _pin_sym(M):
 def methods(model, xml, q, qd, qdd, tau, NB, S_mr):
     """{op: [(method, impl, mode, outputs(), timed callable, states per call)]}."""
     import modern_robotics as mr
-    from lie_dynamics import rnea
+    from lie_dynamics.algorithms import rnea
     pin, pm, pd = common.pinocchio_model(xml, model)
     S, n = q.shape
     qb, qdb, qddb, taub = (_batch(a, NB) for a in (q, qd, qdd, tau))

@@ -195,7 +195,7 @@ def modern_robotics_lists(model):
     MR puts link frame {i} at the centre of mass with G_i = diag(I_c, m 1) there, Mlist the
     home poses of {i} in {i-1} (plus an end frame), Slist the space-frame screws (w, v).
     """
-    from lie_dynamics import se3
+    from lie_dynamics import spatial as se3
     if np.any(model.parent != np.arange(-1, model.nb - 1)) or not np.array_equal(model.E, np.eye(model.n)) \
             or np.any(model.e0 != 0):
         raise ValueError('Modern Robotics needs a serial chain without mimic or locked joints')

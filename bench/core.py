@@ -43,7 +43,7 @@ def _build(model, urdf_xml, op, N, rng, mr_states):
     """Callables for every implementation: impl -> (fn, states timed per call), and the outputs."""
     import modern_robotics as mr
     import pinocchio as pin
-    from lie_dynamics import rnea
+    from lie_dynamics.algorithms import rnea
 
     pm = pin.buildModelFromXML(urdf_xml)
     pm.gravity.linear = model.gravity_vector

@@ -82,7 +82,7 @@ def _sym(M):
 
 def arm_cases(model, xml, N, rng):
     """(name, ours(single), ours(batch), pin(state), check) for part 1."""
-    from lie_dynamics import aba, crba, regressor, rnea_derivatives
+    from lie_dynamics.algorithms import aba, crba, regressor, rnea_derivatives
     pin, pm, pd = _pin_setup(xml, model)
     n = model.n
     q = rng.uniform(-1.5, 1.5, (N, n))
@@ -214,7 +214,8 @@ def _slope(ns, ts, lo=FIT_FROM):
 
 
 def run_growth(quick, rounds, target):
-    from lie_dynamics import crba, load_urdf, rnea_derivatives
+    from lie_dynamics.algorithms import crba, rnea_derivatives
+    from lie_dynamics import load_urdf
     ns = list(GROWTH_N_QUICK if quick else GROWTH_N)
     ext = list(EXTENDED_N_QUICK if quick else EXTENDED_N)
     series = {k: [] for k in ('closed_form', 'crba_vectorised', 'crba_kernel', 'christoffel', 'coriolis',

@@ -41,7 +41,7 @@ def echo_main():
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray
 
-    from lie_dynamics.dynamics_node import _NO_PUB_EVENTS, _NO_SUB_EVENTS, JOINT_STATES_QOS
+    from lie_dynamics.ros.node import _NO_PUB_EVENTS, _NO_SUB_EVENTS, JOINT_STATES_QOS
 
     rclpy.init()
     node = rclpy.create_node('echo_node')
@@ -179,7 +179,7 @@ def callback_cost(model, Q):
     """In-process cost of the node's decision logic per message (no DDS): median, p99 in us."""
     import array
 
-    from lie_dynamics.ros_core import Compensator
+    from lie_dynamics.ros.compensator import Compensator
     c = Compensator({'joints': JOINTS, 'friction.viscous': [0.0], 'friction.coulomb': [0.0]})
     c.set_model(model)
     rows = [array.array('d', q) for q in Q[:2000]]

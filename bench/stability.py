@@ -55,14 +55,14 @@ def _unit_rows(x):
 
 def naive_exp3(w):
     """Rodrigues with the unit axis w/theta: R = I + sin t [u] + (1 - cos t)[u]^2."""
-    from lie_dynamics.se3 import hat3
+    from lie_dynamics.spatial import hat3
     t = np.linalg.norm(w, axis=-1)[..., None, None]
     K = hat3(w) / t
     return np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * K @ K
 
 
 def naive_exp6(V):
-    from lie_dynamics.se3 import hat3
+    from lie_dynamics.spatial import hat3
     w, v = V[..., :3], V[..., 3:]
     t = np.linalg.norm(w, axis=-1)[..., None, None]
     K = hat3(w) / t
@@ -76,13 +76,13 @@ def naive_exp6(V):
 
 def naive_log3(R):
     """theta = arccos((tr R - 1)/2), w = theta / (2 sin theta) vee(R - R^T)."""
-    from lie_dynamics.se3 import vee3
+    from lie_dynamics.spatial import vee3
     t = np.arccos((np.trace(R, axis1=-2, axis2=-1) - 1) / 2)
     return (t / (2 * np.sin(t)))[..., None] * vee3(R - np.swapaxes(R, -1, -2))
 
 
 def naive_log6(T):
-    from lie_dynamics.se3 import hat3
+    from lie_dynamics.spatial import hat3
     w = naive_log3(T[..., :3, :3])
     t = np.linalg.norm(w, axis=-1)[..., None, None]
     K = hat3(w) / t
@@ -103,7 +103,7 @@ def _mr_fns():
 
 
 def scan_explog(quick):
-    from lie_dynamics import se3
+    from lie_dynamics import spatial as se3
     impls = {'lie_dynamics': dict(exp3=se3.exp3, log3=se3.log3, exp6=se3.exp6, log6=se3.log6),
              'naive closed form': dict(exp3=naive_exp3, log3=naive_log3, exp6=naive_exp6, log6=naive_log6),
              'Modern Robotics': _mr_fns()}
@@ -154,7 +154,8 @@ def scan_explog(quick):
 
 # ------------------------------------------------------------------ 2. chain length
 def scan_chain_length(quick):
-    from lie_dynamics import load_urdf, rnea
+    from lie_dynamics import load_urdf
+    from lie_dynamics.algorithms import rnea
     sizes = (2, 10, 30) if quick else (2, 5, 10, 20, 50, 100, 150, 200)
     S = 3 if quick else 8
     rows = []
@@ -296,8 +297,8 @@ def scan_fd_step(quick):
 # ------------------------------------------------------------------ 5. energy drift
 def scan_energy(quick):
     from lie_dynamics import load_urdf
-    from lie_dynamics.demo import HOME
-    from lie_dynamics.sim import ArmSim
+    from lie_dynamics.sim.demo import HOME
+    from lie_dynamics.sim.arm import ArmSim
     model = load_urdf(common.arm_xml())
     duration = 0.5 if quick else 10.0
     dts = (5e-3, 2e-2) if quick else (2.5e-4, 5e-4, 1e-3, 2e-3, 5e-3, 1e-2, 2e-2, 5e-2)

@@ -1,8 +1,8 @@
 """lie_dynamics: rigid-body robot dynamics with the Lie-group formulation of
 Park, Bobrow & Ploen (1995). The math core imports only numpy and yourdfpy."""
-from .inertia import InertiaWarning
-from .model import Model
-from .urdf import URDFWarning, load_urdf
+from .model.inertia import InertiaWarning
+from .model.model import Model
+from .model.urdf import URDFWarning, load_urdf
 
 __all__ = ['Model', 'load_urdf', 'default_urdf_path', 'InertiaWarning', 'URDFWarning']
 

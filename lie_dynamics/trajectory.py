@@ -194,7 +194,7 @@ def main(argv=None):
 
 
 def _fill(args):
-    from .urdf import load_urdf
+    from .model.urdf import load_urdf
 
     traj = read_csv(args.csv)
     model = load_urdf(args.urdf, joints=traj['joint_names'])

@@ -2,7 +2,7 @@
 import re
 
 from lie_dynamics import load_urdf
-from lie_dynamics.ros_core import Compensator
+from lie_dynamics.ros.compensator import Compensator
 
 
 class Clock:

@@ -17,8 +17,13 @@ ARM = os.path.join(ROOT, 'config', 'arm7.urdf')
 TIMEOUT = 120  # generous: a loaded machine is slow to start Python, numpy and rclpy
 
 
+# entry point -> module run with -m (the simulator's nodes live in lie_dynamics.sim)
+MODULES = {'sim_node': 'lie_dynamics.sim.sim_node', 'trajectory_source': 'lie_dynamics.sim.trajectory_source'}
+
+
 def _run(module, *args):
-    return subprocess.run([sys.executable, '-m', f'lie_dynamics.{module}', *args], check=False, cwd=ROOT,
+    return subprocess.run([sys.executable, '-m', MODULES.get(module, f'lie_dynamics.{module}'), *args], check=False,
+                          cwd=ROOT,
                           capture_output=True, text=True, timeout=TIMEOUT)
 
 

@@ -4,7 +4,7 @@ import os
 import numpy as np
 import pytest
 
-from lie_dynamics import demo
+from lie_dynamics.sim import demo
 
 DURATION = 2.0  # simulated seconds per scenario
 

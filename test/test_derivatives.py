@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from dyn_cases import CASES, case, oracle_stack, rel_err, states
-from lie_dynamics import lagrangian, rnea_derivatives
+from lie_dynamics.algorithms import lagrangian, rnea_derivatives
 
 
 @pytest.mark.parametrize('name', CASES)

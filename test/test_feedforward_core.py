@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from lie_dynamics import load_urdf
-from lie_dynamics.ros_core import OK, WARN, Compensator
-from lie_dynamics.ros_params import check_value
-from lie_dynamics.ros_trajectory import set_point_efforts, trajectory_arrays, trajectory_message
+from lie_dynamics.ros.compensator import OK, WARN, Compensator
+from lie_dynamics.ros.params import check_value
+from lie_dynamics.ros.trajectory_msgs import set_point_efforts, trajectory_arrays, trajectory_message
 from oracle import Oracle
 from core_cases import Clock, big_limits, make
 from robots import random_urdf

@@ -6,7 +6,8 @@ import pinocchio as pin
 import pytest
 
 from dyn_cases import ARM, CASES, case, oracle_stack, rel_err, states, xml_of
-from lie_dynamics import aba, load_urdf, rnea
+from lie_dynamics.algorithms import aba, rnea
+from lie_dynamics import load_urdf
 from oracle import Oracle
 from robots import random_urdf, with_payload
 
@@ -105,7 +106,7 @@ def test_forward_dynamics_derivatives_match_pinocchio(name):
     assert rel_err(Minv, ref[2]) < 1e-8
     # the generated kernel forced state by state and on numpy rows (None: no kernel for this
     # model's size), and one state through the default dispatch
-    from lie_dynamics import aba_derivatives
+    from lie_dynamics.algorithms import aba_derivatives
     for mode in ('loop', 'rows'):
         out = aba_derivatives._kernel_states(model, q, qd, tau, mode)
         assert (out is None) == (model.nb > aba_derivatives.KERNEL_MAX_BODIES)
@@ -139,7 +140,7 @@ def test_forward_dynamics_derivatives_match_finite_differences(name):
 def test_forward_dynamics_derivatives_kernel_matches_finite_differences(name):
     """The generated kernel (no wrenches) on models Pinocchio's ABA derivatives do not cover
     directly (mimic joints couple the coordinates)."""
-    from lie_dynamics import aba_derivatives
+    from lie_dynamics.algorithms import aba_derivatives
     model, _ = case(name)
     assert aba_derivatives._kernel(model)
     q, qd, tau = states(model, 5, seed=19)

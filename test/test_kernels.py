@@ -11,7 +11,9 @@ import threading
 import numpy as np
 import pytest
 
-from lie_dynamics import kernels, load_urdf, rnea
+from lie_dynamics.codegen import kernels
+from lie_dynamics import load_urdf
+from lie_dynamics.algorithms import rnea
 from robots import named_urdf
 
 CASES = ['chain7', 'tree20_mimic', 'mixed_types', 'prismatic_only', 'mimic']

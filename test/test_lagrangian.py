@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from dyn_cases import ARM, CASES, case, oracle_stack, rel_err, states
-from lie_dynamics import crba, lagrangian, load_urdf
+from lie_dynamics.algorithms import crba, lagrangian
+from lie_dynamics import load_urdf
 
 
 @pytest.mark.parametrize('name', CASES)
@@ -56,7 +57,7 @@ def test_coriolis_matrix_matches_pinocchio_and_rnea(name):
     assert rel_err(np.einsum('nij,nj->ni', C, qd), h, max(floor, 1e-5 * np.abs(g).max())) < 1e-10
     # the same matrix as 1/2 dtau/dqd of the differentiated recursion: generated kernel state by
     # state, on numpy rows, the vectorised form in between, and one state
-    from lie_dynamics import rnea_derivatives as rd
+    from lie_dynamics.algorithms import rnea_derivatives as rd
     for N in (rd._LOOP_BELOW - 1, rd._LOOP_BELOW, len(q)):
         assert rel_err(model.coriolis_matrix(q[:N], qd[:N], method='recursive'), ref[:N], floor) < 1e-10
     rows = model.coriolis_matrix(np.tile(q, (2, 1)), np.tile(qd, (2, 1)), method='recursive')

@@ -28,7 +28,7 @@ from std_msgs.msg import Float64MultiArray, String  # noqa: E402
 from std_srvs.srv import SetBool, Trigger  # noqa: E402
 
 from lie_dynamics import load_urdf  # noqa: E402
-from lie_dynamics.dynamics_node import DESCRIPTION_QOS, DynamicsNode  # noqa: E402
+from lie_dynamics.ros.node import DESCRIPTION_QOS, DynamicsNode  # noqa: E402
 from oracle import Oracle  # noqa: E402
 from core_cases import big_limits  # noqa: E402
 from robots import random_urdf, with_payload  # noqa: E402

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from lie_dynamics import load_urdf
-from lie_dynamics.ros_core import (DIAG_TEXT_MAX, ERROR, INERTIA_LOG_LINES, INERTIA_TEXT_MAX, OK, WARN, Compensator,
-                                   Throttle)
-from lie_dynamics.ros_params import PARAMS, check_value, defaults
+from lie_dynamics.ros.compensator import (DIAG_TEXT_MAX, ERROR, INERTIA_LOG_LINES, INERTIA_TEXT_MAX, OK, WARN,
+    Compensator, Throttle)
+from lie_dynamics.ros.params import PARAMS, check_value, defaults
 from oracle import Oracle
 from core_cases import Clock, big_limits, make
 from robots import random_urdf

@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 
 from dyn_cases import ARM, CASES, ROOT, case, pin_body_permutation, rel_err, states
-from lie_dynamics import identification, load_urdf
-from lie_dynamics import regressor as rg
-from lie_dynamics.regressor import inertia_to_parameters, parameters_to_inertia, physical_consistency
+from lie_dynamics.algorithms import identification
+from lie_dynamics import load_urdf
+from lie_dynamics.algorithms import regressor as rg
+from lie_dynamics.algorithms.regressor import inertia_to_parameters, parameters_to_inertia, physical_consistency
 from oracle import Oracle
 from robots import random_urdf
 

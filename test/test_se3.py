@@ -3,7 +3,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from lie_dynamics import se3
+from lie_dynamics import spatial as se3
 
 ANGLES = [0.0, 1e-12, 1e-8, 1e-4, 1e-2, 0.5, 1.0, 2.0, np.pi - 1e-2, np.pi - 1e-6, np.pi - 1e-9, np.pi]
 

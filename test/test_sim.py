@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from lie_dynamics import default_urdf_path, load_urdf
-from lie_dynamics.demo import HOME
-from lie_dynamics.sim import ArmSim
+from lie_dynamics.sim.demo import HOME
+from lie_dynamics.sim.arm import ArmSim
 
 
 @pytest.fixture(scope='module')

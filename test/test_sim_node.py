@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import pytest
 
-from lie_dynamics.trajectory_source import desired_state, per_joint
+from lie_dynamics.sim.trajectory_source import desired_state, per_joint
 
 ROOT = os.path.join(os.path.dirname(__file__), '..')
 
@@ -17,7 +17,7 @@ ROOT = os.path.join(os.path.dirname(__file__), '..')
     (['-p', 'joints:=[nope]'], "unknown joint 'nope'"),
 ])
 def test_sim_node_refuses_bad_parameters(params, msg):
-    r = subprocess.run([sys.executable, '-m', 'lie_dynamics.sim_node', '--ros-args'] + params,
+    r = subprocess.run([sys.executable, '-m', 'lie_dynamics.sim.sim_node', '--ros-args'] + params,
                        cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2, r.stdout + r.stderr
     assert 'sim_node: invalid configuration' in r.stderr and msg in r.stderr

@@ -8,10 +8,10 @@ import pytest
 
 from bench import common
 from bench.common import LD, Generic, rel_err
-from lie_dynamics import load_urdf, se3
-from lie_dynamics.demo import HOME
-from lie_dynamics.integrators import STEPPERS, lie_midpoint
-from lie_dynamics.sim import ArmSim
+from lie_dynamics import load_urdf, spatial as se3
+from lie_dynamics.sim.demo import HOME
+from lie_dynamics.sim.integrators import STEPPERS, lie_midpoint
+from lie_dynamics.sim.arm import ArmSim
 
 PI_LD = np.longdouble('3.14159265358979323846264338327950288')
 pytestmark = pytest.mark.skipif(np.finfo(np.longdouble).eps > 1e-18,

@@ -145,7 +145,7 @@ def test_floating_joint_outside_modelled_part_is_fine():
 def test_math_core_does_not_import_rclpy():
     """(yourdfpy itself imports trimesh at module level; building a scene is what we avoid.)"""
     import subprocess
-    code = ('import sys, lie_dynamics, lie_dynamics.rnea, lie_dynamics.se3, lie_dynamics.kinematics; '
+    code = ('import sys, lie_dynamics, lie_dynamics.algorithms.rnea, lie_dynamics.spatial, lie_dynamics.algorithms.kinematics; '
             'lie_dynamics.load_urdf(lie_dynamics.default_urdf_path()).gravity([0]*7); '
             'bad = [m for m in sys.modules if m.split(".")[0] in ("rclpy", "pinocchio")]; '
             'print(bad); sys.exit(1 if bad else 0)')

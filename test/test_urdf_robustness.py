@@ -11,7 +11,7 @@ import pytest
 
 from lie_dynamics import InertiaWarning, URDFWarning, load_urdf
 from lie_dynamics import codegen
-from lie_dynamics.inertia import repair, violations
+from lie_dynamics.model.inertia import repair, violations
 from oracle import Oracle
 
 

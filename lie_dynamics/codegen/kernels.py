@@ -21,8 +21,8 @@ as parameters, so payload, gravity and locked-joint changes never recompile.
 """
 import numpy as np
 
-from . import codegen as cg
-from .codegen import Frames
+from .. import codegen as cg
+from . import Frames
 
 # Kernels for models larger than this are not generated (compile time grows with the
 # source); callers fall back to the vectorised reference implementation.

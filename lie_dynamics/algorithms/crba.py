@@ -22,9 +22,8 @@ import math
 
 import numpy as np
 
-from . import codegen as cg
-from .lagrangian import _swap, body_matrices, kinematic_state, subtree_sum, \
-    world_inertias
+from .. import codegen as cg
+from .lagrangian import _swap, body_matrices, kinematic_state, subtree_sum, world_inertias
 
 
 def _crba(model, x):

@@ -30,10 +30,10 @@ import struct
 
 import numpy as np
 
-from . import codegen as cg
+from .. import codegen as cg
 from .kinematics import ad_matrices
-from .se3 import hat3
-from .inertia import PARAMETER_NAMES, inertia_to_parameters, parameter_consistency, parameters_to_inertia  # noqa: F401
+from ..spatial import hat3
+from ..model.inertia import PARAMETER_NAMES, inertia_to_parameters, parameter_consistency, parameters_to_inertia  # noqa: F401
 from .lagrangian import _chunks, _constants, _cross, _swap, kinematic_state
 
 # L(u): I u = L(u) iota, iota = (xx, xy, yy, xz, yz, zz); entry (row, col) <- u[idx]

@@ -24,9 +24,9 @@ with A_j = Ad_{T_j} S_j; the per-body term of (20) is evaluated in each body fra
 """
 import numpy as np
 
-from . import kernels
+from ..codegen import kernels
 from .kinematics import ad_matrices, adjoints, spatial_screws, world_poses
-from .se3 import Ad_inv
+from ..spatial import Ad_inv
 
 _CHUNK = 512  # reference path: states per pass, keeps the (chunk, nb, 6, 6) arrays in cache
 # Kernel path: below this many states a Python loop of the float kernel beats the numpy-rows

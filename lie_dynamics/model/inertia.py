@@ -17,7 +17,7 @@ identified parameters (regressor.py); `repair` is the documented nearest-consist
 """
 import numpy as np
 
-from .se3 import hat3, spatial_inertia
+from ..spatial import hat3, spatial_inertia
 
 POLICIES = ('warn', 'strict', 'repair')
 # A violation below this fraction of the model's inertia scale is round-off, not an error.

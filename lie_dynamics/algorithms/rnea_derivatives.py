@@ -35,10 +35,10 @@ import math
 
 import numpy as np
 
-from . import codegen as cg
+from .. import codegen as cg
 from .kinematics import ad_matrices
-from .lagrangian import _chunks, _constants, _swap, _to_joints_mat, external_body_wrenches, \
-    kinematic_state, subtree_sum, world_inertias
+from .lagrangian import (_chunks, _constants, _swap, _to_joints_mat, external_body_wrenches, kinematic_state,
+    subtree_sum, world_inertias)
 
 
 def _mv(M, v):

@@ -31,8 +31,8 @@ import math
 import numpy as np
 
 from . import crba, rnea
-from . import codegen as cg
-from .codegen import model_cache
+from .. import codegen as cg
+from ..codegen import model_cache
 from .kinematics import ad_matrices
 from .lagrangian import _swap, external_body_wrenches, kinematic_state
 

@@ -16,7 +16,7 @@ state and small batches and on numpy rows for large ones.
 import numpy as np
 
 from . import aba, crba, rnea
-from . import codegen as cg
+from .. import codegen as cg
 from . import rnea_derivatives as rd
 from .aba import cho_solve, cholesky
 from .rnea_derivatives import inverse_dynamics_derivatives

@@ -68,7 +68,7 @@ Every function takes a single state (n,) or a batch (N, n) and returns matching 
 """
 import numpy as np
 
-from .codegen import model_cache
+from ..codegen import model_cache
 from .rnea import external_body_wrenches  # noqa: F401  (shared with aba, rnea_derivatives)
 from .kinematics import ad_matrices, adjoints, spatial_screws, world_poses
 

@@ -18,7 +18,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from .ros_run import node_parser, run
+from ..ros.run import node_parser, run
 
 # (name, default, meaning): declared in this order; --help lists them. Arrays: one value for
 # every joint, or one per joint (in the order of joint_states).

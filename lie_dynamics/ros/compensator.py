@@ -31,10 +31,10 @@ import warnings
 
 import numpy as np
 
-from . import InertiaWarning, load_urdf
-from .ros_params import check_value, defaults
-from .ros_trajectory import trajectory_arrays
-from .trajectory import fill_trajectory_efforts
+from .. import InertiaWarning, load_urdf
+from .params import check_value, defaults
+from .trajectory_msgs import trajectory_arrays
+from ..trajectory import fill_trajectory_efforts
 
 NEEDS_DESIRED = ('feedforward', 'computed_torque', 'pd')
 

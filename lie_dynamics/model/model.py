@@ -16,9 +16,9 @@ import functools
 
 import numpy as np
 
-from . import aba, aba_derivatives, crba, kinematics, lagrangian, regressor, rnea, rnea_derivatives
+from ..algorithms import aba, aba_derivatives, crba, kinematics, lagrangian, regressor, rnea, rnea_derivatives
 from .inertia import RTOL, inertia_scale as _inertia_scale, link_inertia as _inertia_in, violations
-from .se3 import exp6, hat3
+from ..spatial import exp6, hat3
 
 
 def _frozen(x):

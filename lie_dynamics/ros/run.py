@@ -18,7 +18,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
-from .cli import CliParser, one_line
+from ..cli import CliParser, one_line
 
 PARAMETERS_HELP = ('parameters (--ros-args -p name:=value ..., or --ros-args --params-file file.yaml;\n'
                    'doubles need a decimal point: 1.0, not 1; arrays: "name:=[0.0,1.5]"), defaults shown:')

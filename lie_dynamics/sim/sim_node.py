@@ -26,10 +26,10 @@ from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 
-from . import default_urdf_path
-from .ros_run import node_parser, run
-from .sim import ArmSim
-from .urdf import load_urdf
+from .. import default_urdf_path
+from ..ros.run import node_parser, run
+from .arm import ArmSim
+from ..model.urdf import load_urdf
 
 DESCRIPTION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)

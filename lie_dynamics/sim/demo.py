@@ -1,0 +1,352 @@
+"""The embedded default: the bundled arm, simulated, held and driven by the dynamics node.
+
+    make demo                      # 10 s per scenario
+    make demo ARGS="--duration 0"  # feedforward tracking until Ctrl-C, live status line
+                                   # (last 2 s); the plot and table cover the last minute
+
+Each scenario starts real processes (sim_node, dynamics_node, trajectory_source) talking
+over DDS on this machine in a DDS domain of its own, records joint_states in this process,
+and stops everything (SIGINT, then SIGKILL after a grace period; also on Ctrl-C):
+  1. no compensation        the arm falls            max drift (rad)
+  2. gravity compensation   the arm holds its pose   max drift (rad), target < 1e-3
+  3. tracking               PD only vs PD + model feedforward: RMS tracking error (rad)
+Prints a table and writes a PNG (joint angles and torques over time) and a CSV of the metrics.
+The simulator runs in lockstep with the controller (each state waits for its command), so
+the numbers do not depend on how loaded the machine is.
+"""
+import collections
+import itertools
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+from .. import default_urdf_path
+from .trajectory_source import desired_state
+from ..model.urdf import load_urdf
+
+HOME = [0.0, -0.6, 0.0, 2.0, 0.0, 1.6, 0.8]   # an arm pose with large gravity torques
+AMPLITUDE = [0.4, 0.3, 0.4, 0.3, 0.5, 0.4, 0.5]
+FREQUENCY = [0.3, 0.25, 0.35, 0.3, 0.4, 0.35, 0.45]
+KP = [60.0, 60.0, 60.0, 60.0, 15.0, 15.0, 15.0]
+KD = [8.0, 8.0, 8.0, 8.0, 1.5, 1.5, 1.5]
+# Unbounded runs (duration 0) keep only this much history (plot, final table), so memory stays
+# bounded over hours; the live status line looks at the last STATUS_WINDOW_S.
+HISTORY_S = 60.0
+# The simulator steps with the held command only after this long without an answer (a dead
+# controller); shorter waits made results depend on machine load.
+LOCKSTEP_TIMEOUT = 2.0
+STATUS_WINDOW_S = 2.0
+PKG_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # lie_dynamics/
+CONFIG = os.path.join(os.path.dirname(PKG_DIR), 'config', 'arm7_gravity.yaml')
+
+
+def _arr(x):
+    # a ROS double array: repr keeps a decimal point ("60.0"), which the parameter parser needs
+    return '[' + ','.join(repr(float(v)) for v in x) + ']'
+
+
+def scenarios():
+    """name -> (dynamics node overrides or None, with trajectory source?)."""
+    # The simulator has no Coulomb friction to cancel. Lockstep runs slower than real time and
+    # waits for each command, so the node's wall-clock timeouts (0.1 s, meant for a real robot)
+    # are relaxed: a loaded machine must not turn a late message into a fallback command.
+    common = {'friction.coulomb': '[0.0]', 'stale_timeout': '1.0', 'desired_timeout': '1.0'}
+    return {
+        'no compensation': (None, False),
+        'gravity compensation': (dict(common, mode='gravity'), False),
+        'PD only': (dict(common, mode='pd', kp=_arr(KP), kd=_arr(KD)), True),
+        'PD + feedforward': (dict(common, mode='feedforward', kp=_arr(KP), kd=_arr(KD)), True),
+    }
+
+
+class Stack:
+    """The processes of one scenario; always cleaned up (context manager)."""
+
+    def __init__(self, env, log_dir):
+        self.env, self.log_dir, self.procs = env, log_dir, []
+        self.exit_codes = {}  # name -> return code once stopped (negative: killed by a signal)
+        self.self_ending = set()  # processes with a step budget: let them finish before signalling
+
+    def start(self, name, module, params, params_file=None, ends_by_itself=False):
+        args = [sys.executable, '-m', module, '--ros-args']
+        if params_file:  # a file first: the -p overrides after it win
+            args += ['--params-file', params_file]
+        for k, v in params.items():
+            args += ['-p', f'{k}:={v}']
+        log = open(os.path.join(self.log_dir, name + '.log'), 'w')
+        self.procs.append((name, subprocess.Popen(args, env=self.env, stdout=log, stderr=subprocess.STDOUT,
+                                                  cwd=os.path.dirname(PKG_DIR)), log))
+        if ends_by_itself:
+            self.self_ending.add(name)
+
+    def check(self):
+        """Raise if a process died; returns True once every self-ending process has finished."""
+        for name, p, _ in self.procs:
+            code = p.poll()
+            if code is not None and not (code == 0 and name in self.self_ending):
+                raise RuntimeError(f'{name} exited with code {code}; see {self.log_dir}/{name}.log')
+        return bool(self.self_ending) and all(p.poll() is not None for name, p, _ in self.procs
+                                              if name in self.self_ending)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        finished = exc[0] is None
+        for name, p, _ in self.procs:
+            if finished and name in self.self_ending:
+                try:
+                    p.wait(timeout=5.0)
+                except subprocess.TimeoutExpired:
+                    pass
+        for _, p, _ in self.procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + 5.0
+        for _, p, log in self.procs:
+            try:
+                p.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+            log.close()
+        self.exit_codes = {name: p.returncode for name, p, _ in self.procs}
+        return False
+
+
+def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=None):
+    """Run one scenario for `duration` simulated seconds (0: until Ctrl-C). Returns a record dict."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import JointState
+
+    node_params, with_traj = scenarios()[name]
+    env = dict(os.environ)
+    env['ROS_DOMAIN_ID'] = str(domain if domain is not None else 50 + os.getpid() % 50)
+    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    log_dir = log_dir or tempfile.mkdtemp(prefix='lie_dynamics_demo_')
+    os.makedirs(log_dir, exist_ok=True)
+    steps = int(round(duration * rate)) if duration > 0 else 0
+    ctx = rclpy.Context()
+    old_domain = os.environ.get('ROS_DOMAIN_ID')
+    os.environ['ROS_DOMAIN_ID'] = env['ROS_DOMAIN_ID']
+    rclpy.init(context=ctx)
+    if old_domain is None:
+        os.environ.pop('ROS_DOMAIN_ID')
+    else:
+        os.environ['ROS_DOMAIN_ID'] = old_domain
+    keep = None if steps else max(1, int(HISTORY_S * rate))
+    rec = {k: collections.deque(maxlen=keep) for k in ('t', 'q', 'qd', 'tau')}
+    interrupted = False
+    stack = node = ex = None
+    try:
+        node = rclpy.create_node('demo_recorder', context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+
+        def on_state(msg):
+            rec['t'].append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+            rec['q'].append(list(msg.position))
+            rec['qd'].append(list(msg.velocity))
+            rec['tau'].append(list(msg.effort))
+        # deep enough for a whole default run: a reader that falls behind must not drop the oldest states
+        node.create_subscription(JointState, 'joint_states', on_state, 20000)
+        stack = Stack(env, log_dir)
+        with stack:
+            if node_params is not None:
+                if os.path.isfile(CONFIG):
+                    stack.start('dynamics_node', 'lie_dynamics.dynamics_node', node_params, CONFIG)
+                else:  # installed without the source tree's config/
+                    stack.start('dynamics_node', 'lie_dynamics.dynamics_node',
+                                dict({'urdf_path': default_urdf_path()}, **node_params))
+                if not _wait(ex, lambda: node.count_subscribers('joint_states') >= 1, 20.0, stack):
+                    raise RuntimeError('dynamics_node did not come up')
+            if with_traj:
+                stack.start('trajectory_source', 'lie_dynamics.sim.trajectory_source',
+                            {'home': _arr(HOME), 'amplitude': _arr(AMPLITUDE), 'frequency': _arr(FREQUENCY)})
+                if not _wait(ex, lambda: node.count_subscribers('joint_states') >= 1 + (node_params is not None),
+                             20.0, stack):
+                    raise RuntimeError('trajectory_source did not come up')
+            stack.start('sim_node', 'lie_dynamics.sim.sim_node',
+                        {'rate': f'{rate:.1f}', 'initial_positions': _arr(HOME),
+                         'lockstep': 'true' if node_params is not None else 'false',
+                         'lockstep_timeout': f'{LOCKSTEP_TIMEOUT:.1f}',
+                         'min_subscribers': str(1 + (node_params is not None) + with_traj),
+                         'max_steps': str(steps)}, ends_by_itself=steps > 0)
+            last_check = last_status = 0.0
+            drain_until = None
+            try:
+                while True:
+                    ex.spin_once(timeout_sec=0.05)  # one callback: keep this loop lean, it must not lag
+                    if steps and rec['t'] and rec['t'][-1] >= duration - 0.5 / rate:
+                        break
+                    now = time.monotonic()
+                    if drain_until is not None and now > drain_until:
+                        break  # the simulator is done: what has not arrived by now will not
+                    if now - last_check > 0.2:
+                        last_check = now
+                        if stack.check() and drain_until is None:
+                            drain_until = now + 10.0
+                    if status and now - last_status > 1.0 and rec['t']:
+                        last_status = now
+                        status(name, tail(rec, int(STATUS_WINDOW_S * rate)))
+            except KeyboardInterrupt:  # keep what was recorded; the caller reports it
+                interrupted = True
+    finally:
+        # destroy the reader explicitly: a leftover one would count as "ready" for the next sim
+        if ex is not None:
+            ex.shutdown()
+        if node is not None:
+            node.destroy_node()
+        rclpy.shutdown(context=ctx)
+    out = {k: np.array(v, dtype=float) for k, v in rec.items()}
+    out['interrupted'] = interrupted
+    out['exit_codes'] = stack.exit_codes
+    return out
+
+
+def tail(rec, n):
+    """The last n samples of a record of deques, as lists (cost O(n), not O(history))."""
+    return {k: list(itertools.islice(reversed(v), n))[::-1] for k, v in rec.items()}
+
+
+def _wait(ex, cond, timeout, stack):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return True
+        ex.spin_once(timeout_sec=0.05)
+        stack.check()
+    return False
+
+
+def metrics(name, rec):
+    """Numbers the demo reports (and the tests assert)."""
+    q, t = rec['q'], rec['t']
+    out = {'scenario': name, 'samples': len(t), 'duration': float(t[-1] - t[0]) if len(t) else 0.0}
+    if not len(t):
+        return out
+    if name in ('no compensation', 'gravity compensation'):
+        out['drift'] = float(np.max(np.abs(q - np.asarray(HOME))))
+    else:
+        qd_des = desired_state(t[:, None], np.asarray(HOME), np.asarray(AMPLITUDE), np.asarray(FREQUENCY))[0]
+        err = q - qd_des
+        out['rms_error'] = float(np.sqrt(np.mean(err ** 2)))
+        out['max_error'] = float(np.max(np.abs(err)))
+    return out
+
+
+def plot(records, path):
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, len(records), figsize=(4.2 * len(records), 6.5), sharex=True, squeeze=False)
+    for k, (name, rec) in enumerate(records.items()):
+        t = rec['t']
+        ax_q, ax_tau = axes[0, k], axes[1, k]
+        if len(t):
+            ax_q.plot(t, rec['q'] - np.asarray(HOME) if 'compensation' in name else rec['q'], lw=1)
+            if 'compensation' not in name:
+                ax_q.set_prop_cycle(None)
+                ax_q.plot(t, desired_state(t[:, None], np.asarray(HOME), np.asarray(AMPLITUDE),
+                                           np.asarray(FREQUENCY))[0], lw=0.8, ls='--')
+            ax_tau.plot(t, rec['tau'], lw=1)
+        ax_q.set_title(name)
+        ax_q.set_ylabel('q - q_home (rad)' if 'compensation' in name else 'q (solid), q_d (dashed) (rad)')
+        ax_tau.set_ylabel('joint torque: command - damping (Nm)')
+        ax_tau.set_xlabel('simulated time (s)')
+        ax_q.grid(alpha=0.3)
+        ax_tau.grid(alpha=0.3)
+    axes[0, 0].legend([f'joint{i + 1}' for i in range(len(HOME))], fontsize=7, ncol=2, loc='lower left')
+    fig.suptitle('lie_dynamics demo: bundled 7-DoF arm, 1 kHz simulation')
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+EPILOG = """\
+--duration: simulated seconds per scenario, > 0; or 0 to run the tracking scenario
+  (PD + feedforward) until Ctrl-C with a live status line. Negative values are refused.
+scenarios: {names}
+output (in --out): demo_metrics.csv (scenario, samples, drift, rms_error, max_error; rad)
+  and demo.png (joint angles and torques over simulated time).
+examples:
+  python -m lie_dynamics.demo                          # every scenario, 10 s each
+  python -m lie_dynamics.demo --duration 3 --scenarios 'gravity compensation'
+  python -m lie_dynamics.demo --duration 0             # until Ctrl-C
+"""
+
+
+def main(argv=None):
+    """Run the scenarios, print the table, write the PNG and the CSV; 0 on success, 2 on bad arguments."""
+    from ..cli import CliParser, number, run_cli
+
+    names = list(scenarios())
+    ap = CliParser('lie_dynamics.demo', description=__doc__.split('\n')[0],
+                   epilog=EPILOG.format(names=', '.join(repr(n) for n in names)))
+    ap.add_argument('--duration', type=number(low=0, what='> 0 seconds, or 0 to run until Ctrl-C'), default=10.0,
+                    help='simulated seconds per scenario, > 0; 0: until Ctrl-C (default 10)')
+    # the simulator is handed the rate with one decimal: below 1 Hz that would round it to 0
+    ap.add_argument('--rate', type=number(low=1), default=1000.0, help='simulation rate, Hz, >= 1 (default 1000)')
+    ap.add_argument('--out', default='demo_out', help='output folder for the PNG and CSV (default demo_out)')
+    ap.add_argument('--scenarios', nargs='*', default=None, choices=names, metavar='NAME',
+                    help='subset of the scenarios (default: all)')
+    # Only the preparation counts as input: an error while the scenarios run is a failure, not bad input.
+    return _run(run_cli(ap, _prepare, argv))
+
+
+def _prepare(args):
+    """Checks that need more than argparse: an unusable --out, a broken bundled model."""
+    os.makedirs(args.out, exist_ok=True)
+    load_urdf(default_urdf_path())
+    return args
+
+
+def _run(args):
+    # SIGTERM (a closing terminal, a CI timeout) cleans up like Ctrl-C: no orphans, no DDS leftovers.
+    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
+    names = args.scenarios or list(scenarios())
+
+    def status(name, rec):
+        m = metrics(name, {k: np.asarray(v, dtype=float) for k, v in rec.items()})
+        err = m.get('rms_error', m.get('drift', np.nan))
+        sys.stdout.write(f"\r{name:22s} t = {rec['t'][-1]:7.2f} s  "
+                         f"{'rms error' if 'rms_error' in m else 'drift'} (last {STATUS_WINDOW_S:g} s) {err:.2e} rad   ")
+        sys.stdout.flush()
+
+    records = {}
+    try:
+        for name in (['PD + feedforward'] if args.duration <= 0 else names):
+            if args.duration > 0:
+                print(f'running: {name} ({args.duration:g} s simulated)', flush=True)
+            records[name] = run_scenario(name, max(args.duration, 0.0), args.rate, status=status)
+            print()
+            if records[name]['interrupted']:
+                raise KeyboardInterrupt
+    except KeyboardInterrupt:
+        print('\ninterrupted: processes stopped')
+    rows = [metrics(n, r) for n, r in records.items()]
+    print(f"\n{'scenario':24s} {'samples':>8s} {'max drift (rad)':>16s} {'RMS error (rad)':>16s} {'max error (rad)':>16s}")
+    for r in rows:
+        print(f"{r['scenario']:24s} {r['samples']:8d} {r.get('drift', np.nan):16.3e} "
+              f"{r.get('rms_error', np.nan):16.3e} {r.get('max_error', np.nan):16.3e}")
+    with open(os.path.join(args.out, 'demo_metrics.csv'), 'w') as fh:
+        fh.write('scenario,samples,drift,rms_error,max_error\n')
+        for r in rows:
+            fh.write(f"{r['scenario']},{r['samples']},{r.get('drift', '')},{r.get('rms_error', '')},"
+                     f"{r.get('max_error', '')}\n")
+    if records:
+        png = os.path.abspath(os.path.join(args.out, 'demo.png'))
+        plot(records, png)
+        print(f'plot: {png}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
