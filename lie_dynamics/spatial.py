@@ -207,11 +207,17 @@ def bracket(V, W):
     V = np.asarray(V, dtype=float)
     W = np.asarray(W, dtype=float)
     w1, v1, w2, v2 = V[..., :3], V[..., 3:], W[..., :3], W[..., 3:]
-    return np.concatenate([_cross(w1, w2), _cross(w1, v2) + _cross(v1, w2)], axis=-1)
+    return np.concatenate([cross(w1, w2), cross(w1, v2) + cross(v1, w2)], axis=-1)
 
 
-def _cross(a, b):
-    # np.cross carries ~30 us of fixed overhead per call; this is a handful of ufuncs.
+def transpose(X):
+    """Batched matrix transpose: swaps the last two axes (a view)."""
+    return np.swapaxes(X, -1, -2)
+
+
+def cross(a, b):
+    """a x b over the last axis. np.cross carries ~30 us of fixed overhead per call; this is a
+    handful of ufuncs."""
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)

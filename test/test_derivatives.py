@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from dyn_cases import CASES, case, oracle_stack, rel_err, states
-from lie_dynamics.algorithms import lagrangian, rnea_derivatives
+from lie_dynamics.algorithms import rnea, rnea_derivatives
 
 
 @pytest.mark.parametrize('name', CASES)
@@ -81,7 +81,7 @@ def test_generated_kernel_paths(name):
     floor = 1e-4 * np.abs(model.mass_matrix(q)).max() * max(1.0, np.abs(qd).max())
     links = [ln for ln, (b, _) in model.link_frames.items() if b >= 0]
     w = {links[-1]: np.random.default_rng(3).normal(size=(30, 6))}
-    fext = lagrangian.external_body_wrenches(model, w, 30)
+    fext = rnea.external_body_wrenches(model, w, 30)
     vec = rnea_derivatives.inverse_dynamics_derivatives_vectorized(model, q, qd, qdd, w)
     for mode in ('loop', 'rows'):
         dq, dv = rnea_derivatives._kernel_derivatives(model, q, qd, qdd, None, mode)

@@ -34,7 +34,9 @@ from . import crba, rnea
 from .. import codegen as cg
 from ..codegen import model_cache
 from .kinematics import ad_matrices
-from .lagrangian import _swap, external_body_wrenches, kinematic_state
+from ..spatial import transpose
+from .rnea import external_body_wrenches
+from .lagrangian import kinematic_state
 
 METHODS = ('cholesky', 'aba')
 _PD_RTOL = 1e-12
@@ -85,7 +87,7 @@ def cho_solve(L, B):
         for j in range(n - 1, -1, -1):
             X[:, j] = (Y[:, j] - np.einsum('ni,nik->nk', L[:, j + 1:, j], X[:, j + 1:])) / L[:, j, j, None]
     else:
-        X = np.linalg.solve(_swap(L), np.linalg.solve(L, B))
+        X = np.linalg.solve(transpose(L), np.linalg.solve(L, B))
     return X[..., 0] if vec else X
 
 
@@ -130,10 +132,10 @@ def _aba(model, st, x, xd, tau, fext):
     X = Adinv.copy()
     has_par = model.parent >= 0
     X[:, has_par] = Adinv[:, has_par] @ Ad[:, model.parent[has_par]]
-    XT = _swap(X)
+    XT = transpose(X)
     IA = np.broadcast_to(J, (N, nb, 6, 6)).copy()
     JV = (J @ Vb[..., None])[..., 0]
-    pA = -(_swap(ad_matrices(Vb)) @ JV[..., None])[..., 0]
+    pA = -(transpose(ad_matrices(Vb)) @ JV[..., None])[..., 0]
     if fext is not None:
         pA -= fext
     free = st['free']
@@ -181,7 +183,7 @@ def _aba(model, st, x, xd, tau, fext):
         if len(lv['child']):
             ap[:, sel] = (X[:, lv['child']] @ acc[:, lv['par']][..., None])[..., 0]
         if len(lv['root']):
-            ap[:, ~sel] = X[:, lv['root']] @ model._a0
+            ap[:, ~sel] = X[:, lv['root']] @ model.base_acceleration
         ap += c[:, idx]
         xi = (u[:, idx] - np.einsum('nlj,nlj->nl', U[:, idx], ap)) / D[:, idx]
         xi = xi * free[idx]
@@ -196,9 +198,9 @@ def aba_vectorized(model, q, qd, tau, wrenches=None):
     """forward_dynamics(..., method='aba') by the vectorised form only (numpy over the bodies
     of one depth and over states), whatever the model and batch size."""
     single = np.ndim(q) == 1
-    q = model._batch('q', q)
+    q = model.check_batch('q', q)
     N = q.shape[0]
-    qd, tau = model._batch('qd', qd, N), model._batch('tau', tau, N)
+    qd, tau = model.check_batch('qd', qd, N), model.check_batch('tau', tau, N)
     out = _aba_vectorized(model, q, qd, tau, external_body_wrenches(model, wrenches, N))
     return out[0] if single else out
 
@@ -253,10 +255,10 @@ def forward_dynamics(model, q, qd, tau, wrenches=None, method='cholesky'):
             if out is not None:
                 return out
     single = np.ndim(q) == 1
-    q = model._batch('q', q)
+    q = model.check_batch('q', q)
     N = q.shape[0]
-    qd = model._batch('qd', qd, N)
-    tau = model._batch('tau', tau, N)
+    qd = model.check_batch('qd', qd, N)
+    tau = model.check_batch('tau', tau, N)
     if method == 'aba':
         st = _structure(model)
         if not st['supported']:
@@ -879,9 +881,9 @@ def _aba_single(model, q, qd, tau):
     no kernel or the articulated inertias fail the check (the caller then reports it)."""
     mc = model_cache(model)
     c = mc.get('aba_single')   # one look-up for the kernel and its parameters
-    if c is None or c[0] is not model.J or c[1] is not model.e0 or c[2] is not model._a0:
+    if c is None or c[0] is not model.J or c[1] is not model.e0 or c[2] is not model.base_acceleration:
         k = _aba_kernel(model)
-        c = mc['aba_single'] = (model.J, model.e0, model._a0, k and k[1]) + (_aba_params(model, k) if k else ())
+        c = mc['aba_single'] = (model.J, model.e0, model.base_acceleration, k and k[1]) + (_aba_params(model, k) if k else ())
     fn = c[3]
     if not fn:
         return None

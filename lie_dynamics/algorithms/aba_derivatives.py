@@ -42,7 +42,7 @@ def forward_dynamics_derivatives(model, q, qd, tau, wrenches=None):
             if out is not None:
                 return out[0], out[1], out[2]
     single = np.ndim(q) == 1
-    q, qd, tau = model._states(q=q, qd=qd, tau=tau)
+    q, qd, tau = model.check_states(q=q, qd=qd, tau=tau)
     N = q.shape[0]
     if not wrenches:
         out = _kernel_states(model, q, qd, tau)

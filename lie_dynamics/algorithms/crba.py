@@ -23,15 +23,16 @@ import math
 import numpy as np
 
 from .. import codegen as cg
-from .lagrangian import _swap, body_matrices, kinematic_state, subtree_sum, world_inertias
+from ..spatial import transpose
+from .lagrangian import body_matrices, kinematic_state, subtree_sum, world_inertias
 
 
 def _crba(model, x):
     _, AdinvT, A = kinematic_state(model, x)
     Jc = subtree_sum(model, world_inertias(model, AdinvT))      # backward recursion
     F = (Jc @ A[..., None])[..., 0]                              # Jc_j A_j
-    U = (A @ _swap(F)) * model.ancestors.T                       # m_kj for k <= j
-    return U + _swap(U) - U * np.eye(model.nb)
+    U = (A @ transpose(F)) * model.ancestors.T                       # m_kj for k <= j
+    return U + transpose(U) - U * np.eye(model.nb)
 
 
 def mass_matrix(model, q):
@@ -133,7 +134,7 @@ def mass_matrix_kernel(model, q):
     if lst is not None:
         return np.array(fn(lst, P, E0, sin=math.sin, cos=math.cos)).reshape(n, n)
     single = np.ndim(q) == 1
-    qb = model._batch('q', q)
+    qb = model.check_batch('q', q)
     if single:
         return np.array(fn(qb[0].tolist(), P, E0, sin=math.sin, cos=math.cos)).reshape(n, n)
     N = qb.shape[0]

@@ -95,7 +95,7 @@ def identify(model, q, qd, qdd, tau, prior=None, weights=None, rcond=1e-8):
     zero (directions the data do not determine).
     Returns an IdentificationResult; warns UnidentifiableWarning when rank < 10 nb.
     """
-    q, qd, qdd, tau = model._states(q=q, qd=qd, qdd=qdd, tau=tau)
+    q, qd, qdd, tau = model.check_states(q=q, qd=qd, qdd=qdd, tau=tau)
     N = q.shape[0]
     n, p = model.n, 10 * model.nb
     if N * n < p:

@@ -23,13 +23,13 @@ def joint_transforms(model, x):
     s, c = np.sin(x), np.cos(x)
     coef = np.stack([s, 1.0 - c, x, x - s], axis=-1)  # see Model._precompute
     N, nb = x.shape
-    return (coef[:, :, None, :] @ model._B).reshape(N, nb, 4, 4) + model.M
+    return (coef[:, :, None, :] @ model.transform_coefficients).reshape(N, nb, 4, 4) + model.M
 
 
 def world_poses(model, x):
     """Poses of all body frames in the root frame, (N, nb, 4, 4)."""
     T = joint_transforms(model, x)
-    for idx, src in model._jumps:
+    for idx, src in model.pointer_jumps:
         T[:, idx] = T[:, src] @ T[:, idx]
     return T
 

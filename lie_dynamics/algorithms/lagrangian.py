@@ -69,7 +69,7 @@ Every function takes a single state (n,) or a batch (N, n) and returns matching 
 import numpy as np
 
 from ..codegen import model_cache
-from .rnea import external_body_wrenches  # noqa: F401  (shared with aba, rnea_derivatives)
+from ..spatial import cross, transpose
 from .kinematics import ad_matrices, adjoints, spatial_screws, world_poses
 
 # states per pass: bounds the work arrays (the O(n^3) ones scale with nb^3 per state)
@@ -77,24 +77,14 @@ _BUDGET = 1 << 21
 
 
 # ---------------------------------------------------------------------------- helpers
-def _chunks(N, per_state):
-    """Slices over N states so that a chunk holds about _BUDGET floats of work arrays."""
+def chunks(N, per_state):
+    """Slices over N states so that a chunk holds about _BUDGET floats of work arrays
+    (per_state: floats of work per state). Every vectorised algorithm batches this way."""
     size = max(1, min(N, _BUDGET // max(1, per_state)))
     return [slice(i, min(N, i + size)) for i in range(0, N, size)]
 
 
-def _cross(a, b):
-    """a x b over the last axis (np.cross carries ~30 us of fixed overhead per call)."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-
-
-def _swap(X):
-    return np.swapaxes(X, -1, -2)
-
-
-def _constants(model):
+def body_constants(model):
     """Per-model constants derived from the (settable) inertias, cached per model."""
     mc = model_cache(model)
     cache = mc.get('lagrangian')
@@ -127,12 +117,12 @@ def _christoffel_masks(anc):
     return mb, mc
 
 
-def _to_joints_vec(model, c, X):
+def to_joints_vec(model, c, X):
     """(N, nb) body quantity -> (N, n) joint quantity (tau = E^T tau_body)."""
     return X if c['identity'] else X @ model.E
 
 
-def _to_joints_mat(model, c, X):
+def to_joints_mat(model, c, X):
     """(N, nb, nb) -> E^T X E."""
     if c['identity']:
         return X
@@ -149,13 +139,13 @@ def kinematic_state(model, x, with_ad=False):
     Ad, AdinvT = adjoints(world_poses(model, x))
     A = spatial_screws(model, Ad)
     if with_ad:
-        return _swap(AdinvT), AdinvT, A, Ad
-    return _swap(AdinvT), AdinvT, A
+        return transpose(AdinvT), AdinvT, A, Ad
+    return transpose(AdinvT), AdinvT, A
 
 
 def world_inertias(model, AdinvT):
     """Js_i = Ad_{T_i}^-T J_i Ad_{T_i}^-1: body inertias about the root frame, (N, nb, 6, 6)."""
-    return AdinvT @ model.J @ _swap(AdinvT)
+    return AdinvT @ model.J @ transpose(AdinvT)
 
 
 def subtree_sum(model, X):
@@ -170,9 +160,9 @@ def _mass_closed_form(model, x):
     Adinv, _, A = kinematic_state(model, x)
     N, nb = x.shape
     # G S: block (i, j) = Ad_{f_{j,i}^-1} S_j = Ad_{T_i^-1} A_j for j <= i, else 0
-    GS = (Adinv @ _swap(A)[:, None]) * model.ancestors[None, :, None, :]   # (N, nb, 6, nb)
+    GS = (Adinv @ transpose(A)[:, None]) * model.ancestors[None, :, None, :]   # (N, nb, 6, nb)
     JGS = model.J @ GS                                                      # J G S
-    return _swap(GS.reshape(N, nb * 6, nb)) @ JGS.reshape(N, nb * 6, nb)   # S^T G^T J G S
+    return transpose(GS.reshape(N, nb * 6, nb)) @ JGS.reshape(N, nb * 6, nb)   # S^T G^T J G S
 
 
 def mass_matrix(model, q):
@@ -186,18 +176,18 @@ def mass_matrix(model, q):
 
 def body_matrices(model, q, fn, per_state):
     """fn(model, x) -> (N, nb, nb) body-coordinate matrices, evaluated on the states of q in
-    chunks (per_state: floats of work arrays per state, see _chunks) and projected to joints
+    chunks (per_state: floats of work arrays per state, see chunks) and projected to joints
     (E^T X E).
     q: (n,) or (N, n) -> (n, n) or (N, n, n)."""
     single = np.ndim(q) == 1
-    q = model._batch('q', q)
-    c = _constants(model)
+    q = model.check_batch('q', q)
+    c = body_constants(model)
     x = model.body_coordinates(q)
     N, nb = x.shape
     out = np.empty((N, nb, nb))
-    for sl in _chunks(N, per_state):
+    for sl in chunks(N, per_state):
         out[sl] = fn(model, x[sl])
-    out = _to_joints_mat(model, c, out)
+    out = to_joints_mat(model, c, out)
     return out[0] if single else out
 
 
@@ -210,7 +200,7 @@ def block_factors(model, q):
     block diagonal. Body coordinates: project with model.E for the joint-space M.
     Meant for inspection and teaching; mass_matrix() never forms these dense matrices.
     """
-    q = model._batch('q', q)
+    q = model.check_batch('q', q)
     if q.shape[0] != 1:
         raise ValueError('block_factors takes a single state q of shape (n,)')
     x = model.body_coordinates(q)
@@ -235,16 +225,16 @@ def _dM_body(model, c, x):
     _, AdinvT, A = kinematic_state(model, x)
     Js = world_inertias(model, AdinvT)
     Jc = subtree_sum(model, Js)
-    At = _swap(A)[:, None]                           # (N, 1, 6, nb)
+    At = transpose(A)[:, None]                           # (N, 1, 6, nb)
     Br = ad_matrices(A) @ At                         # Br[n, i, :, k] = [A_i, A_k]
     F = Jc @ At                                      # F[n, c, :, j] = Jc_c A_j
     Fd = np.einsum('njaj->nja', F)                   # Jc_j A_j, (N, nb, 6)
-    BrT = _swap(Br)                                  # (N, i, k, 6)
-    X1 = BrT @ _swap(Fd)[:, None]                    # [i,k,j] = [A_i,A_k] . Jc_j A_j
+    BrT = transpose(Br)                                  # (N, i, k, 6)
+    X1 = BrT @ transpose(Fd)[:, None]                    # [i,k,j] = [A_i,A_k] . Jc_j A_j
     X2 = BrT @ F                                     # [i,k,j] = [A_i,A_k] . Jc_i A_j
     mb, mc = c['masks']
     Y = mb * X1 + mc * X2
-    return -(Y + _swap(Y))
+    return -(Y + transpose(Y))
 
 
 def _project3(model, c, D):
@@ -259,12 +249,12 @@ def mass_matrix_derivatives(model, q):
     Closed form from eq 39 and Proposition 1 (eq 41); see the module docstring.
     """
     single = np.ndim(q) == 1
-    q = model._batch('q', q)
-    c = _constants(model)
+    q = model.check_batch('q', q)
+    c = body_constants(model)
     x = model.body_coordinates(q)
     N, nb = x.shape
     out = np.empty((N, nb, nb, nb))
-    for sl in _chunks(N, 6 * nb ** 3 + 40 * nb * nb):
+    for sl in chunks(N, 6 * nb ** 3 + 40 * nb * nb):
         out[sl] = _dM_body(model, c, x[sl])
     out = _project3(model, c, out)
     return out[0] if single else out
@@ -291,19 +281,19 @@ def coriolis_matrix(model, q, qd):
     eq 40 contracted with qd before Gamma is formed. q, qd: (n,) or (N, n).
     """
     single = np.ndim(q) == 1
-    q, qd = model._states(q=q, qd=qd)
-    c = _constants(model)
+    q, qd = model.check_states(q=q, qd=qd)
+    c = body_constants(model)
     x = model.body_coordinates(q)
     u = qd @ model.E.T
     N, nb = x.shape
     out = np.empty((N, nb, nb))
-    for sl in _chunks(N, 6 * nb ** 3 + 40 * nb * nb):
+    for sl in chunks(N, 6 * nb ** 3 + 40 * nb * nb):
         D = _dM_body(model, c, x[sl])
         us = u[sl]
         Mdot = np.einsum('niab,ni->nab', D, us)
         W = (D @ us[:, None, :, None])[..., 0]            # W[n, j, k] = sum_i D[j, k, i] u_i
-        out[sl] = 0.5 * (Mdot + _swap(W) - W)
-    out = _to_joints_mat(model, c, out)
+        out[sl] = 0.5 * (Mdot + transpose(W) - W)
+    out = to_joints_mat(model, c, out)
     return out[0] if single else out
 
 
@@ -319,8 +309,8 @@ def _com_moments(model, c, x):
 def potential_energy(model, q):
     """U(q) = -sum_i m_i g . c_i(q) (paper eq 43, gravity as set on the model). (N,) or scalar."""
     single = np.ndim(q) == 1
-    q = model._batch('q', q)
-    c = _constants(model)
+    q = model.check_batch('q', q)
+    c = body_constants(model)
     _, h = _com_moments(model, c, model.body_coordinates(q))
     U = -np.sum(h, axis=1) @ model.gravity_vector
     return float(U[0]) if single else U
@@ -329,26 +319,26 @@ def potential_energy(model, q):
 def gravity(model, q):
     """phi(q) = dU/dq from the potential energy (paper eqs 43-45); agrees with rnea.gravity."""
     single = np.ndim(q) == 1
-    q = model._batch('q', q)
-    c = _constants(model)
+    q = model.check_batch('q', q)
+    c = body_constants(model)
     x = model.body_coordinates(q)
     T, h = _com_moments(model, c, x)
     R, p = T[..., :3, :3], T[..., :3, 3]
     w = R @ model.S[:, :3, None]
     w = w[..., 0]                                              # joint axis in the root frame
-    v = _cross(p, w) + (R @ model.S[:, 3:, None])[..., 0]      # linear part of A = Ad_T S
+    v = cross(p, w) + (R @ model.S[:, 3:, None])[..., 0]      # linear part of A = Ad_T S
     H = model.ancestors.T @ h                                  # subtree first moments
     msub = model.ancestors.T @ c['mass']                       # subtree masses
     g = model.gravity_vector
-    phi = -(np.einsum('nka,nka->nk', w, _cross(H, g)) + msub * (v @ g))
-    phi = _to_joints_vec(model, c, phi)
+    phi = -(np.einsum('nka,nka->nk', w, cross(H, g)) + msub * (v @ g))
+    phi = to_joints_vec(model, c, phi)
     return phi[0] if single else phi
 
 
 def kinetic_energy(model, q, qd):
     """T = 1/2 qd^T M(q) qd (eq 23 with the 1/2 the notes drop). (N,) or scalar."""
     single = np.ndim(q) == 1
-    q, qd = model._states(q=q, qd=qd)
+    q, qd = model.check_states(q=q, qd=qd)
     M = mass_matrix(model, q)
     T = 0.5 * np.einsum('ni,nij,nj->n', qd, M, qd)
     return float(T[0]) if single else T

@@ -34,7 +34,8 @@ from .. import codegen as cg
 from .kinematics import ad_matrices
 from ..spatial import hat3
 from ..model.inertia import PARAMETER_NAMES, inertia_to_parameters, parameter_consistency, parameters_to_inertia  # noqa: F401
-from .lagrangian import _chunks, _constants, _cross, _swap, kinematic_state
+from ..spatial import cross, transpose
+from .lagrangian import body_constants, chunks, kinematic_state
 
 # L(u): I u = L(u) iota, iota = (xx, xy, yy, xz, yz, zz); entry (row, col) <- u[idx]
 _L_ROW = np.array([0, 0, 0, 1, 1, 1, 2, 2, 2])
@@ -84,7 +85,7 @@ def _K(Vb, Ab):
     shape = Vb.shape[:-1]
     W = hat3(w)
     Alpha = hat3(al)
-    acc = a + _cross(w, v)
+    acc = a + cross(w, v)
     Acc = hat3(acc)
     Lw = np.zeros(shape + (3, 6))
     La = np.zeros(shape + (3, 6))
@@ -107,8 +108,8 @@ def _regressor(model, x, xd, xdd, a0):
     acc = anc @ (A * xdd[..., None] + (ad_matrices(V) @ Axd[..., None])[..., 0]) + a0
     VV = Adinv @ np.stack([V, acc], axis=-1)                 # to body frames
     K = _K(VV[..., 0], VV[..., 1])                           # (N, nb, 6, 10)
-    GS = (Adinv @ _swap(A)[:, None]) * anc[None, :, None, :]  # (N, i, 6, k)
-    Y = _swap(GS) @ K                                        # (N, i, k, 10)
+    GS = (Adinv @ transpose(A)[:, None]) * anc[None, :, None, :]  # (N, i, 6, k)
+    Y = transpose(GS) @ K                                        # (N, i, k, 10)
     return np.swapaxes(Y, 1, 2).reshape(N, nb, nb * 10)      # (N, k, 10 i)
 
 
@@ -127,7 +128,7 @@ def regressor(model, q, qd, qdd):
         if k:
             return _single(model, k, a, b, c)
     single = np.ndim(q) == 1
-    q, qd, qdd = model._states(q=q, qd=qd, qdd=qdd)
+    q, qd, qdd = model.check_states(q=q, qd=qd, qdd=qdd)
     Y = _kernel_regressor(model, q, qd, qdd)
     if Y is None:
         Y = _vectorized(model, q, qd, qdd)
@@ -137,20 +138,20 @@ def regressor(model, q, qd, qdd):
 def regressor_vectorized(model, q, qd, qdd):
     """regressor() by the vectorised form (numpy over bodies and states), any model."""
     single = np.ndim(q) == 1
-    Y = _vectorized(model, *model._states(q=q, qd=qd, qdd=qdd))
+    Y = _vectorized(model, *model.check_states(q=q, qd=qd, qdd=qdd))
     return Y[0] if single else Y
 
 
 def _vectorized(model, q, qd, qdd):
     """Vectorised path on validated (N, n) arrays -> (N, n, 10 nb)."""
-    c = _constants(model)
+    c = body_constants(model)
     x = model.body_coordinates(q)
     E = model.E
     xd, xdd = qd @ E.T, qdd @ E.T
     N, nb = x.shape
     out = np.empty((N, nb, 10 * nb))
-    for sl in _chunks(N, 100 * nb + 30 * nb * nb):
-        out[sl] = _regressor(model, x[sl], xd[sl], xdd[sl], model._a0)
+    for sl in chunks(N, 100 * nb + 30 * nb * nb):
+        out[sl] = _regressor(model, x[sl], xd[sl], xdd[sl], model.base_acceleration)
     if not c['identity']:
         out = E.T @ out    # a batched matmul: several times faster than the equivalent einsum
     return out
@@ -348,7 +349,7 @@ def regressor_kernel(model, q, qd, qdd, mode=None):
     (by batch size; then also None where the vectorised form is faster).
     """
     single = np.ndim(q) == 1
-    q, qd, qdd = model._states(q=q, qd=qd, qdd=qdd)
+    q, qd, qdd = model.check_states(q=q, qd=qd, qdd=qdd)
     Y = _kernel_regressor(model, q, qd, qdd, mode)
     return Y if Y is None or not single else Y[0]
 

@@ -80,8 +80,8 @@ def _states(model, args, names):
             if s - s == 0.0:
                 return arrs
     # exact checks (also accepts a (n,) state mixed with (1, n) ones, as a single state)
-    first = model._batch(names[0], args[0])
-    arrs = [first] + [model._batch(nm, x, first.shape[0]) for nm, x in zip(names[1:], args[1:])]
+    first = model.check_batch(names[0], args[0])
+    arrs = [first] + [model.check_batch(nm, x, first.shape[0]) for nm, x in zip(names[1:], args[1:])]
     return [x[0] for x in arrs] if np.ndim(args[0]) == 1 else arrs
 
 
@@ -182,7 +182,7 @@ def _reference_inverse_dynamics(model, a, wrenches, with_gravity):
     q, qd, qdd = (a[:, None] if single else a)
     N = q.shape[0]
     fext = external_body_wrenches(model, wrenches, N)
-    a0 = model._a0 if with_gravity else np.zeros(6)
+    a0 = model.base_acceleration if with_gravity else np.zeros(6)
     x = model.body_coordinates(q)
     xd = qd @ model.E.T
     xdd = qdd @ model.E.T
@@ -228,7 +228,7 @@ def _gravity(model, x):
     Ad, AdinvT = adjoints(world_poses(model, x))
     A = spatial_screws(model, Ad)
     # body-frame base acceleration: Ad_{T^-1} (0, -g) = AdinvT^T (0, -g)
-    Vdb = np.swapaxes(AdinvT[..., 3:, :], -1, -2) @ model._a0[3:]
+    Vdb = np.swapaxes(AdinvT[..., 3:, :], -1, -2) @ model.base_acceleration[3:]
     Fb = (model.J @ Vdb[..., None])[..., 0]
     Fs = (AdinvT @ Fb[..., None])[..., 0]
     Fsub = model.ancestors.T @ Fs

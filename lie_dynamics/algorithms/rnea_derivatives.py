@@ -37,8 +37,9 @@ import numpy as np
 
 from .. import codegen as cg
 from .kinematics import ad_matrices
-from .lagrangian import (_chunks, _constants, _swap, _to_joints_mat, external_body_wrenches, kinematic_state,
-    subtree_sum, world_inertias)
+from ..spatial import transpose
+from .rnea import external_body_wrenches
+from .lagrangian import body_constants, chunks, kinematic_state, subtree_sum, to_joints_mat, world_inertias
 
 
 def _mv(M, v):
@@ -54,33 +55,33 @@ def _derivatives(model, x, xd, xdd, a0, fext):
     adV = ad_matrices(V)
     a = anc @ (A * xdd[..., None] + _mv(adV, Axd)) + a0
     H = _mv(Js, V)
-    F = _mv(Js, a) - _mv(_swap(adV), H)
+    F = _mv(Js, a) - _mv(transpose(adV), H)
     if fext is not None:
         F = F - _mv(AdinvT, fext)
     X = Js @ adV
-    pack = subtree_sum(model, np.concatenate([Js, X + _swap(X), H[..., None], F[..., None]], axis=-1))
+    pack = subtree_sum(model, np.concatenate([Js, X + transpose(X), H[..., None], F[..., None]], axis=-1))
     Jc, Bc, Hc, Fc = pack[..., :6], pack[..., 6:12], pack[..., 12], pack[..., 13]
     adA = ad_matrices(A)
     Z = _mv(adA, V)
     Y = _mv(adA, a) + _mv(adV, Z)
-    adAT = _swap(adA)
+    adAT = transpose(adA)
     JcAZY = Jc @ np.stack([A, Z, Y], axis=-1)              # Jc A, Jc Z, Jc Y
     JcA, JcZ, JcY = JcAZY[..., 0], JcAZY[..., 1], JcAZY[..., 2]
     BcAZ = Bc @ np.stack([A, Z], axis=-1)
-    BcTA = _mv(_swap(Bc), A)
+    BcTA = _mv(transpose(Bc), A)
     adATH = _mv(adAT, Hc)
     le = anc.T
     lt = anc - np.eye(model.nb)
     # dtau/dx
-    P = -JcY + BcAZ[..., 1] + _mv(_swap(ad_matrices(Z)), Hc) - _mv(adAT, Fc)
+    P = -JcY + BcAZ[..., 1] + _mv(transpose(ad_matrices(Z)), Hc) - _mv(adAT, Fc)
     R = np.concatenate([-JcA, BcTA - adATH], axis=-1)
     Q = np.concatenate([Y, Z], axis=-1)
-    dq = (A @ _swap(P)) * le + (R @ _swap(Q)) * lt
+    dq = (A @ transpose(P)) * le + (R @ transpose(Q)) * lt
     # dtau/dxd
     Pv = -(BcAZ[..., 0] + 2.0 * JcZ + adATH)
     Rv = np.concatenate([adATH - BcTA, -2.0 * JcA], axis=-1)
     Qv = np.concatenate([A, Z], axis=-1)
-    dv = (A @ _swap(Pv)) * le + (Rv @ _swap(Qv)) * lt
+    dv = (A @ transpose(Pv)) * le + (Rv @ transpose(Qv)) * lt
     return dq, dv
 
 
@@ -105,7 +106,7 @@ def inverse_dynamics_derivatives(model, q, qd, qdd, wrenches=None):
                                   2 * n * n).reshape(2, n, n)
                 return out[0], out[1]
     single = np.ndim(q) == 1
-    q, qd, qdd = model._states(q=q, qd=qd, qdd=qdd)
+    q, qd, qdd = model.check_states(q=q, qd=qd, qdd=qdd)
     N = q.shape[0]
     fext = external_body_wrenches(model, wrenches, N)
     res = _kernel_derivatives(model, q, qd, qdd, fext)
@@ -119,9 +120,9 @@ def inverse_dynamics_derivatives(model, q, qd, qdd, wrenches=None):
 def inverse_dynamics_derivatives_vectorized(model, q, qd, qdd, wrenches=None):
     """inverse_dynamics_derivatives by the vectorised form (numpy over bodies and states)."""
     single = np.ndim(q) == 1
-    q, qd, qdd = model._states(q=q, qd=qd, qdd=qdd)
+    q, qd, qdd = model.check_states(q=q, qd=qd, qdd=qdd)
     N = q.shape[0]
-    c = _constants(model)
+    c = body_constants(model)
     fext = external_body_wrenches(model, wrenches, N)
     x = model.body_coordinates(q)
     E = model.E
@@ -129,10 +130,10 @@ def inverse_dynamics_derivatives_vectorized(model, q, qd, qdd, wrenches=None):
     nb = model.nb
     dq = np.empty((N, nb, nb))
     dv = np.empty((N, nb, nb))
-    for sl in _chunks(N, 400 * nb + 8 * nb * nb):
-        dq[sl], dv[sl] = _derivatives(model, x[sl], xd[sl], xdd[sl], model._a0,
+    for sl in chunks(N, 400 * nb + 8 * nb * nb):
+        dq[sl], dv[sl] = _derivatives(model, x[sl], xd[sl], xdd[sl], model.base_acceleration,
                                       None if fext is None else fext[sl])
-    dq, dv = _to_joints_mat(model, c, dq), _to_joints_mat(model, c, dv)
+    dq, dv = to_joints_mat(model, c, dq), to_joints_mat(model, c, dv)
     return (dq[0], dv[0]) if single else (dq, dv)
 
 
@@ -338,7 +339,7 @@ def coriolis_matrix(model, q, qd):
             P, E0 = cg.model_params(model, fr)
             return np.fromiter(fn(a, b, P, E0, sin=math.sin, cos=math.cos), float, n * n).reshape(n, n)
     single = np.ndim(q) == 1
-    q, qd = model._states(q=q, qd=qd)
+    q, qd = model.check_states(q=q, qd=qd)
     N = q.shape[0]
     k = _coriolis_kernel(model)
     if not k or _LOOP_BELOW <= N < _ROWS_FROM:

@@ -779,9 +779,9 @@ def model_params(model, fr, gravity=False):
     """
     mc = model_cache(model)
     c = mc.get('params')
-    if c is None or c[0] is not model.J or c[1] is not model.e0 or c[2] is not model._a0:
-        c = mc['params'] = (model.J, model.e0, model._a0, fr.inertia_params(model.J), fr.offsets(model.e0),
-                            model._a0[3:].tolist())
+    if c is None or c[0] is not model.J or c[1] is not model.e0 or c[2] is not model.base_acceleration:
+        c = mc['params'] = (model.J, model.e0, model.base_acceleration, fr.inertia_params(model.J), fr.offsets(model.e0),
+                            model.base_acceleration[3:].tolist())
     return (c[3], c[4], c[5]) if gravity else (c[3], c[4])
 
 

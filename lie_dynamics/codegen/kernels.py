@@ -268,12 +268,12 @@ class Kernels:
         The model replaces (never mutates) J, _a0 and e0 in its setters, so identity tells.
         """
         key, values = self._params
-        if key is None or not (key[0] is model.J and key[1] is model._a0 and key[2] is model.e0):
+        if key is None or not (key[0] is model.J and key[1] is model.base_acceleration and key[2] is model.e0):
             st = self.structure
             values = (tuple(st.inertia_params(model.J)),
                       tuple(st.gravity_params(model.J).ravel().tolist()),
-                      tuple(model._a0[3:].tolist()), tuple(st.offsets(model.e0)))
-            self._params = ((model.J, model._a0, model.e0), values)  # one assignment: thread-safe
+                      tuple(model.base_acceleration[3:].tolist()), tuple(st.offsets(model.e0)))
+            self._params = ((model.J, model.base_acceleration, model.e0), values)  # one assignment: thread-safe
             self._row_params = None
         return values
 

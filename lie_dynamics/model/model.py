@@ -17,7 +17,8 @@ import functools
 import numpy as np
 
 from ..algorithms import aba, aba_derivatives, crba, kinematics, lagrangian, regressor, rnea, rnea_derivatives
-from .inertia import RTOL, inertia_scale as _inertia_scale, link_inertia as _inertia_in, violations
+from .inertia import RTOL, link_inertia, violations
+from .inertia import inertia_scale as scale_of  # the constructor's argument has the plain name
 from ..spatial import exp6, hat3
 
 
@@ -50,7 +51,7 @@ def _jointless(states, *shapes):
                 return method(self, *args, **kwargs)
             given = dict(zip(states, args))
             given.update((k, kwargs[k]) for k in states if k in kwargs)
-            first = self._states(**given)[0]
+            first = self.check_states(**given)[0]
             lead = () if np.ndim(given[states[0]]) == 1 else (first.shape[0],)
             out = tuple(np.zeros(lead + sh) for sh in shapes)
             return out if len(out) > 1 else out[0]
@@ -64,12 +65,15 @@ class Model:
     def __init__(self, *, name, joint_names, joint_types, locked_joint_names, lockable_joint_names,
                  mimic_joints, body_joint_names, parent, M, S, E, L, c0, link_frames, link_inertias,
                  effort_limits, velocity_limits, position_lower, position_upper, damping, friction,
-                 folded_bodies=(), gravity=(0.0, 0.0, -9.81), inertia_scale=None):
+                 folded_bodies=(), gravity=(0.0, 0.0, -9.81), inertia_scale=None, body_link_names=None,
+                 inertia_report=()):
         """Built by urdf.load_urdf. link_frames: link -> (kind, index, T) with kind 'kept' (index:
         body, -1 the world), 'folded' (index into folded_bodies) or 'dropped'; T the link's pose in
         that frame. link_inertias: link -> (mass, CoM, inertia about the CoM) in the link frame.
         folded_bodies: locked bodies folded into a parent's inertia (parents first), dicts with
-        parent ('kept' | 'folded', index), M, S, column (locked joint), multiplier, offset."""
+        parent ('kept' | 'folded', index), M, S, column (locked joint), multiplier, offset.
+        body_link_names: the child link of each body's joint. inertia_report: the load's per-link
+        findings (urdf.py), see physical_consistency."""
         self.name = name
         self.joint_names = list(joint_names)
         self.joint_types = list(joint_types)
@@ -78,6 +82,7 @@ class Model:
         self.lockable_joint_names = list(lockable_joint_names)
         self.mimic_joints = dict(mimic_joints)
         self.body_joint_names = list(body_joint_names)
+        self.body_link_names = list(body_link_names or body_joint_names)
         self.parent = _frozen(np.asarray(parent, dtype=int))
         self.nb = len(self.parent)
         self.M = _frozen(M).reshape(self.nb, 4, 4)
@@ -99,10 +104,11 @@ class Model:
         J = np.zeros((self.nb, 6, 6))
         for link, (kind, b, T) in self._places.items():
             if kind == 'kept' and b >= 0 and link in self._link_inertias:
-                J[b] += _inertia_in(T, self._link_inertias[link])
+                J[b] += link_inertia(T, self._link_inertias[link])
         self._J_static = J
-        self.inertia_scale = float(inertia_scale) if inertia_scale else _inertia_scale(J)
-        self._inertia_report = []
+        self.inertia_scale = float(inertia_scale) if inertia_scale else scale_of(J)
+        self._inertia_report = [dict(e) for e in inertia_report]
+        self.version = 0  # bumped by every setter: caches of derived values follow it
         self._J_override = None  # with_body_inertias: J as given, whatever the locked values
         self._payloads = {}  # link -> (mass, CoM, inertia about the CoM) in the link frame
         self._locked_values = np.zeros(len(self.locked_joint_names))
@@ -123,10 +129,10 @@ class Model:
         self.depth = _frozen(anc.sum(axis=1).astype(int))
         # Pointer jumping: world poses in ceil(log2(depth)) batched products instead of nb.
         jump = self.parent.copy()
-        self._jumps = []
+        jumps = []
         while np.any(jump >= 0):
             idx = np.flatnonzero(jump >= 0)
-            self._jumps.append((idx, jump[idx].copy()))
+            jumps.append((idx, jump[idx].copy()))
             jump[idx] = jump[jump[idx]]
             jump[idx[jump[idx] < 0]] = -1  # already reached the root
         # f_i(x) = M_i exp([S_i] x) = M_i + sin x B1 + (1 - cos x) B2 + x B3 + (x - sin x) B4
@@ -141,7 +147,9 @@ class Model:
         C[:, 1, :3, 3] = np.einsum('bij,bj->bi', K, v)
         C[:, 2, :3, 3] = v
         C[:, 3, :3, 3] = np.einsum('bij,bj->bi', K2, v)
-        self._B = np.einsum('bij,bkjl->bkil', self.M, C).reshape(nb, 4, 16)
+        self.pointer_jumps = tuple(jumps)  # (bodies, their 2^k-th ancestors) per doubling step
+        # f_i(x) = M_i @ (I + sin x B1 + (1 - cos x) B2 + x B3 + (x - sin x) B4) as (nb, 4, 16)
+        self.transform_coefficients = _frozen(np.einsum('bij,bkjl->bkil', self.M, C).reshape(nb, 4, 16))
 
     # ------------------------------------------------------------------ settable state
     @property
@@ -152,7 +160,9 @@ class Model:
     @gravity_vector.setter
     def gravity_vector(self, g):
         self._g = _vector('gravity', g, 3)
-        self._a0 = _frozen(np.concatenate([np.zeros(3), -self._g]))
+        # base acceleration Vd_0 = (0, -g): gravity enters the RNEA as an upward acceleration (eq 16)
+        self.base_acceleration = _frozen(np.concatenate([np.zeros(3), -self._g]))
+        self._changed()
 
     def set_gravity(self, g):
         self.gravity_vector = g
@@ -190,6 +200,7 @@ class Model:
     def _update_offsets(self):
         """Locked values changed: body offsets, folded-body poses, link frames, inertias."""
         self.e0 = _frozen(self.L @ self._locked_values + self.c0)
+        self._changed()
         folded = []  # (kept body, pose in its frame) per folded body
         for f in self._folded:
             kind, p = f['parent']
@@ -211,7 +222,7 @@ class Model:
             for link, (kind, _, _) in self._places.items():
                 if kind == 'folded' and link in self._link_inertias:
                     b, T = frames[link]
-                    J[b] += _inertia_in(T, self._link_inertias[link])
+                    J[b] += link_inertia(T, self._link_inertias[link])
             self.J_links = _frozen(J)  # links as written in the URDF (folded ones included), no payloads
         self._update_inertia()
 
@@ -253,13 +264,17 @@ class Model:
             self._payloads.pop(link, None)
         self._update_inertia()
 
+    def _changed(self):
+        self.version = getattr(self, 'version', -1) + 1
+
     def _update_inertia(self):
         J = self.J_links.copy()
         for link, mic in self._payloads.items():
             b, T = self.link_frames[link]
             if b >= 0:  # payloads on the world or on dropped bodies change no controlled torque
-                J[b] += _inertia_in(T, mic)
+                J[b] += link_inertia(T, mic)
         self.J = _frozen(J)
+        self._changed()
 
     def with_body_inertias(self, J):
         """A copy whose bodies carry the spatial inertias J (nb, 6, 6) as written (payloads and
@@ -271,15 +286,29 @@ class Model:
         return new
 
     def physical_consistency(self):
-        """Per-link report of the load's inertia check (inertia policy of load_urdf): a list of
-        dicts with link, rule, message and repaired; empty when every modelled link is consistent."""
-        return [dict(e) for e in self._inertia_report]
+        """Per-link report: the load's inertia check (inertia policy of load_urdf) and the
+        controlled joints that move no mass (`massless_joints`), as dicts with link, rule, message
+        and repaired; empty when every modelled link is consistent."""
+        out = [dict(e) for e in self._inertia_report]
+        for name in self.massless_joints():
+            b = int(np.flatnonzero(np.asarray(self.body_joint_names) == name)[0])
+            link = self.body_link_names[b]
+            out.append(dict(link=link, rule='massless moving body', repaired=False,
+                            message=f"link '{link}': massless moving body: joint '{name}' moves no mass or "
+                                    'inertia (its row of the mass matrix is zero, forward dynamics is undefined)'))
+        return out
 
-    def _set_inertia_report(self, report):
-        self._inertia_report = [dict(e) for e in report]
+    def massless_joints(self):
+        """Controlled joints that move no inertia at all: their diagonal entry of M at q = 0 is
+        zero up to round-off (1e-12 of the model's inertia scale; a small but real wrist inertia
+        is not one). Their row of M is zero, so forward dynamics is undefined."""
+        if not self.n:
+            return []
+        d = np.diagonal(lagrangian.mass_matrix(self, np.zeros(self.n)))
+        return [name for name, v in zip(self.joint_names, d) if v <= 1e-12 * self.inertia_scale]
 
     # ------------------------------------------------------------------ input checks
-    def _batch(self, name, x, N=None):
+    def check_batch(self, name, x, N=None):
         """(n,) or (N, n) -> (N, n) float array; raises ValueError naming the argument."""
         a = np.asarray(x, dtype=float)
         if a.ndim == 1 and a.shape[0] == self.n:
@@ -293,12 +322,12 @@ class Model:
             raise ValueError(f'{name} contains non-finite values')
         return a
 
-    def _states(self, **arrays):
-        """_batch for the state arguments of one call, in keyword order: the first sets the
+    def check_states(self, **arrays):
+        """check_batch for the state arguments of one call, in keyword order: the first sets the
         number of states N, the others must match it. Returns the (N, n) arrays in that order."""
         out, N = [], None
         for name, x in arrays.items():
-            a = self._batch(name, x, N)
+            a = self.check_batch(name, x, N)
             N = a.shape[0]
             out.append(a)
         return out
@@ -331,7 +360,7 @@ class Model:
     def forward_kinematics(self, q):
         """World poses (N, nb, 4, 4) or (nb, 4, 4) of every modelled body frame."""
         single = np.ndim(q) == 1
-        T = kinematics.world_poses(self, self.body_coordinates(self._batch('q', q)))
+        T = kinematics.world_poses(self, self.body_coordinates(self.check_batch('q', q)))
         return T[0] if single else T
 
     def link_pose(self, link, q):

@@ -301,7 +301,7 @@ def _apply_policy(policy, link_inertias, scale):
     """Check every modelled link once (inertia.violations) and act by the policy. Returns the
     (possibly repaired) inertias and the per-link report."""
     tol = RTOL * scale
-    report, bad = [], []
+    report = []
     out = {}
     for name, mic in link_inertias.items():
         m, com, Ic = mic
@@ -318,16 +318,8 @@ def _apply_policy(policy, link_inertias, scale):
                          f"moments [{', '.join(f'{v:.6g}' for v in np.linalg.eigvalsh(Ic2))}] kg m^2")
             mic = (m2, com, Ic2)
         report.append(entry)
-        bad.append(entry['message'])
         out[name] = mic
-    return out, report, bad
-
-
-def _massless_joints(model, tol):
-    """Controlled joints that move no inertia at all: their diagonal entry of M at q = 0 is zero
-    up to round-off (a small but real wrist inertia is not flagged)."""
-    Mdiag = np.diagonal(model.mass_matrix(np.zeros(model.n), method='closed_form')) if model.n else []
-    return [name for name, d in zip(model.joint_names, Mdiag) if d <= tol]
+    return out, report
 
 
 # ---------------------------------------------------------------------- build
@@ -442,7 +434,7 @@ def load_urdf(source, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn'):
             link_home[name] = home[b] @ T
     scale = inertia_scale(np.array([link_inertia(link_home[n], mic) for n, mic in link_inertias.items()])
                           .reshape(-1, 6, 6))
-    link_inertias, report, bad = _apply_policy(policy, link_inertias, scale)
+    link_inertias, report = _apply_policy(policy, link_inertias, scale)
 
     def limits(name):
         j = jmap[name]
@@ -463,22 +455,16 @@ def load_urdf(source, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn'):
         name=robot.name, joint_names=joints, joint_types=[jmap[n].type for n in joints],
         locked_joint_names=locked, lockable_joint_names=locked_all,
         mimic_joints={m: r for m, r in mimic_of.items()},
-        body_joint_names=[bodies[i]['joint'].name for i in kept], parent=parent, M=M, S=S, E=E, L=L, c0=c0,
+        body_joint_names=[bodies[i]['joint'].name for i in kept],
+        body_link_names=[bodies[i]['joint'].child for i in kept], parent=parent, M=M, S=S, E=E, L=L, c0=c0,
         link_frames=link_frames, link_inertias=link_inertias, folded_bodies=folded_bodies,
         effort_limits=lim[:, 0], velocity_limits=lim[:, 1],
         position_lower=lim[:, 2], position_upper=lim[:, 3], damping=lim[:, 4], friction=lim[:, 5],
-        gravity=gravity, inertia_scale=scale)
-    for name in _massless_joints(model, 1e-12 * scale):
-        child = jmap[name].child
-        entry = dict(link=child, rule='massless moving body', repaired=False,
-                     message=f"link '{child}': massless moving body: joint '{name}' moves no mass or inertia "
-                             '(its row of the mass matrix is zero, forward dynamics is undefined)')
-        report.append(entry)
-        bad.append(entry['message'])
-    if bad and policy == 'strict':
+        gravity=gravity, inertia_scale=scale, inertia_report=report)
+    report = model.physical_consistency()
+    if report and policy == 'strict':
         raise ValueError("physically inconsistent inertia (inertia='strict'; 'warn' computes with it, 'repair' "
-                         'fixes it): ' + '; '.join(bad))
+                         'fixes it): ' + '; '.join(e['message'] for e in report))
     for entry in report:
         warnings.warn(entry['message'], InertiaWarning, stacklevel=2)
-    model._set_inertia_report(report)
     return model
