@@ -91,7 +91,8 @@ def methods(model, xml, q, qd, qdd, tau, NB, S_mr):
     add(op, 'Pinocchio', 'pinocchio', 'single', each(lambda i: pin.computeGeneralizedGravity(pm, pd, q[i]).copy()),
         lambda: pin.computeGeneralizedGravity(pm, pd, q[0]))
     if Ml is not None:
-        add(op, 'Modern Robotics', 'modern_robotics', 'single', each(lambda i: mr.GravityForces(q[i], g, Ml, Gl, Sl), S_mr),
+        add(op, 'Modern Robotics', 'modern_robotics', 'single',
+            each(lambda i: mr.GravityForces(q[i], g, Ml, Gl, Sl), S_mr),
             lambda: mr.GravityForces(q[0], g, Ml, Gl, Sl))
 
     op = OPS[2]
@@ -131,7 +132,8 @@ def methods(model, xml, q, qd, qdd, tau, NB, S_mr):
         lambda: model.forward_dynamics(q[0], qd[0], tau[0]))
     add(op, 'Cholesky batched', 'lie_dynamics', 'batched', first(lambda: model.forward_dynamics(qb, qdb, taub)),
         lambda: model.forward_dynamics(qb, qdb, taub), NB)
-    add(op, 'ABA O(n)', 'lie_dynamics', 'single', each(lambda i: model.forward_dynamics(q[i], qd[i], tau[i], method='aba')),
+    add(op, 'ABA O(n)', 'lie_dynamics', 'single',
+        each(lambda i: model.forward_dynamics(q[i], qd[i], tau[i], method='aba')),
         lambda: model.forward_dynamics(q[0], qd[0], tau[0], method='aba'))
     add(op, 'ABA O(n) batched', 'lie_dynamics', 'batched',
         first(lambda: model.forward_dynamics(qb, qdb, taub, method='aba')),
@@ -154,7 +156,8 @@ def methods(model, xml, q, qd, qdd, tau, NB, S_mr):
     add(op, 'analytic batched', 'lie_dynamics', 'batched',
         first(lambda: np.stack(model.inverse_dynamics_derivatives(qb, qdb, qddb), axis=1)),
         lambda: model.inverse_dynamics_derivatives(qb, qdb, qddb), NB)
-    add(op, 'forward differences', 'lie_dynamics', 'single', each(lambda i: finite_differences(model, q[i], qd[i], qdd[i])),
+    add(op, 'forward differences', 'lie_dynamics', 'single',
+        each(lambda i: finite_differences(model, q[i], qd[i], qdd[i])),
         lambda: finite_differences(model, q[0], qd[0], qdd[0]))
     add(op, 'central differences', 'lie_dynamics', 'single',
         each(lambda i: finite_differences(model, q[i], qd[i], qdd[i], central=True)),
@@ -222,7 +225,7 @@ def run_robot(name, xml, quick, rounds, target, seed=0):
     rows = []
     for op, cands in methods(model, xml, q, qd, qdd, tau, NB, S_mr).items():
         errs = {}
-        for method, impl, mode, outputs, _, _ in cands:
+        for method, _impl, _mode, outputs, _, _ in cands:
             with np.errstate(all='ignore'):
                 o = np.asarray(outputs())
             ref = refs[op][:len(o)]

@@ -166,7 +166,8 @@ def near_coaxial_urdf(tilt):
                 '<limit effort="10" velocity="1" lower="-3" upper="3"/></joint>')
     return ''.join(['<robot name="near_coaxial">', link('l0', None), joint('j1', 'l0', 'l1', '0 0 0.1', '0 1 0'),
                     link('l1', 1.0), joint('j2', 'l1', 'l2', '0 0 0.3', '0 0 1'), link('l2', None),
-                    joint('j3', 'l2', 'l3', '0 0 0.2', f'{float(np.sin(tilt))!r} 0 {float(np.cos(tilt))!r}'), link('l3', 1.0),
+                    joint('j3', 'l2', 'l3', '0 0 0.2', f'{float(np.sin(tilt))!r} 0 {float(np.cos(tilt))!r}'),
+                    link('l3', 1.0),
                     '</robot>'])
 
 

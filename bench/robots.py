@@ -104,7 +104,8 @@ def run(quick=False, out=None, rounds=None):
 def markdown(rows):
     lines = ['# Real robots (example-robot-data): time / Pinocchio, one state', '',
              'Medians of interleaved rounds; ratio = our time / Pinocchio\'s in the same round (p10-p90).', '',
-             '| robot | n | bodies | call | ratio (p10-p90) | ours (µs) | Pinocchio (µs) |', '|---|---|---|---|---|---|---|']
+             '| robot | n | bodies | call | ratio (p10-p90) | ours (µs) | Pinocchio (µs) |',
+             '|---|---|---|---|---|---|---|']
     for r in rows:
         lines.append(f"| {r['robot']} | {r['n']} | {r['bodies']} | {r['op']} | {r['ratio_median']:.2f} "
                      f"({r['ratio_p10']:.2f}-{r['ratio_p90']:.2f}) | {r['ours_us']:.1f} | {r['pin_us']:.2f} |")

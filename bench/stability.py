@@ -282,7 +282,8 @@ def scan_fd_step(quick):
         rows.append(dict(scan='fd_step', method='complex step (bench RNEA)', x_name='step h', x=float(h), error=e,
                          status='ok' if e <= TOL_DERIV else 'fail'))
     const = {'analytic': lambda i: np.stack(model.inverse_dynamics_derivatives(q[i], qd[i], qdd[i])),
-             'Pinocchio': lambda i: np.stack([a.copy() for a in pin.computeRNEADerivatives(pm, pd, q[i], qd[i], qdd[i])[:2]])}
+             'Pinocchio': lambda i: np.stack([a.copy() for a in
+                                              pin.computeRNEADerivatives(pm, pd, q[i], qd[i], qdd[i])[:2]])}
     flat = {m: err(f) for m, f in const.items()}
     best = {}
     for m in dict.fromkeys(r['method'] for r in rows):
@@ -379,7 +380,8 @@ def _range(b):
 
 
 def markdown(res):
-    L = ['# Stability map', '', 'Reference: ' + res['meta']['reference'] + '. Boundaries are found on the scan grids.', '']
+    L = ['# Stability map', '',
+         'Reference: ' + res['meta']['reference'] + '. Boundaries are found on the scan grids.', '']
     e = res['explog']
     L += [f"## exp / log (fails: error > {e['tol']:.0e})", '',
           '| method | worst error near 0 | failing distance to 0 | worst error near π | failing distance to π |',
@@ -402,7 +404,8 @@ def markdown(res):
     f = res['forward_dynamics']
     methods = list(dict.fromkeys(r['method'] for r in f['rows']))
     for xn, what in ((RATIO, 'the distal/proximal mass ratio of the arm (ill-conditioned by scale)'),
-                     (TILT, 'the tilt between two joint axes with a massless link between (ill-conditioned by geometry)')):
+                     (TILT, 'the tilt between two joint axes with a massless link between '
+                            '(ill-conditioned by geometry)')):
         xs = sorted({r['x'] for r in f['rows'] if r['x_name'] == xn}, reverse=True)
         L += ['', f"## Forward dynamics against {what}; fails: error > {f['tol']:.0e} or raises", '',
               f'| {xn} | cond(M) | longdouble ABA vs Cholesky | ' + ' | '.join(methods) + ' |',

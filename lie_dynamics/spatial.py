@@ -1,6 +1,6 @@
 """SO(3)/SE(3) toolkit of Park, Bobrow & Ploen (1995), section 3.1.
 
-Conventions (see CONVENTIONS.md): twists V = (w, v) and wrenches F = (m, f) are
+Conventions (docs/architecture.md): twists V = (w, v) and wrenches F = (m, f) are
 6-vectors ordered angular first. Every function broadcasts over leading axes, so a
 batch of N rotations is an array of shape (N, 3, 3).
 
@@ -226,7 +226,7 @@ def cross(a, b):
 def spatial_inertia(mass, com, inertia_com):
     """J = [[I_c - m[r]^2, m[r]], [-m[r], m 1]] about a frame whose origin is not the CoM.
 
-    (The paper summary garbles this block; CONVENTIONS.md gives the settled form.)
+    (The paper summary garbles this block; docs/architecture.md gives the settled form.)
     """
     r = hat3(np.asarray(com, dtype=float))
     J = np.zeros((6, 6))

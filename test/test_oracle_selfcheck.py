@@ -306,7 +306,7 @@ def test_arm7_urdf():
     hand_in = links["hand"].find("inertial")
     assert 0.5 < float(hand_in.find("mass").get("value")) < 1.0
     assert any(float(x) for x in hand_in.find("origin").get("rpy").split())
-    for name, m, I in _inertials(xml):
+    for name, _m, I in _inertials(xml):
         ev = np.linalg.eigvalsh(I)
         assert ev[0] > 0 and ev[0] + ev[1] > ev[2], name
 

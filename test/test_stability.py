@@ -22,7 +22,8 @@ def _axes(k=50, seed=0):
     rng = np.random.default_rng(seed)
     u = rng.normal(size=(k, 3))
     v = rng.normal(size=(k, 3))
-    return (u / np.linalg.norm(u, axis=1, keepdims=True)).astype(LD), (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(LD)
+    return ((u / np.linalg.norm(u, axis=1, keepdims=True)).astype(LD),
+            (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(LD))
 
 
 # ---------------------------------------------------------------- exp / log

@@ -1,6 +1,5 @@
 """URDF loading: supported features, every rejection path with its message, no scene built."""
 import os
-import sys
 
 import numpy as np
 import pytest
@@ -73,7 +72,8 @@ def test_fixed_links_merged_and_missing_inertial_is_zero_mass():
 
 
 def test_continuous_and_prismatic_limits():
-    xml = robot(link('base'), link('a'), link('b'), joint('c', 'base', 'a', 'continuous'), joint('p', 'a', 'b', 'prismatic'))
+    xml = robot(link('base'), link('a'), link('b'), joint('c', 'base', 'a', 'continuous'),
+                joint('p', 'a', 'b', 'prismatic'))
     m = load_urdf(xml)
     assert m.joint_types == ['continuous', 'prismatic']
     assert np.isinf(m.position_lower[0]) and m.position_lower[1] == -1
@@ -99,7 +99,8 @@ def test_mimic_joint_is_not_controlled_and_follows_master():
     ('/no/such/file.urdf', {}, r'URDF file not found'),
     (robot(link('a'), link('b')), {}, r'several root links'),
     (robot(link('a'), link('b'), joint('j1', 'a', 'b'), joint('j2', 'b', 'a')), {}, r'two parent joints|cycle'),
-    (robot(link('a'), link('b'), link('c'), joint('j1', 'a', 'c'), joint('j2', 'b', 'c')), {}, r"link 'c' has two parent"),
+    (robot(link('a'), link('b'), link('c'), joint('j1', 'a', 'c'), joint('j2', 'b', 'c')), {},
+     r"link 'c' has two parent"),
     (robot(link('a'), joint('j1', 'a', 'zz')), {}, r"joint 'j1' refers to unknown link 'zz'"),
     (robot(link('base'), link('a'), link('b'), joint('j1', 'base', 'a'), joint('p', 'a', 'b', 'planar')), {},
      r"joint 'p' is planar and sits inside the subtree"),
@@ -140,18 +141,6 @@ def test_mimic_set_locked_message():
 def test_floating_joint_outside_modelled_part_is_fine():
     xml = robot(link('base'), link('a'), link('b'), joint('j1', 'base', 'a'), joint('f', 'base', 'b', 'floating'))
     assert load_urdf(xml).joint_names == ['j1']
-
-
-def test_math_core_does_not_import_rclpy():
-    """(yourdfpy itself imports trimesh at module level; building a scene is what we avoid.)"""
-    import subprocess
-    code = ('import sys, lie_dynamics, lie_dynamics.algorithms.rnea, lie_dynamics.spatial, lie_dynamics.algorithms.kinematics; '
-            'lie_dynamics.load_urdf(lie_dynamics.default_urdf_path()).gravity([0]*7); '
-            'bad = [m for m in sys.modules if m.split(".")[0] in ("rclpy", "pinocchio")]; '
-            'print(bad); sys.exit(1 if bad else 0)')
-    root = os.path.join(os.path.dirname(__file__), '..')
-    r = subprocess.run([sys.executable, '-c', code], cwd=root, capture_output=True, text=True)
-    assert r.returncode == 0, r.stdout + r.stderr
 
 
 def test_named_cases_load():

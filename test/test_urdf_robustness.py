@@ -203,7 +203,8 @@ def test_entities_are_refused(doctype):
 
 
 @pytest.mark.parametrize('old, new, msg', [
-    ('<origin xyz="0 0 0.4" rpy="0 0 0"/><parent link="l1"/>', '<origin xyz="0 0 0.4" rpy="0 0 0 0"/><parent link="l1"/>',
+    ('<origin xyz="0 0 0.4" rpy="0 0 0"/><parent link="l1"/>',
+     '<origin xyz="0 0 0.4" rpy="0 0 0 0"/><parent link="l1"/>',
      r"joint 'j2' <origin> rpy: expected three numbers, got '0 0 0 0'"),
     ('<origin xyz="0 0 0.4" rpy="0 0 0"/><parent link="l1"/>', '<origin xyz="0 0.4" rpy="0 0 0"/><parent link="l1"/>',
      r"joint 'j2' <origin> xyz: expected three numbers"),
