@@ -10,8 +10,8 @@ DURATION = 2.0  # simulated seconds per scenario
 
 
 def _domain():
-    # away from both xdist workers' domains (conftest gives them 1 + (base + k) % 100)
-    return 1 + (int(os.environ['ROS_DOMAIN_ID']) - 1 + 50) % 100
+    # reserved for this worker by conftest.py: no other test or test run uses it
+    return int(os.environ['LIE_DYNAMICS_TEST_DEMO_DOMAIN'])
 
 
 def _logs(log_dir):
