@@ -41,7 +41,8 @@ def echo_main():
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray
 
-    from lie_dynamics.ros.node import _NO_PUB_EVENTS, _NO_SUB_EVENTS, JOINT_STATES_QOS
+    from lie_dynamics.ros.node import JOINT_STATES_QOS
+    from lie_dynamics.ros.node import NO_PUB_EVENTS as _NO_PUB_EVENTS, NO_SUB_EVENTS as _NO_SUB_EVENTS
 
     rclpy.init()
     node = rclpy.create_node('echo_node')

@@ -20,6 +20,7 @@ import sys
 import numpy as np
 
 from .cli import CliParser, run_cli
+from .laws import COULOMB_VELOCITY_EPSILON, friction_torque
 
 
 def _derivative(y, t):
@@ -28,17 +29,24 @@ def _derivative(y, t):
     return np.gradient(y, t, axis=0, edge_order=2 if len(t) > 2 else 1)
 
 
-def fill_trajectory_efforts(model, traj, friction=False):
+def fill_trajectory_efforts(model, traj, friction=False, eps=COULOMB_VELOCITY_EPSILON):
     """Efforts (N, n) in the model's joint order for a trajectory given as arrays.
 
     traj: mapping with 'positions' (N, k) and, optionally, 'time_from_start' (N,)
     (needed to derive missing derivatives), 'velocities' (N, k), 'accelerations' (N, k)
     and 'joint_names' (k names; default: the model's joint order). Joints the model
     does not control are ignored; every controlled joint must be present.
-    friction: also add the URDF viscous damping and Coulomb friction (sign of velocity).
+    friction: also add the friction compensation b*qd + fc*tanh(qd/eps) with the URDF's
+    <dynamics damping> (b) and <dynamics friction> (fc): the smooth Coulomb term the
+    dynamics node streams (lie_dynamics.laws.friction_torque), not sign(qd).
+    eps: velocity scale of that Coulomb term, rad/s (m/s for prismatic joints), > 0; the
+    default 0.05 is the node's friction.coulomb_velocity_epsilon default. Used only with
+    friction=True.
     Returns a dict with 'efforts', 'positions', 'velocities', 'accelerations' (model order).
     Raises ValueError naming the problem for any malformed trajectory.
     """
+    if friction and not (np.isfinite(eps) and eps > 0):
+        raise ValueError(f'eps must be finite and > 0, got {eps}')
     names = list(traj.get('joint_names') or model.joint_names)
     if len(set(names)) != len(names):
         raise ValueError(f'trajectory joint_names has duplicates: {names}')
@@ -89,7 +97,7 @@ def fill_trajectory_efforts(model, traj, friction=False):
         qdd = _derivative(qd, t) if N > 1 else np.zeros_like(q)
     tau = model.inverse_dynamics(q, qd, qdd)
     if friction:
-        tau = tau + model.damping * qd + model.friction * np.sign(qd)
+        tau = tau + friction_torque(qd, model.damping, model.friction, eps)
     return {'efforts': tau, 'positions': q, 'velocities': qd, 'accelerations': qdd}
 
 
@@ -189,7 +197,8 @@ def main(argv=None):
     ap.add_argument('urdf', help='robot description (URDF file)')
     ap.add_argument('csv', help='input trajectory (format below)')
     ap.add_argument('-o', '--output', required=True, help='output CSV (input columns + eff.<joint>)')
-    ap.add_argument('--friction', action='store_true', help='add URDF damping and Coulomb friction')
+    ap.add_argument('--friction', action='store_true',
+                    help='add URDF damping and Coulomb friction (smooth: fc*tanh(qd/0.05), as the node)')
     return run_cli(ap, _fill, argv)
 
 

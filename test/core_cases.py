@@ -1,4 +1,4 @@
-"""Shared pieces of the tests of the node's decision logic without ROS (lie_dynamics.ros_core)."""
+"""Shared pieces of the tests of the node's decision logic without ROS (lie_dynamics.ros.compensator)."""
 import re
 
 from lie_dynamics import load_urdf

@@ -41,12 +41,12 @@ class FFHarness(Harness):
     def desire(self, names, q, qd=(), qdd=(), points=1, accepted=True):
         """Publish one desired-state message and wait until the node has processed it."""
         core = self.node.core
-        r0, a0 = core.desired_received, core.desired_accepted
+        r0, a0 = core.count.desired_received, core.count.desired_accepted
         pt = JointTrajectoryPoint(positions=[float(x) for x in q], velocities=[float(x) for x in qd],
                                   accelerations=[float(x) for x in qdd])
         self.des_pub.publish(JointTrajectory(joint_names=list(names), points=[pt] * points))
-        wait_until(lambda: core.desired_received > r0, what='desired state processed')
-        assert (core.desired_accepted == a0 + 1) == accepted
+        wait_until(lambda: core.count.desired_received > r0, what='desired state processed')
+        assert (core.count.desired_accepted == a0 + 1) == accepted
 
     def log_count(self, text):
         return sum(text in line for line in self.logs)
@@ -116,7 +116,7 @@ def test_modes_fallback_and_run_time_switch(ros, chain):
     wait_until(lambda: 'desired state stale: gravity fallback' in ros.diag.message, what='stale diagnostics')
     ros.desire(ctrl, q_d, qd_d, qdd_d)
     np.testing.assert_allclose(ros.send(*js), expected['feedforward'], atol=TOL, rtol=0)
-    assert ros.node.core.fallback_events == 2
+    assert ros.node.core.count.fallback_events == 2
 
 
 def test_bad_desired_messages_are_rejected_and_logged_once(ros, chain):
@@ -135,7 +135,7 @@ def test_bad_desired_messages_are_rejected_and_logged_once(ros, chain):
         'missing controlled joints': [dict(names=ctrl[1:], q=q_d[1:])],
         'non-finite': [dict(q=list(q_d[:-1]) + [math.nan]), dict(qdd=[math.inf] * n)],
     }
-    for problem, msgs in cases.items():
+    for msgs in cases.values():
         for m in msgs:
             ros.desire(m.get('names', ctrl), m.get('q', q_d), m.get('qd', ()), m.get('qdd', ()),
                        points=m.get('points', 1), accepted=False)
@@ -145,7 +145,7 @@ def test_bad_desired_messages_are_rejected_and_logged_once(ros, chain):
     time.sleep(0.1)
     for problem in cases:
         assert ros.log_count(problem) == 1, (problem, ros.logs)
-    assert ros.node.core.desired_rejected == sum(len(m) for m in cases.values())
+    assert ros.node.core.count.desired_rejected == sum(len(m) for m in cases.values())
 
 
 def test_trajectory_fill_with_the_shipped_feedforward_config(ros):
@@ -180,7 +180,7 @@ def test_trajectory_fill_with_the_shipped_feedforward_config(ros):
     arr = trajectory_arrays(out.joint_names, out.points)
     np.testing.assert_array_equal(arr['positions'], np.hstack([Q[:, perm], pad]))
     eff = np.array([p.effort for p in out.points])
-    ref = np.array([o.rnea(*x) for x in zip(Q, QD, QDD)])
+    ref = np.array([o.rnea(*x) for x in zip(Q, QD, QDD, strict=True)])
     np.testing.assert_allclose(eff[:, :7], ref[:, perm], atol=TOL, rtol=0)
     np.testing.assert_array_equal(eff[:, 7], 0.0)
 
@@ -190,7 +190,7 @@ def test_trajectory_fill_with_the_shipped_feedforward_config(ros):
     ts = trajectory_arrays(joints, ros.trajs[1].points)['time_from_start']
     QDD_fd = np.gradient(QD, ts, axis=0, edge_order=2)
     np.testing.assert_allclose(np.array([p.effort for p in ros.trajs[1].points]),
-                               [o.rnea(*x) for x in zip(Q, QD, QDD_fd)], atol=TOL, rtol=0)
+                               [o.rnea(*x) for x in zip(Q, QD, QDD_fd, strict=True)], atol=TOL, rtol=0)
 
     # bad trajectories: nothing published, one log line each
     def bad(**change):
@@ -209,9 +209,9 @@ def test_trajectory_fill_with_the_shipped_feedforward_config(ros):
         'non-finite value at point 1': bad(p=lambda m: setattr(m.points[1], 'positions', [math.nan] * 7)),
     }
     for why, m in cases.items():
-        r0 = node.core.trajectories_rejected
+        r0 = node.core.count.trajectories_rejected
         ros.traj_pub.publish(m)
-        wait_until(lambda: node.core.trajectories_rejected == r0 + 1, what=why)
+        wait_until(lambda r0=r0: node.core.count.trajectories_rejected == r0 + 1, what=why)
     ros.traj_pub.publish(trajectory_message(joints, t[:3], Q[:3], QD[:3], QDD[:3]))
     wait_until(lambda: len(ros.trajs) == 3, what='good trajectory after the bad ones')
     wait_until(lambda: all(ros.log_count(why) for why in cases), what='trajectory rejection logs')

@@ -1,5 +1,5 @@
 """Feedforward / computed-torque / PD laws, the desired-state stream and trajectory effort fill
-in the node's decision logic without ROS (lie_dynamics.ros_core), checked against Pinocchio."""
+in the node's decision logic without ROS (lie_dynamics.ros.compensator), checked against Pinocchio."""
 import math
 from types import SimpleNamespace as NS
 
@@ -78,7 +78,7 @@ def test_feedforward_with_pd_and_friction_at_the_desired_velocity(chain):
     qd_nan[2] = math.nan
     tau = c.on_joint_state(ctrl, q, qd_nan)
     np.testing.assert_allclose(tau[2], ref[2] + kd[2] * qd[2], atol=TOL, rtol=0)
-    assert c.velocity_unavailable == 1
+    assert c.count.velocity_unavailable == 1
 
 
 def test_computed_torque_law(chain):
@@ -127,7 +127,7 @@ def test_mode_switch_stale_desired_fallback_and_recovery(chain):
     for _ in range(3):
         np.testing.assert_allclose(c.on_joint_state(ctrl, q, qd), gravity_law, atol=TOL, rtol=0)
     assert [e[1] for e in c.events] == ['desired:none'] and 'no desired state received yet' in c.events[0][2]
-    assert c.fallback_events == 1 and c.law == 'gravity (fallback)'
+    assert c.count.fallback_events == 1 and c.law == 'gravity (fallback)'
     level, msg, values = c.diagnostics()
     assert level == WARN and 'gravity fallback' in msg and dict(values)['control_law'] == 'gravity (fallback)'
     c.events.clear()
@@ -141,7 +141,7 @@ def test_mode_switch_stale_desired_fallback_and_recovery(chain):
     clock.t += 0.02   # 0.06 s > desired_timeout
     np.testing.assert_allclose(c.on_joint_state(ctrl, q, qd), gravity_law, atol=TOL, rtol=0)
     assert [e[1] for e in c.events] == ['desired:stale'] and 'for 0.060 s' in c.events[0][2]
-    assert c.fallback_events == 2
+    assert c.count.fallback_events == 2
     # switching at run time; the joint_states watchdog is unchanged (gravity at the last state)
     c.on_desired(ctrl, [point(q_d, qd_d, qdd_d)])
     c.update({'mode': 'gravity'})
@@ -162,11 +162,11 @@ def test_output_is_clamped_in_every_mode(chain):
     c = make(xml, ctrl, mode='pd', kp=[1000.0], effort_limit_scale=0.5)
     c.on_desired(ctrl, [point(np.ones(n))])
     np.testing.assert_allclose(c.on_joint_state(ctrl, -np.ones(n)), np.ones(n), atol=TOL)
-    assert c.clamp_count == 1
+    assert c.count.clamp_count == 1
     c.update({'mode': 'feedforward', 'kp': [0.0]})
     c.on_desired(ctrl, [point(np.ones(n), np.zeros(n), np.full(n, 1e4))])
     tau = c.on_joint_state(ctrl, np.zeros(n))
-    assert np.all(np.abs(tau) <= 1.0) and c.clamp_count == 2
+    assert np.all(np.abs(tau) <= 1.0) and c.count.clamp_count == 2
     c.model.inverse_dynamics = lambda *a: np.full(n, math.nan)
     assert c.on_joint_state(ctrl, np.zeros(n)) is None and 'non-finite torque' in c.last_error
 
@@ -198,7 +198,7 @@ def test_bad_desired_states_are_rejected_and_keep_the_last_good_one(chain):
         clock.t += 0.01
         assert not c.on_desired(names, points), kind
         assert [e[1] for e in c.events] == ['desired:' + kind]
-        assert c.desired_rejected == k + 1
+        assert c.count.desired_rejected == k + 1
     c.events.clear()
     c.on_desired(['a' + j for j in ctrl], [point(q_d)])
     text = c.events[0][2]
@@ -258,7 +258,7 @@ def test_trajectory_efforts_match_pinocchio_in_message_order(arm):
     msg = trajectory_message(names, t, np.hstack([q[:, perm], pad]), np.hstack([qd[:, perm], pad]),
                              np.hstack([qdd[:, perm], pad]))
     eff = c.on_trajectory(msg.joint_names, msg.points)
-    ref = np.array([o.rnea(*s) for s in zip(q, qd, qdd)])
+    ref = np.array([o.rnea(*s) for s in zip(q, qd, qdd, strict=True)])
     np.testing.assert_allclose(eff[:, :7], ref[:, perm], atol=TOL, rtol=0)
     np.testing.assert_array_equal(eff[:, 7], 0.0)   # not a controlled joint
     set_point_efforts(msg.points, eff)
@@ -269,15 +269,15 @@ def test_trajectory_efforts_match_pinocchio_in_message_order(arm):
     arrays = trajectory_arrays(joints, msg.points)
     assert arrays['accelerations'] is None
     qdd_fd = np.gradient(qd, arrays['time_from_start'], axis=0, edge_order=2)   # times as sent (ns)
-    np.testing.assert_allclose(eff, [o.rnea(*s) for s in zip(q, qd, qdd_fd)], atol=TOL, rtol=0)
+    np.testing.assert_allclose(eff, [o.rnea(*s) for s in zip(q, qd, qdd_fd, strict=True)], atol=TOL, rtol=0)
     # friction at the point velocity; clamp to the limits
     c.update({'friction.viscous': [0.4], 'effort_limit_scale': 0.05})
     eff = c.on_trajectory(msg.joint_names, msg.points)
     lim = 0.05 * c.model.effort_limits
-    np.testing.assert_allclose(eff, np.clip([o.rnea(*s) for s in zip(q, qd, qdd_fd)] + 0.4 * qd, -lim, lim),
-                               atol=TOL, rtol=0)
+    ref = np.array([o.rnea(*s) for s in zip(q, qd, qdd_fd, strict=True)])
+    np.testing.assert_allclose(eff, np.clip(ref + 0.4 * qd, -lim, lim), atol=TOL, rtol=0)
     assert any(e[1] == 'trajectory:clamp' for e in c.events)
-    assert c.trajectories_filled == 3
+    assert c.count.trajectories_filled == 3
 
 
 def test_bad_trajectories_are_rejected_with_a_reason(arm):
@@ -286,7 +286,7 @@ def test_bad_trajectories_are_rejected_with_a_reason(arm):
     assert c.on_trajectory(joints, [point(np.zeros(7))]) is None and 'no robot model' in c.last_error
     c.set_model(load_urdf(xml))
     t, q, qd, qdd = smooth(5)
-    pts = lambda: [point(a, b, t=s) for s, a, b in zip(t, q, qd)]   # noqa: E731
+    pts = lambda: [point(a, b, t=s) for s, a, b in zip(t, q, qd, strict=True)]   # noqa: E731
     cases = {
         'no points': (joints, []),
         'point 2 has 6 positions': (joints, pts()[:2] + [point(q[2][:6], qd[2], t=t[2])] + pts()[3:]),
@@ -301,7 +301,7 @@ def test_bad_trajectories_are_rejected_with_a_reason(arm):
         c.events.clear()
         assert c.on_trajectory(names, points) is None, why
         assert len(c.events) == 1 and why in c.events[0][2], (why, c.events)
-        assert c.trajectories_rejected == k + 2
+        assert c.count.trajectories_rejected == k + 2
     c.update({'enabled': False})
     assert c.on_trajectory(joints, pts()) is None and 'disabled' in c.last_error
     c.update({'enabled': True})

@@ -125,10 +125,10 @@ class Harness:
 
     def send_rejected(self, good, names, position, velocity=(), effort=()):
         """Publish a bad message, then a good one: exactly one command (the good one's) must come."""
-        n0, r0 = len(self.cmds), self.node.core.rejected
+        n0, r0 = len(self.cmds), self.node.core.count.rejected
         self.publish(names, position, velocity, effort)
         out = self.send(*good)
-        assert len(self.cmds) == n0 + 1 and self.node.core.rejected == r0 + 1
+        assert len(self.cmds) == n0 + 1 and self.node.core.count.rejected == r0 + 1
         return out
 
     def set_params(self, **params):
@@ -183,7 +183,7 @@ def test_gravity_compensation_matches_pinocchio(ros, chain):
     wait_until(lambda: len(ros.cmds) >= len(sent), what='40 commands')
     time.sleep(0.05)
     assert len(ros.cmds) == len(sent)  # one command per accepted message
-    for (q, ql), tau in zip(sent, ros.cmds):
+    for (q, ql), tau in zip(sent, ros.cmds, strict=True):
         np.testing.assert_allclose(tau, Oracle(xml, joints=ctrl, locked={locked: ql}).gravity(q), atol=TOL, rtol=0)
     q, ql = sent[-1]
     names = ctrl + [locked]
@@ -238,7 +238,7 @@ def test_bad_joint_states_are_rejected_and_logged_once(ros, chain):
                        (ctrl + [locked], list(q) + [math.nan])],
         'missing controlled': [(ctrl[1:], q[1:])],
     }
-    for problem, msgs in cases.items():
+    for msgs in cases.values():
         for bad in msgs:
             tau = ros.send_rejected(good, *bad)
             np.testing.assert_allclose(tau, ref, atol=TOL, rtol=0)
@@ -247,7 +247,7 @@ def test_bad_joint_states_are_rejected_and_logged_once(ros, chain):
     time.sleep(0.1)
     for problem in cases:
         assert sum(problem in line for line in ros.logs) == 1, (problem, ros.logs)
-    assert ros.node.core.rejected == sum(len(m) for m in cases.values())
+    assert ros.node.core.count.rejected == sum(len(m) for m in cases.values())
 
 
 def test_nan_velocity_velocity_terms_and_joint_state_output(ros, chain):
@@ -293,7 +293,7 @@ def test_stale_input_hold_zero_and_recovery(ros, chain):
     assert all(r.successful for r in ros.set_params(stale_action='zero'))
     wait_until(lambda: len(ros.cmds) == 4, timeout=3.0, what='zero stale command')
     np.testing.assert_array_equal(ros.cmds[3], np.zeros(n))
-    assert ros.node.core.stale_events == 2
+    assert ros.node.core.watchdog.stale_events == 2
     assert any('compensation resumed' in line for line in ros.logs)
 
 
@@ -348,9 +348,9 @@ def test_services_enable_and_reload(ros, chain, tmp_path):
     wait_until(lambda: len(ros.cmds) == 2, what='zero command on disable')
     np.testing.assert_array_equal(ros.cmds[1], np.zeros(len(ctrl)))
     assert ros.node.get_parameter('enabled').value is False
-    n0 = ros.node.core.accepted
+    n0 = ros.node.core.count.accepted
     ros.publish(ctrl, q)
-    wait_until(lambda: ros.node.core.accepted == n0 + 1, what='disabled message processed')
+    wait_until(lambda: ros.node.core.count.accepted == n0 + 1, what='disabled message processed')
     assert len(ros.cmds) == 2  # silent while disabled
     assert ros.call(SetBool, '/dynamics_node/set_enabled', SetBool.Request(data=True)).success
     np.testing.assert_allclose(ros.send(ctrl, q), ref, atol=TOL, rtol=0)
@@ -376,7 +376,7 @@ def test_no_model_publishes_nothing_and_parameter_validation(ros, chain):
     q = np.zeros(len(ctrl))
     for _ in range(3):
         ros.publish(ctrl, q)
-    wait_until(lambda: node.core.received == 3, what='3 messages without a model')
+    wait_until(lambda: node.core.count.received == 3, what='3 messages without a model')
     wait_until(lambda: any('no robot model' in line for line in ros.logs), what='no-model log')
     assert ros.cmds == []
     ros.desc_pub.publish(String(data=xml))
@@ -395,6 +395,34 @@ def test_no_model_publishes_nothing_and_parameter_validation(ros, chain):
         assert not res.successful, change
     np.testing.assert_allclose(ros.send(ctrl, q), Oracle(xml, joints=ctrl).gravity(q), atol=TOL, rtol=0)
 
+
+
+def test_parameter_change_is_validated_whole_then_applied(ros, chain):
+    """on_set validates the whole change (a new description is built but not made current);
+    post_set applies it: a bad setting next to a good description rejects both."""
+    xml, ctrl, locked = chain
+    node = ros.start(joints=ctrl, robot_description=xml, publish_joint_state=False)
+    model = node.core.model
+    q = np.linspace(-0.5, 0.5, len(ctrl))
+    heavier = re.sub(r'<mass value="([^"]*)"', lambda m: f'<mass value="{3 * float(m.group(1))!r}"', xml)
+    res = node.set_parameters_atomically([Parameter('robot_description', value=heavier),
+                                          Parameter('kp', value=[1.0, 2.0])])
+    assert not res.successful and 'kp' in res.reason
+    assert node.core.model is model and node.get_parameter('robot_description').value == xml
+    np.testing.assert_allclose(ros.send(ctrl, q), Oracle(xml, joints=ctrl).gravity(q), atol=TOL, rtol=0)
+    # accepted: the new model, the setting and the new publisher all come with the set
+    res = node.set_parameters_atomically([Parameter('robot_description', value=heavier),
+                                          Parameter('gravity_scale', value=0.5),
+                                          Parameter('publish_joint_state', value=True)])
+    assert res.successful, res.reason
+    assert node.core.model is not model and node.core.settings['gravity_scale'] == 0.5
+    wait_until(lambda: ros.t.count_publishers('/dynamics_node/commanded_efforts') == 1, what='joint state publisher')
+    ref = Oracle(heavier, joints=ctrl, gravity=(0.0, 0.0, -9.81 * 0.5)).gravity(q)
+    np.testing.assert_allclose(ros.send(ctrl, q), ref, atol=TOL, rtol=0)
+    wait_until(lambda: len(ros.efforts) >= 1, what='commanded_efforts')
+    np.testing.assert_allclose(np.array(ros.efforts[-1].effort), ref, atol=TOL, rtol=0)
+    assert all(r.successful for r in ros.set_params(publish_joint_state=False))
+    wait_until(lambda: ros.t.count_publishers('/dynamics_node/commanded_efforts') == 0, what='publisher gone')
 
 # Link `tip` breaks the triangle inequality of its inertia (0.001 + 0.001 < 0.01 kg m^2).
 BAD_INERTIA = (

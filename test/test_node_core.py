@@ -1,4 +1,4 @@
-"""Decision logic of the dynamics node without ROS: lie_dynamics.ros_core / ros_params."""
+"""Decision logic of the dynamics node without ROS: lie_dynamics.ros.compensator / params."""
 import math
 import re
 import warnings
@@ -37,7 +37,7 @@ def test_gravity_with_moving_locked_joint_in_any_message_order(chain):
         tau = c.on_joint_state(names, [ql, 7.0] + q[::-1].tolist())
         ref = Oracle(xml, joints=ctrl, locked={locked: ql}).gravity(q)
         np.testing.assert_allclose(tau, ref, atol=TOL, rtol=0)
-    assert c.accepted == 4 and c.rejected == 0
+    assert c.count.accepted == 4 and c.count.rejected == 0
 
 
 def test_gravity_scale_gravity_vector_and_payload(chain):
@@ -85,7 +85,7 @@ def test_velocity_terms_friction_and_nan_velocity(chain):
     tau = c.on_joint_state(ctrl, q.tolist(), qd_nan.tolist())
     ref = o.rnea(q, qd0, np.zeros(n)) + 0.3 * qd0 + 0.2 * np.tanh(qd0 / eps)
     np.testing.assert_allclose(tau, ref, atol=TOL, rtol=0)
-    assert c.velocity_unavailable == 1
+    assert c.count.velocity_unavailable == 1
     # no velocity array at all: gravity only
     tau = c.on_joint_state(ctrl, q.tolist())
     np.testing.assert_allclose(tau, o.gravity(q), atol=TOL, rtol=0)
@@ -126,13 +126,13 @@ def test_rejections_publish_nothing_and_name_the_problem(chain):
     for k, (kind, names, pos, vel, eff) in enumerate(cases):
         c.events.clear()
         assert c.on_joint_state(names, pos, vel, eff) is None, kind
-        assert c.rejected == k + 1
+        assert c.count.rejected == k + 1
         assert [e[1] for e in c.events] == ['reject:' + kind]
         text = c.events[0][2]
         assert {'length': 'lengths', 'duplicate': ctrl[0], 'nonfinite': 'non-finite',
                 'missing': ctrl[0]}[kind] in text
     assert c.on_joint_state(ctrl, good) is not None
-    assert c.accepted == 1
+    assert c.count.accepted == 1
 
 
 def test_clamp_and_nonfinite_output(chain):
@@ -144,7 +144,7 @@ def test_clamp_and_nonfinite_output(chain):
     ref = Oracle(xml, joints=ctrl).gravity(q)
     assert np.any(np.abs(ref) > 1.0)
     np.testing.assert_allclose(tau, np.clip(ref, -1.0, 1.0), atol=TOL)
-    assert c.clamp_count == 1 and c.clamped
+    assert c.count.clamp_count == 1 and c.clamped
     assert [e[1] for e in c.events if e[1]] == ['clamp']
     # a model that produces NaN must never reach the output
     c.model.gravity = lambda q: np.full(len(ctrl), math.nan)
@@ -168,15 +168,15 @@ def test_stale_hold_zero_and_recovery(chain):
     q, qd = np.full(len(ctrl), 0.4), np.full(len(ctrl), 1.0)
     tau = c.on_joint_state(ctrl, q, qd)
     clock.t += 0.15
-    assert c.tick() is None and not c.stale
+    assert c.tick() is None and not c.watchdog.stale
     clock.t += 0.1
     held = c.tick()
-    assert c.stale and c.stale_events == 1
+    assert c.watchdog.stale and c.watchdog.stale_events == 1
     np.testing.assert_allclose(held, c.model.gravity(q), atol=TOL)   # velocity terms dropped
     assert not np.allclose(held, tau)
     assert c.tick() is None  # once
     assert c.diagnostics()[0] == WARN
-    assert c.on_joint_state(ctrl, q, qd) is not None and not c.stale
+    assert c.on_joint_state(ctrl, q, qd) is not None and not c.watchdog.stale
     c.update({'stale_action': 'zero'})
     clock.t += 1.0
     np.testing.assert_array_equal(c.tick(), np.zeros(len(ctrl)))
@@ -188,7 +188,7 @@ def test_enable_disable(chain):
     q = np.zeros(len(ctrl))
     zeros = c.set_enabled(False)
     np.testing.assert_array_equal(zeros, np.zeros(len(ctrl)))
-    assert c.on_joint_state(ctrl, q) is None and c.accepted == 1   # still tracked, not published
+    assert c.on_joint_state(ctrl, q) is None and c.count.accepted == 1   # still tracked, not published
     assert c.set_enabled(False) is None                            # no change, nothing to send
     assert c.set_enabled(True) is None
     assert c.on_joint_state(ctrl, q) is not None
@@ -338,3 +338,45 @@ def test_inertia_log_and_diagnostics_are_bounded():
     assert all(len(e[2]) <= INERTIA_TEXT_MAX for e in events)
     v = dict(c.diagnostics()[2])
     assert v['inertia_warnings'] == str(k) and 0 < len(v['inertia_report']) <= DIAG_TEXT_MAX
+
+
+def test_plan_changes_nothing_until_applied(chain):
+    """Compensator.plan validates (a payload on a scratch copy, a new model privately);
+    apply makes the plan current. The node validates in on_set and applies in post_set."""
+    xml, ctrl, locked = chain
+    c = make(xml, ctrl)
+    model = c.model
+    q = np.linspace(-1, 1, len(ctrl))
+    names = ctrl + [locked]
+    before = c.on_joint_state(names, q.tolist() + [0.3])
+    link = [k for k, (b, _) in model.link_frames.items() if b == model.nb - 1][0]
+    inertia = [0.01, 0, 0, 0.02, 0, 0.03]
+    plan = c.plan({'payload.link': link, 'payload.mass': 2.0, 'payload.com': [0.1, 0.0, 0.05],
+                   'payload.inertia': inertia, 'gravity_scale': 0.5})
+    assert c.settings['payload.mass'] == 0.0 and c.settings['gravity_scale'] == 1.0 and c.model is model
+    np.testing.assert_array_equal(c.on_joint_state(names, q.tolist() + [0.3]), before)
+    assert c.apply(plan) is None and c.model is model
+    xml_p = xml.replace('</robot>', f'''<link name="pl"><inertial><origin xyz="0.1 0 0.05"/><mass value="2"/>
+      <inertia ixx="0.01" ixy="0" ixz="0" iyy="0.02" iyz="0" izz="0.03"/></inertial></link>
+      <joint name="pl_joint" type="fixed"><parent link="{link}"/><child link="pl"/></joint></robot>''')
+    ref = Oracle(xml_p, joints=ctrl, locked={locked: 0.3}, gravity=(0, 0, -4.905)).gravity(q)
+    np.testing.assert_allclose(c.on_joint_state(names, q.tolist() + [0.3]), ref, atol=TOL, rtol=0)
+    # refused: a payload inertia breaking the triangle inequality; a new model with bad settings
+    with pytest.raises(ValueError, match='triangle'):
+        c.plan({'payload.inertia': [0.001, 0, 0, 0.001, 0, 0.01]})
+    heavier = re.sub(r'<mass value="([^"]*)"', lambda m: f'<mass value="{2 * float(m.group(1))!r}"', xml)
+    with pytest.raises(ValueError, match='kp'):
+        c.plan({'kp': [1.0, 2.0]}, load_urdf(heavier, joints=ctrl))
+    assert c.model is model and c.settings['payload.inertia'] == inertia
+    np.testing.assert_allclose(c.on_joint_state(names, q.tolist() + [0.3]), ref, atol=TOL, rtol=0)
+    # a new model and settings together; the payload moves onto the new model
+    c.apply(c.plan({'gravity_scale': 1.0}, load_urdf(heavier, joints=ctrl), 'heavier'))
+    assert c.model is not model and c.model_info == 'heavier'
+    ref = Oracle(heavier.replace('</robot>', xml_p[xml_p.index('<link name="pl">'):]), joints=ctrl,
+                 locked={locked: 0.3}).gravity(q)
+    np.testing.assert_allclose(c.on_joint_state(names, q.tolist() + [0.3]), ref, atol=TOL, rtol=0)
+    # disabling returns the one zero command; a plan made before another change is checked again
+    np.testing.assert_array_equal(c.apply(c.plan({'enabled': False})), np.zeros(len(ctrl)))
+    stale_plan = c.plan({'kp': [1.0]})
+    c.update({'enabled': True})
+    assert c.apply(stale_plan) is None and c.settings['enabled'] and c.settings['kp'] == [1.0]

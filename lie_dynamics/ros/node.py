@@ -4,7 +4,8 @@ commands, and feedforward efforts for joint_trajectory_controller trajectories.
     ros2 run lie_dynamics dynamics_node --ros-args --params-file config/arm7_gravity.yaml
     python -m lie_dynamics.dynamics_node --ros-args -p urdf_path:=config/arm7.urdf
 
-A thin shell around `ros_core.Compensator` (all decisions live there, testable without ROS).
+A thin shell around `compensator.Compensator` (all decisions live there and in its pieces,
+messages.py, watchdog.py, diagnostics.py and lie_dynamics.laws: testable without ROS).
 
 Subscribes  robot_description (std_msgs/String, reliable, transient local, depth 1)
             joint_states      (sensor_msgs/JointState, best effort, depth 10 - as robot_state_publisher)
@@ -42,7 +43,7 @@ Behaviour (the effort controller holds the last command forever and does not cla
 * Disabling (parameter or ~/set_enabled) publishes one all-zero command, then nothing, so
   another publisher may take over the controller; enabling resumes with the next message.
 * Shutdown (SIGINT/SIGTERM) publishes the stale_action command once.
-* Torque law: parameter `mode` (gravity, feedforward, computed_torque, pd; live), see ros_core.
+* Torque law: parameter `mode` (gravity, feedforward, computed_torque, pd; live), see lie_dynamics.laws.
   The modes other than gravity use the last valid desired state; without one younger than
   desired_timeout they fall back to the gravity law at the measured state (one log line,
   diagnostics), and resume with the next valid desired state. Commands are still computed
@@ -65,7 +66,6 @@ Behaviour (the effort controller holds the last command forever and does not cla
   live updates are rejected with the reason.
 """
 import array
-import os
 import sys
 import threading
 import time
@@ -85,6 +85,7 @@ from trajectory_msgs.msg import JointTrajectory
 from .compensator import Compensator, Throttle
 from .params import PARAMS, SPECS, check_value
 from .run import run
+from .sources import Sources, open_source, source_label
 from .trajectory_msgs import set_point_efforts
 
 # As robot_state_publisher publishes it: a late subscriber must also be transient local.
@@ -94,31 +95,12 @@ JOINT_STATES_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST,
                               reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
 DESIRED_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                          reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
-_NO_PUB_EVENTS = PublisherEventCallbacks(use_default_callbacks=False)
-_NO_SUB_EVENTS = SubscriptionEventCallbacks(use_default_callbacks=False)
+# No default QoS-event handlers (see the hot-path note in DynamicsNode.__init__); also used by bench/.
+NO_PUB_EVENTS = PublisherEventCallbacks(use_default_callbacks=False)
+NO_SUB_EVENTS = SubscriptionEventCallbacks(use_default_callbacks=False)
 _TYPES = {'bool': Parameter.Type.BOOL, 'double': Parameter.Type.DOUBLE, 'string': Parameter.Type.STRING,
           'double_array': Parameter.Type.DOUBLE_ARRAY, 'string_array': Parameter.Type.STRING_ARRAY}
 LOG_THROTTLE_S = 2.0
-
-
-def resolve_path(path):
-    """`package://PKG/rel` -> the installed share directory of PKG (ament index); for this
-    package also the source tree when it is not installed with colcon. Other paths unchanged."""
-    if not path.startswith('package://'):
-        return path
-    pkg, _, rel = path[len('package://'):].partition('/')
-    try:
-        from ament_index_python.packages import get_package_share_directory
-        candidate = os.path.join(get_package_share_directory(pkg), rel)
-        if os.path.exists(candidate):
-            return candidate
-    except Exception:  # package or ament index unknown: try the source tree below
-        pass
-    if pkg == 'lie_dynamics':
-        candidate = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), rel)
-        if os.path.exists(candidate):
-            return candidate
-    raise ValueError(f'cannot resolve {path!r} (package not found in AMENT_PREFIX_PATH)')
 
 
 def _guarded(callback):
@@ -158,38 +140,39 @@ class DynamicsNode(Node):
         self.core = Compensator(values)  # ValueError on an invalid configuration
         self._throttle = Throttle(LOG_THROTTLE_S)
         self._lock = threading.RLock()  # services/parameters vs. callbacks when spun by several threads
-        self._source = None            # (kind, text): 'topic'/'parameter' -> XML, 'file' -> path
-        self._topic_xml = None
+        self._sources = Sources()      # the running model's source, the last topic message
+        self._pending = None           # (changes, plan, source): validated by on_set, applied by post_set
         self._out_names = []
 
         # Hot path: no default QoS-event handlers (each one is waited on at every executor
         # wake-up). joint_states is best effort, like robot_state_publisher's subscription:
         # compatible with any publisher; a lost sample only skips one command update.
         self._cmd_pub = self.create_publisher(Float64MultiArray, values['command_topic'], 10,
-                                              event_callbacks=_NO_PUB_EVENTS)
+                                              event_callbacks=NO_PUB_EVENTS)
         self._js_pub = None
-        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10, event_callbacks=_NO_PUB_EVENTS)
+        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10, event_callbacks=NO_PUB_EVENTS)
         # No QoS-event handlers here either; _check_description_publishers() reports the usual
         # mistake (a volatile or best-effort robot_description publisher) from the timer instead.
         self.create_subscription(String, 'robot_description', self._on_description, DESCRIPTION_QOS,
-                                 event_callbacks=_NO_SUB_EVENTS)
+                                 event_callbacks=NO_SUB_EVENTS)
         self._warned_publishers = set()
         self.create_subscription(JointState, 'joint_states', self._on_joint_state, JOINT_STATES_QOS,
-                                 event_callbacks=_NO_SUB_EVENTS)
+                                 event_callbacks=NO_SUB_EVENTS)
         desired = self.create_subscription(JointTrajectory, values['desired_topic'], self._on_desired,
-                                           DESIRED_QOS, event_callbacks=_NO_SUB_EVENTS)
+                                           DESIRED_QOS, event_callbacks=NO_SUB_EVENTS)
         self.core.desired_topic = desired.topic_name
         self.create_subscription(JointTrajectory, '~/trajectory_in', self._on_trajectory, 10,
-                                 event_callbacks=_NO_SUB_EVENTS)
+                                 event_callbacks=NO_SUB_EVENTS)
         self._traj_pub = self.create_publisher(JointTrajectory, '~/trajectory_out', 10,
-                                               event_callbacks=_NO_PUB_EVENTS)
+                                               event_callbacks=NO_PUB_EVENTS)
         self.create_service(SetBool, '~/set_enabled', self._srv_set_enabled)
         self.create_service(Trigger, '~/reload_model', self._srv_reload)
         self._diag_period = values['diagnostics_period']
         self._next_diag = time.monotonic() + self._diag_period
         self._timer = self.create_timer(_tick_period(values['stale_timeout'], self._diag_period), self._on_timer)
         self._set_js_publisher(values['publish_joint_state'])
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
 
         for kind, name in (('parameter', 'robot_description'), ('file', 'urdf_path')):
             text = values[name]
@@ -202,28 +185,35 @@ class DynamicsNode(Node):
                 '(publishing nothing until a model is loaded)')
 
     # ------------------------------------------------------------------ model
-    def _load(self, kind, text, inertia=None):
-        """Load a description (`inertia`: policy other than the current inertia_policy); on failure
-        keep the current model. Returns None or the error text."""
-        label = {'topic': 'topic robot_description', 'parameter': 'parameter robot_description',
-                 'file': f'file {text}'}[kind]
+    def _candidate(self, kind, text, inertia=None):
+        """A description's model, checked against the layout and the current settings but not
+        made current (`inertia`: policy other than the current inertia_policy) -> (model, label).
+        Raises ValueError with the reason, which is also logged and kept for the diagnostics."""
+        label = source_label(kind, text)
         try:
-            if kind != 'file' and not text.lstrip().startswith('<'):
-                raise ValueError('not URDF XML')
-            source = resolve_path(text) if kind == 'file' else text
-            if source != text:
-                label = f'{label} ({source})'
-            self.core.load(source, label, inertia)
+            source, label = open_source(kind, text)
+            model = self.core.build_model(source, inertia)
+            self.core.plan(None, model, label)
         except Exception as exc:  # any bad input: log, keep the previous model, never die
-            return self.core.note_description_error(f'{label}: {exc}')
-        self._source = (kind, text)
+            raise ValueError(self.core.note_description_error(f'{label}: {exc}')) from None
+        return model, label
+
+    def _load(self, kind, text, inertia=None):
+        """Load a description now (start-up, topic, ~/reload_model); on failure keep the current
+        model. Returns None or the error text."""
+        try:
+            model, label = self._candidate(kind, text, inertia)
+        except ValueError as exc:
+            return str(exc)
+        self.core.set_model(model, label)  # fits: checked by _candidate
+        self._sources.current = (kind, text)
         self._out_names = list(self.core.layout)
         return None
 
     @_guarded
     def _on_description(self, msg):
         with self._lock:
-            self._topic_xml = msg.data
+            self._sources.topic_xml = msg.data
             self._load('topic', msg.data)
             self._drain_events()
 
@@ -300,7 +290,7 @@ class DynamicsNode(Node):
         if now >= self._next_diag:
             self._next_diag = max(self._next_diag + self._diag_period, now)
             self._publish_diagnostics()
-            if self._topic_xml is None:
+            if self._sources.topic_xml is None:
                 self._check_description_publishers()
 
     def _check_description_publishers(self):
@@ -332,40 +322,79 @@ class DynamicsNode(Node):
     def _set_js_publisher(self, on):
         if on and self._js_pub is None:
             self._js_pub = self.create_publisher(JointState, '~/commanded_efforts', 10,
-                                                 event_callbacks=_NO_PUB_EVENTS)
+                                                 event_callbacks=NO_PUB_EVENTS)
         elif not on and self._js_pub is not None:
             self.destroy_publisher(self._js_pub)
             self._js_pub = None
 
-    def _on_set_parameters(self, params):
+    # rclpy calls the on_set callback (_validate_parameters) with the whole change; only when it
+    # accepts are the values set, and then the post_set callback (_apply_parameters) runs.
+    # What stays in validation, and why: building the model of a new description (parsing the
+    # URDF under the inertia policy, checking the layout) and trying a payload, because only
+    # trying them tells whether they are valid; a change that fails there is rejected as a whole.
+    # Nothing becomes current there: the new model stays private to the plan and the payload is
+    # tried on a scratch copy of the running model (Compensator.plan); only a refused description
+    # is reported (log line, description_error), as the rejection's reason.
+    # What happens after the set (post_set): making the plan current (model, settings), the one
+    # zero command on disable, the timer period, and creating/destroying ~/commanded_efforts.
+    def _validate_parameters(self, params):
         changes = {p.name: p.value for p in params if p.name in SPECS}
-        if not changes:
-            return SetParametersResult(successful=True)
         with self._lock:
+            self._pending = None
+            if not changes:
+                return SetParametersResult(successful=True)
             try:
-                # a description set together with the policy is loaded under the new one
-                policy = changes.get('inertia_policy')
-                if policy is not None:
-                    policy = check_value('inertia_policy', policy)
-                loaded = False
-                for key, kind in (('robot_description', 'parameter'), ('urdf_path', 'file')):
-                    text = changes.pop(key, None)
-                    if text:
-                        err = self._load(kind, text, policy)
-                        if err is not None:
-                            raise ValueError(err)
-                        loaded = True
-                if policy not in (None, self.core.settings['inertia_policy']) and not loaded:
-                    kind, text = self._current_source()
-                    err = self._load(kind, text, policy) if kind is not None else None
-                    # without a running model there is nothing to keep consistent: the failure
-                    # is reported (log, diagnostics) and the policy applies to what comes next
-                    if err is not None and self.core.model is not None:
-                        raise ValueError(err)
-                cmd = self.core.update(changes)
+                self._pending = (changes,) + self._plan_parameters(changes)
             except ValueError as exc:
                 self._drain_events()
                 return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _plan_parameters(self, changes):
+        """(plan, source) for a parameter change; source (kind, text) of a new model or None.
+        Raises ValueError with the reason."""
+        rest = dict(changes)
+        # a description set together with the policy is loaded under the new one
+        policy = rest.get('inertia_policy')
+        if policy is not None:
+            policy = check_value('inertia_policy', policy)
+        model = label = source = None
+        for key, kind in (('robot_description', 'parameter'), ('urdf_path', 'file')):
+            text = rest.pop(key, None)
+            if text:
+                model, label = self._candidate(kind, text, policy)
+                source = (kind, text)
+        if policy not in (None, self.core.settings['inertia_policy']) and source is None:
+            kind, text = self._current_source()
+            if kind is not None:
+                try:
+                    model, label = self._candidate(kind, text, policy)
+                    source = (kind, text)
+                except ValueError:
+                    # without a running model there is nothing to keep consistent: the failure
+                    # is reported (log, diagnostics) and the policy applies to what comes next
+                    if self.core.model is not None:
+                        raise
+        return self.core.plan(rest, model, label or ''), source
+
+    def _apply_parameters(self, params):
+        changes = {p.name: p.value for p in params if p.name in SPECS}
+        if not changes:
+            return
+        with self._lock:
+            pending, self._pending = self._pending, None
+            try:
+                if pending is None or pending[0] != changes:  # not the change validated last: check again
+                    pending = (changes,) + self._plan_parameters(changes)
+                _, plan, source = pending
+                cmd = self.core.apply(plan)
+            except ValueError as exc:  # only if the state moved between validation and now
+                self.get_logger().error(f'parameter change {sorted(changes)} not applied: {exc}')
+                self._drain_events()
+                return
+            if source is not None:
+                self._sources.current = source
+                self._out_names = list(self.core.layout)
             self._publish_optional(cmd)
             if 'stale_timeout' in changes:
                 period = _tick_period(self.core.settings['stale_timeout'], self._diag_period)
@@ -373,7 +402,6 @@ class DynamicsNode(Node):
             if 'publish_joint_state' in changes:
                 self._set_js_publisher(self.core.settings['publish_joint_state'])
             self._drain_events()
-        return SetParametersResult(successful=True)
 
     @_guarded
     def _srv_set_enabled(self, request, response):
@@ -383,21 +411,9 @@ class DynamicsNode(Node):
         return response
 
     def _current_source(self):
-        """(kind, text) to reload: the loaded model's source as it is now; before any model
-        loaded, the last topic message, else the start-up parameters. (None, None) if none."""
-        if self._source is not None:
-            kind, text = self._source
-            if kind == 'topic':
-                text = self._topic_xml
-            elif kind == 'parameter':
-                text = self.get_parameter('robot_description').value
-            return (kind, text) if text else (None, None)
-        for kind, text in (('topic', self._topic_xml),
-                           ('parameter', self.get_parameter('robot_description').value),
-                           ('file', self.get_parameter('urdf_path').value)):
-            if text:
-                return kind, text
-        return None, None
+        """(kind, text) to reload (Sources.reload_source), or (None, None)."""
+        return self._sources.reload_source(self.get_parameter('robot_description').value,
+                                           self.get_parameter('urdf_path').value)
 
     @_guarded
     def _srv_reload(self, request, response):
@@ -416,12 +432,11 @@ class DynamicsNode(Node):
     def shutdown_command(self):
         """Publish the stale_action command once (the effort controller holds the last command)."""
         with self._lock:
-            core = self.core
-            if core.model is None or core.last_valid_time is None or not core.settings['enabled'] or core.stale:
+            cmd = self.core.final_command()
+            self.core.events.clear()
+            if cmd is None:
                 return False
-            core.last_valid_time = float('-inf')
-            self._publish_optional(core.tick())
-            core.events.clear()
+            self._publish(cmd)
         try:
             self._cmd_pub.wait_for_all_acked(Duration(seconds=0.5))
         except Exception:  # best effort: the process is exiting

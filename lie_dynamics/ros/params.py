@@ -8,9 +8,10 @@ import math
 from dataclasses import dataclass
 from typing import Optional, Tuple
 
+# MODES: the torque laws (lie_dynamics.laws). Every mode but `gravity` needs the desired-state stream.
+from ..laws import COULOMB_VELOCITY_EPSILON, MODES
+
 STALE_ACTIONS = ('hold_gravity_at_last_state', 'zero')
-# Torque laws (see ros_core). Every mode but `gravity` needs the desired-state stream.
-MODES = ('gravity', 'feedforward', 'computed_torque', 'pd')
 # load_urdf's policy for physically inconsistent link inertias.
 INERTIA_POLICIES = ('warn', 'strict', 'repair')
 
@@ -76,7 +77,7 @@ PARAMS = (
     ParamSpec('friction.coulomb', 'double_array', None,
               'Coulomb friction compensation fc*tanh(qd/eps), N m per joint. Empty: URDF <dynamics friction>; '
               'one value: every joint; [0.0]: off.', True, constraints='empty, 1 or n finite doubles >= 0'),
-    ParamSpec('friction.coulomb_velocity_epsilon', 'double', 0.05,
+    ParamSpec('friction.coulomb_velocity_epsilon', 'double', COULOMB_VELOCITY_EPSILON,
               'eps of the smooth Coulomb term tanh(qd/eps), rad/s (or m/s).', True, (1e-6, 10.0)),
     ParamSpec('effort_limit_scale', 'double', 1.0,
               'Commands are clamped to URDF effort limits times this factor.', True, (0.0, 1.0)),

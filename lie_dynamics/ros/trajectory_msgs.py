@@ -55,7 +55,7 @@ def trajectory_arrays(joint_names, points):
 def set_point_efforts(points, efforts):
     """Write row k of `efforts` (N, joints in message order) into points[k].effort, in place."""
     eff = np.ascontiguousarray(efforts, dtype=float)
-    for p, row in zip(points, eff):
+    for p, row in zip(points, eff, strict=True):
         p.effort = array.array('d', row.tobytes())
 
 

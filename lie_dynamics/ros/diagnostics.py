@@ -1,0 +1,156 @@
+"""What the dynamics node reports, in plain Python (no rclpy import): the counters, the
+per-period diagnostics status (level, message, key/value list) and the bounds on any text
+that ends up in the log or on /diagnostics.
+"""
+import time
+
+# diagnostic_msgs/DiagnosticStatus levels
+OK, WARN, ERROR = 0, 1, 2
+
+# Bounds of the inertia report: a URDF with thousands of bad links must not flood the log or
+# /diagnostics (log lines per load, characters per line, messages in the diagnostics value).
+INERTIA_LOG_LINES = 20
+INERTIA_TEXT_MAX = 300
+INERTIA_DIAG_MESSAGES = 3
+DIAG_TEXT_MAX = 1000
+
+
+def clip(text, n):
+    """text cut to at most n characters ('...' marks a cut)."""
+    return text if len(text) <= n else text[:n - 3] + '...'
+
+
+class Throttle:
+    """At most one `ready(key)` per `period` seconds for each key."""
+
+    def __init__(self, period=1.0, clock=time.monotonic):
+        self.period = period
+        self.clock = clock
+        self._last = {}
+
+    def ready(self, key, now=None):
+        now = self.clock() if now is None else now
+        last = self._last.get(key)
+        if last is not None and now - last < self.period:
+            return False
+        if len(self._last) > 1000:  # keys may carry message text: forget the expired ones
+            self._last = {k: t for k, t in self._last.items() if now - t < self.period}
+        self._last[key] = now
+        return True
+
+
+class Counters:
+    """Totals since start-up (the *_total / *_count diagnostics)."""
+    __slots__ = ('received', 'accepted', 'rejected', 'clamp_count', 'velocity_unavailable',
+                 'desired_received', 'desired_accepted', 'desired_rejected', 'fallback_events',
+                 'trajectories_filled', 'trajectories_rejected')
+
+    def __init__(self):
+        for name in self.__slots__:
+            setattr(self, name, 0)
+
+    def copy(self):
+        new = Counters()
+        for name in self.__slots__:
+            setattr(new, name, getattr(self, name))
+        return new
+
+
+class Window:
+    """One diagnostics period: its start, the counters at its start and the compute times."""
+
+    def __init__(self, counters, now):
+        self.counters = counters
+        self.restart(now)
+
+    def restart(self, now):
+        self.start = now
+        self.base = self.counters.copy()
+        self.times = []
+
+    def count(self, name):
+        """How much counter `name` grew in this window."""
+        return getattr(self.counters, name) - getattr(self.base, name)
+
+
+def report(core, window, now):
+    """(level, message, [(key, value-string)]) of a Compensator for `window` ending at `now`."""
+    dt = max(now - window.start, 1e-9)
+    times = window.times
+    accepted, rejected = window.count('accepted'), window.count('rejected')
+    clamped, desired_rejected = window.count('clamp_count'), window.count('desired_rejected')
+    m = core.model
+    s = core.settings
+    c = core.count
+    wd = core.watchdog
+    msgs, level = [], OK
+    report_, repaired = core.inertia_report, core.inertia_repaired
+    if m is None:
+        level, msgs = ERROR, ['no robot model (waiting for robot_description)']
+    else:
+        if wd.last_valid_time is None:
+            level = WARN
+            msgs.append('waiting for joint_states')
+        elif wd.stale:
+            level = WARN
+            msgs.append(f"joint_states stale: {s['stale_action']}")
+        elif s['mode'] != 'gravity' and not core.desired_is_fresh(now):
+            level = WARN
+            msgs.append(f"mode {s['mode']}: " + ('no desired state yet' if core.desired_time is None else
+                                                'desired state stale') + ': gravity fallback')
+        if core.description_error:
+            level = max(level, WARN)
+            msgs.append('last robot description rejected, previous model kept')
+        if report_:
+            level = max(level, WARN)
+            msgs.append(f'{len(report_)} link(s) with inconsistent inertia'
+                        + (f' ({repaired} repaired)' if repaired else ''))
+        if rejected:
+            level = max(level, WARN)
+            msgs.append(f'{rejected} joint_states rejected')
+        if clamped:
+            level = max(level, WARN)
+            msgs.append(f'{clamped} commands clamped')
+        if not s['enabled']:
+            msgs.append('disabled')
+        if desired_rejected:
+            level = max(level, WARN)
+            msgs.append(f'{desired_rejected} desired states rejected')
+        if not msgs:
+            msgs.append('compensating' if s['mode'] == 'gravity' else s['mode'])
+    values = [
+        ('model_loaded', str(m is not None)),
+        ('model_name', m.name if m is not None else ''),
+        ('model_source', core.model_info),
+        ('joint_count', str(m.n if m is not None else 0)),
+        ('joints', ','.join(core.layout or [])),
+        ('locked_joints', ','.join(m.locked_joint_names) if m is not None else ''),
+        ('enabled', str(s['enabled'])),
+        ('mode', s['mode']),
+        ('control_law', core.law or ''),
+        ('desired_age_ms', f'{1e3 * (now - core.desired_time):.1f}' if core.desired_time is not None else 'inf'),
+        ('desired_received_total', str(c.desired_received)),
+        ('desired_accepted_total', str(c.desired_accepted)),
+        ('desired_rejected_total', str(c.desired_rejected)),
+        ('desired_fallback_events', str(c.fallback_events)),
+        ('trajectories_filled_total', str(c.trajectories_filled)),
+        ('trajectories_rejected_total', str(c.trajectories_rejected)),
+        ('input_rate_hz', f'{accepted / dt:.1f}'),
+        ('compute_time_mean_ms', f'{1e3 * sum(times) / len(times):.4f}' if times else 'nan'),
+        ('compute_time_max_ms', f'{1e3 * max(times):.4f}' if times else 'nan'),
+        ('received_total', str(c.received)),
+        ('accepted_total', str(c.accepted)),
+        ('rejected_total', str(c.rejected)),
+        ('stale', str(wd.waiting)),
+        ('stale_action', s['stale_action']),
+        ('stale_events', str(wd.stale_events)),
+        ('clamp_count', str(c.clamp_count)),
+        ('velocity_unavailable_count', str(c.velocity_unavailable)),
+        ('last_error', core.last_error),
+        ('description_error', core.description_error),
+        ('inertia_policy', s['inertia_policy']),
+        ('inertia_warnings', str(len(report_))),
+        ('inertia_repaired', str(repaired)),
+        ('inertia_report', clip(' | '.join(r['message'] for r in report_[:INERTIA_DIAG_MESSAGES]), DIAG_TEXT_MAX)),
+    ]
+    return level, '; '.join(msgs), values

@@ -1,0 +1,44 @@
+"""Stale-input detection on an injectable clock, in plain Python (no rclpy import)."""
+import time
+
+
+class Watchdog:
+    """Is the input stream alive? `feed` at every valid input, `expired` periodically.
+
+    Stale = no valid input for more than `timeout` seconds. `expired` reports that once per
+    stale period (so the caller acts once); the next `feed` ends the period. Before the first
+    valid input nothing is stale (there is nothing to hold). clock: seconds, time.monotonic by
+    default; every method also takes an explicit `now`.
+    """
+
+    def __init__(self, timeout, clock=time.monotonic):
+        self.timeout = timeout
+        self.clock = clock
+        self.last_valid_time = None
+        self.stale = False
+        self.stale_events = 0
+
+    def feed(self, now=None):
+        """A valid input at `now`. True when it ends a stale period (input is back)."""
+        self.last_valid_time = self.clock() if now is None else now
+        if self.stale:
+            self.stale = False
+            return True
+        return False
+
+    def expired(self, now=None):
+        """Seconds since the last valid input when the input has just become stale, else None."""
+        if self.stale or self.last_valid_time is None:
+            return None
+        now = self.clock() if now is None else now
+        age = now - self.last_valid_time
+        if age <= self.timeout:
+            return None
+        self.stale = True
+        self.stale_events += 1
+        return age
+
+    @property
+    def waiting(self):
+        """No valid input yet, or none for longer than the timeout (as last checked)."""
+        return self.stale or self.last_valid_time is None
