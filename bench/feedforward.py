@@ -162,7 +162,7 @@ def callback_cost(model, Q, desired, mode):
 
 
 def latency_bench(seconds, rate, rounds, pin_cpus=True):
-    nl._ros_env()
+    nl.ros_env()
     from lie_dynamics import load_urdf
     model = load_urdf(ARM, joints=nl.JOINTS)
     rng = np.random.default_rng(0)
@@ -175,7 +175,7 @@ def latency_bench(seconds, rate, rounds, pin_cpus=True):
     expected = {'gravity': model.gravity(Q), 'feedforward': tau_ff + (desired[0] - Q)}
     for v in expected.values():
         assert np.all(np.abs(v) < model.effort_limits)  # no clamping
-    keys = {m: {nl._key(x): k for k, x in enumerate(v[:N])} for m, v in expected.items()}
+    keys = {m: {nl.reply_key(x): k for k, x in enumerate(v[:N])} for m, v in expected.items()}
     params = {'gravity': {'mode': 'gravity'},
               'feedforward': {'mode': 'feedforward', 'kp': '[1.0]', 'kd': '[0.0]', 'desired_timeout': '1.0'}}
     cost = {m: callback_cost(model, Q, desired, m) for m in params}
@@ -284,8 +284,10 @@ def write(fill, lat, out_dir):
     return md
 
 
-def run(quick=False, out=os.path.join(HERE, 'out'), latency=True, rate=1000.0, pin_cpus=True):
-    """Both parts; writes out/feedforward.{md,csv}; returns (fill, latency or None, markdown)."""
+def run(quick=False, out=None, latency=True, rate=1000.0, pin_cpus=True):
+    """Both parts; writes out/feedforward.{md,csv} (default bench/out); returns (fill, latency or None,
+    markdown)."""
+    out = out or os.path.join(HERE, 'out')
     fill = fill_bench(quick)
     lat = latency_bench(1.0 if quick else 3.0, rate, 1 if quick else 3, pin_cpus) if latency else None
     return fill, lat, write(fill, lat, out)

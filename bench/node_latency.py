@@ -1,16 +1,23 @@
 """joint_states -> effort command latency of the dynamics node, beside a bare echo node.
 
-    .venv/bin/python -m bench.node_latency [--seconds 5] [--rate 1000] [--rounds 2]
+    .venv/bin/python -m bench.node_latency [--seconds 5] [--rates 1000,2000] [--rounds 2]
+                                           [--soak MINUTES] [--out DIR]
 
-A driver (this process, SingleThreadedExecutor) publishes sensor_msgs/JointState for the
-bundled 7-DoF arm at a fixed rate and times each std_msgs/Float64MultiArray reply. The
-node under test runs in its own process, as in a robot stack:
-  * echo:     a bare rclpy node copying positions into a Float64MultiArray (the floor);
-  * dynamics: `python -m lie_dynamics.dynamics_node` with config/arm7_gravity.yaml.
+A driver (this process) publishes sensor_msgs/JointState for the bundled 7-DoF arm at a fixed
+rate and times each std_msgs/Float64MultiArray reply. The node under test runs in its own
+process, as in a robot stack, under an executor chosen with LIE_DYNAMICS_EXECUTOR:
+  * echo:     a bare rclpy node copying positions into a Float64MultiArray (the floor), under
+              rclpy's default SingleThreadedExecutor and under the package's executor;
+  * dynamics: `python -m lie_dynamics.dynamics_node` with config/arm7_gravity.yaml, under the
+              package's executor (the EventsExecutor) and the fallback SingleThreadedExecutor.
 Replies are matched to requests by value (the echo returns q, the dynamics node g(q),
-which the driver precomputes), so drops and reordering are counted, not guessed.
-Then the rate is stepped up to find the highest rate each node sustains without a drop.
-This is a benchmark, not a test: numbers depend on the machine and its load.
+which the driver precomputes), so drops and reordering are counted, not guessed. Candidates
+run in interleaved rounds at each rate; per candidate: p50/p99/p99.9/max, the share of replies
+later than one period, drops and the node's CPU (% of one core, from /proc). --soak runs the
+dynamics node alone at the first rate for MINUTES and reports the RSS slope and drops. Writes
+node_latency.md/.csv/.json and a latency histogram (node_latency.png) to --out.
+This is a benchmark, not a test: numbers depend on the machine and its load; compare the
+ratios to the echo nodes measured in the same run.
 """
 import argparse
 import os
@@ -26,10 +33,12 @@ JOINTS = [f'joint{i}' for i in range(1, 8)]
 CMD = '/effort_controller/commands'
 
 
-def _ros_env():
+def ros_env():
+    from lie_dynamics.ros.domains import reserve_domains
+
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    if 'ROS_DOMAIN_ID' not in os.environ:
-        os.environ['ROS_DOMAIN_ID'] = str(150 + os.getpid() % 80)  # away from the tests' 1..100
+    if 'ROS_DOMAIN_ID' not in os.environ:  # a domain no test run or other benchmark uses
+        os.environ['ROS_DOMAIN_ID'] = str(reserve_domains(1)[0])
     if 'ROS_LOG_DIR' not in os.environ:
         os.environ['ROS_LOG_DIR'] = tempfile.mkdtemp(prefix='lie_dynamics_bench_log_')
 
@@ -37,11 +46,12 @@ def _ros_env():
 def echo_main():
     """The bare echo node (run in a subprocess with --echo-node)."""
     import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.executors import ExternalShutdownException
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray
 
     from lie_dynamics.ros.node import JOINT_STATES_QOS
+    from lie_dynamics.ros.run import make_executor
     from lie_dynamics.ros.node import NO_PUB_EVENTS as _NO_PUB_EVENTS, NO_SUB_EVENTS as _NO_SUB_EVENTS
 
     rclpy.init()
@@ -55,10 +65,11 @@ def echo_main():
         pub.publish(out)
 
     node.create_subscription(JointState, 'joint_states', on_js, JOINT_STATES_QOS, event_callbacks=_NO_SUB_EVENTS)
-    ex = SingleThreadedExecutor()
+    ex, _ = make_executor()
     ex.add_node(node)
     try:
-        ex.spin()
+        while rclpy.ok():  # spin_once: the EventsExecutor's spin() was seen busy-looping
+            ex.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
@@ -144,18 +155,19 @@ def match(sent, replies, keys):
     """Latencies (s) of matched replies, count of requests without a reply."""
     lat = np.full(len(sent), np.nan)
     for t, data in replies:
-        k = keys.get(_key(np.frombuffer(data, dtype=float)))
+        k = keys.get(reply_key(np.frombuffer(data, dtype=float)))
         if k is not None and np.isnan(lat[k]):
             lat[k] = t - sent[k]
     return lat, int(np.isnan(lat).sum())
 
 
-def _key(x):
+def reply_key(x):
     return np.round(x, 6).tobytes()
 
 
-def start(kind, cpu=None, params=None):
-    """params: extra dynamics-node parameters {name: value string}, after the file (they win)."""
+def start(kind, cpu=None, params=None, executor=None):
+    """params: extra dynamics-node parameters {name: value string}, after the file (they win).
+    executor: LIE_DYNAMICS_EXECUTOR of the node's process (None: the package's default)."""
     if kind == 'echo':
         cmd = [sys.executable, '-m', 'bench.node_latency', '--echo-node']
     else:
@@ -164,7 +176,33 @@ def start(kind, cpu=None, params=None):
         for k, v in (params or {}).items():
             cmd += ['-p', f'{k}:={v}']
     pre = (lambda: os.sched_setaffinity(0, {cpu})) if cpu is not None else None
-    return subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=pre)
+    env = dict(os.environ)
+    if executor:
+        env['LIE_DYNAMICS_EXECUTOR'] = executor
+    return subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            preexec_fn=pre)
+
+
+def cpu_seconds(proc):
+    """User + system CPU time (s) of a running process, from /proc (None where unavailable)."""
+    try:
+        with open(f'/proc/{proc.pid}/stat') as fh:
+            fields = fh.read().rsplit(')', 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def rss_mb(proc):
+    """Resident set size (MB) of a running process, from /proc (None where unavailable)."""
+    try:
+        with open(f'/proc/{proc.pid}/status') as fh:
+            for line in fh:
+                if line.startswith('VmRSS:'):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return None
 
 
 def stop(proc):
@@ -193,93 +231,198 @@ def callback_cost(model, Q):
     return np.median(t), np.percentile(t, 99)
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    ap.add_argument('--seconds', type=float, default=3.0, help='duration of each latency run')
-    ap.add_argument('--rate', type=float, default=1000.0, help='rate of the latency runs, Hz')
-    ap.add_argument('--rounds', type=int, default=3, help='alternating echo/dynamics rounds')
+# (label, kind, executor): the peers and the node, each under the executors compared
+CANDIDATES = (('echo, default executor', 'echo', 'single_threaded'), ('echo, events', 'echo', 'events'),
+              ('dynamics, events', 'dynamics', 'events'), ('dynamics, default executor', 'dynamics', 'single_threaded'))
+PEER, CHOSEN = CANDIDATES[0][0], CANDIDATES[2][0]
+# the issue's targets at 1 kHz (p50 relative to the default-executor echo node of the same run)
+TARGETS = {'drops': 0, 'p50_x_echo': 0.9, 'p99_ms': 0.8, 'late_pct': 0.5, 'cpu_pct': 30.0}
+
+
+def summarize(lat_s, drops, rate, cpu):
+    ok = lat_s[~np.isnan(lat_s)] * 1e3
+    late = 100.0 * (np.sum(ok > 1e3 / rate) + drops) / max(1, len(lat_s))
+    return dict(sent=len(lat_s), drops=drops, p50_ms=float(np.median(ok)), p99_ms=float(np.percentile(ok, 99)),
+                p999_ms=float(np.percentile(ok, 99.9)), max_ms=float(ok.max()), late_pct=float(late),
+                cpu_pct=float(cpu) if cpu is not None else float('nan'))
+
+
+def measure(driver, Q, keys, rate, seconds, node_cpu, rounds):
+    """Interleaved rounds of every candidate at `rate`: {label: (latencies, drops, cpu %)}."""
+    N = int(seconds * rate)
+    out = {label: [[], 0, []] for label, _, _ in CANDIDATES}
+    for _ in range(rounds):
+        for label, kind, executor in CANDIDATES:
+            proc = start(kind, node_cpu, executor=executor)
+            try:
+                driver.wait_ready(Q[0].tolist())
+                driver.run(Q[N:N + int(0.5 * rate)], rate)  # warm-up, discarded
+                c0, t0 = cpu_seconds(proc), time.perf_counter()
+                sent, _ = driver.run(Q[:N], rate)
+                c1, t1 = cpu_seconds(proc), time.perf_counter()
+                lat, drops = match(sent, list(driver.replies), keys[kind])
+                out[label][0].append(lat)
+                out[label][1] += drops
+                if c0 is not None and c1 is not None:
+                    out[label][2].append(100.0 * (c1 - c0) / (t1 - t0))
+            finally:
+                stop(proc)
+    return {label: (np.concatenate(v[0]), v[1], np.median(v[2]) if v[2] else None) for label, v in out.items()}
+
+
+def soak(driver, Q, keys, rate, minutes, node_cpu):
+    """The dynamics node alone at `rate` for `minutes`: RSS samples every 10 s, slope, drops."""
+    proc = start('dynamics', node_cpu)
+    samples, drops, sent_total = [], 0, 0
+    try:
+        driver.wait_ready(Q[0].tolist())
+        t_end = time.monotonic() + 60.0 * minutes
+        t0 = time.monotonic()
+        n = int(10 * rate)
+        while time.monotonic() < t_end:
+            sent, _ = driver.run(Q[:n], rate)
+            _, d = match(sent, list(driver.replies), keys['dynamics'])
+            drops += d
+            sent_total += len(sent)
+            samples.append((time.monotonic() - t0, rss_mb(proc)))
+    finally:
+        stop(proc)
+    t = np.array([s[0] for s in samples]) / 60.0
+    rss = np.array([s[1] if s[1] is not None else np.nan for s in samples])
+    half = len(rss) // 2  # the slope after start-up transients
+    slope = float(np.polyfit(t[half:], rss[half:], 1)[0]) if len(rss) - half >= 2 else float('nan')
+    return dict(minutes=minutes, sent=sent_total, drops=drops, rss_start_mb=float(rss[0]), rss_end_mb=float(rss[-1]),
+                rss_slope_mb_per_min=slope)
+
+
+def markdown(rows, targets_at, soak_result, callback):
+    lines = ['# joint_states -> effort round trip: the dynamics node beside bare echo nodes', '',
+             f'In-process decision logic + g(q) (no DDS): median {callback[0]:.1f} µs, p99 {callback[1]:.1f} µs per '
+             'message.', '',
+             '| rate Hz | node | sent | drops | p50 ms | p99 ms | p99.9 ms | max ms | late % | CPU % | p50 × echo |',
+             '|---|---|---|---|---|---|---|---|---|---|---|']
+    for r in rows:
+        lines.append(f"| {r['rate']:.0f} | {r['node']} | {r['sent']} | {r['drops']} | {r['p50_ms']:.3f} | "
+                     f"{r['p99_ms']:.3f} | {r['p999_ms']:.3f} | {r['max_ms']:.3f} | {r['late_pct']:.2f} | "
+                     f"{r['cpu_pct']:.0f} | {r['p50_x_echo']:.2f} |")
+    lines += ['', 'late % = replies later than one period, drops included; p50 × echo: against the echo node under '
+              "rclpy's default executor in the same run.", '', f'Targets at {targets_at:.0f} Hz ({CHOSEN}):', '']
+    for name, ok, text in targets_status(rows, targets_at):
+        lines.append(f"- {'met' if ok else 'NOT met'}: {name} ({text})")
+    if soak_result:
+        s = soak_result
+        lines += ['', f"Soak ({CHOSEN}, {s['minutes']:g} min): {s['sent']} sent, {s['drops']} drops, RSS "
+                  f"{s['rss_start_mb']:.0f} -> {s['rss_end_mb']:.0f} MB, "
+                  f"slope {s['rss_slope_mb_per_min']:+.3f} MB/min."]
+    return '\n'.join(lines) + '\n'
+
+
+def targets_status(rows, rate):
+    at = {r['node']: r for r in rows if r['rate'] == rate}
+    r = at.get(CHOSEN)
+    if r is None:
+        return []
+    out = [('zero drops', r['drops'] == TARGETS['drops'], f"{r['drops']} drops"),
+           ('p50 <= 0.9 x default-executor echo p50', r['p50_x_echo'] <= TARGETS['p50_x_echo'],
+            f"{r['p50_x_echo']:.2f} x"),
+           ('p99 <= 0.8 ms', r['p99_ms'] <= TARGETS['p99_ms'], f"{r['p99_ms']:.3f} ms"),
+           ('<= 0.5% later than one period', r['late_pct'] <= TARGETS['late_pct'], f"{r['late_pct']:.2f} %"),
+           ('node CPU <= 30% of a core', r['cpu_pct'] <= TARGETS['cpu_pct'], f"{r['cpu_pct']:.0f} %")]
+    fast = [x for x in rows if x['node'] == CHOSEN and x['rate'] > rate]
+    if fast:
+        out.append((f"drop-free at {fast[0]['rate']:.0f} Hz", fast[0]['drops'] == 0, f"{fast[0]['drops']} drops"))
+    return out
+
+
+def plot(lat_by, path):
+    from bench import common
+    plt = common.setup_matplotlib()
+    fig, ax = plt.subplots(figsize=(8, 4))
+    bins = np.logspace(-1.3, 1.5, 80)
+    for label, lat in lat_by.items():
+        ok = lat[~np.isnan(lat)] * 1e3
+        ax.hist(ok, bins=bins, histtype='step', lw=1.2, label=f'{label} (p50 {np.median(ok):.2f} ms)')
+    ax.set_xscale('log')
+    ax.set_yscale('log')
+    ax.set_xlabel('round trip joint_states -> command (ms)')
+    ax.set_ylabel('replies')
+    ax.axvline(1.0, color='k', lw=0.8, ls='--')
+    ax.set_title('Round-trip latency at 1 kHz (dashed: one period)')
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    common.savefig(fig, path)
+
+
+def run(quick=False, out=None, argv=None):
+    args = parse(argv if argv is not None else (['--seconds', '1', '--rounds', '1'] if quick else []))
+    if out:
+        args.out = out
+    return measure_all(args)
+
+
+def parse(argv):
+    ap = argparse.ArgumentParser(prog='python -m bench.node_latency', description=__doc__.split('\n')[0])
+    ap.add_argument('--seconds', type=float, default=5.0, help='duration of each latency run, s')
+    ap.add_argument('--rates', default='1000,2000', help='rates of the latency runs, Hz (the first is the target)')
+    ap.add_argument('--rounds', type=int, default=2, help='interleaved rounds of every candidate')
+    ap.add_argument('--soak', type=float, default=0.0, metavar='MINUTES',
+                    help='also run the dynamics node alone for MINUTES: RSS slope and drops')
     ap.add_argument('--no-pin', action='store_true',
                     help='do not pin the driver to CPU 0 and the node under test to CPU 1')
-    ap.add_argument('--max-rates', default='1000,2000,3000,4000,6000',
-                    help='rates tried for the sustained-rate search (2 s each)')
+    ap.add_argument('--out', default=os.path.join(ROOT, 'bench', 'out'), help='output folder')
     ap.add_argument('--echo-node', action='store_true', help=argparse.SUPPRESS)
-    args = ap.parse_args(argv)
-    _ros_env()
-    if args.echo_node:
-        return echo_main()
+    return ap.parse_args(argv)
 
+
+def main(argv=None):
+    args = parse(argv)
+    if args.echo_node:
+        ros_env()
+        return echo_main()
+    measure_all(args)
+    return 0
+
+
+def measure_all(args):
+    from bench import common
     from lie_dynamics import load_urdf
+
+    ros_env()
+    rates = [float(x) for x in args.rates.split(',')]
     model = load_urdf(os.path.join(ROOT, 'config', 'arm7.urdf'), joints=JOINTS)
     rng = np.random.default_rng(0)
     lo, hi = np.maximum(model.position_lower, -2.5), np.minimum(model.position_upper, 2.5)
-    N = int(args.seconds * args.rate)
-    Q = lo + (hi - lo) * rng.random((max(N, 12000), 7))
-    expected = {'echo': Q, 'dynamics': np.array([model.gravity(q) for q in Q])}
+    Q = lo + (hi - lo) * rng.random((max(int(args.seconds * max(rates)) + int(max(rates)), 12000), 7))
+    expected = {'echo': Q, 'dynamics': model.gravity(Q)}
     assert np.all(np.abs(expected['dynamics']) < model.effort_limits)  # no clamping in the table
-    keys = {kind: {_key(x): k for k, x in enumerate(v)} for kind, v in expected.items()}
-    med, p99 = callback_cost(model, Q)
-    print(f'decision logic + g(q) in-process (no DDS): median {med:.1f} us, p99 {p99:.1f} us per message')
-
+    keys = {kind: {reply_key(x): k for k, x in enumerate(v)} for kind, v in expected.items()}
+    callback = callback_cost(model, Q)
     cpus = sorted(os.sched_getaffinity(0))
     node_cpu = None
     if not args.no_pin and len(cpus) >= 2:
         os.sched_setaffinity(0, {cpus[0]})
         node_cpu = cpus[1]
     driver = Driver()
-    results = {'echo': [], 'dynamics': []}
-    sustained = {}
+    rows, hist, soak_result = [], {}, None
     try:
-        for r in range(args.rounds):
-            for kind in ('echo', 'dynamics'):
-                proc = start(kind, node_cpu)
-                try:
-                    driver.wait_ready(Q[0].tolist())
-                    warm = int(0.5 * args.rate)
-                    driver.run(Q[N:N + warm], args.rate)  # warm-up, discarded
-                    sent, achieved = driver.run(Q[:N], args.rate)
-                    lat, drops = match(sent, list(driver.replies), keys[kind])
-                    results[kind].append((lat, drops, achieved))
-                    if r == args.rounds - 1:
-                        best = None
-                        for rate in [float(x) for x in args.max_rates.split(',')]:
-                            n = int(2 * rate)
-                            s, ach = driver.run(Q[:n], rate)
-                            _, d = match(s, list(driver.replies), keys[kind])
-                            if d or ach < 0.95 * rate:
-                                sustained[kind] = (best, rate, d, ach)
-                                break
-                            best = ach
-                        else:
-                            sustained[kind] = (best, None, 0, best)
-                finally:
-                    stop(proc)
+        for rate in rates:
+            res = measure(driver, Q, keys, rate, args.seconds, node_cpu, args.rounds)
+            peer = summarize(*res[PEER][:2], rate, res[PEER][2])
+            for label, (lat, drops, cpu) in res.items():
+                r = dict(rate=rate, node=label, **summarize(lat, drops, rate, cpu))
+                r['p50_x_echo'] = r['p50_ms'] / peer['p50_ms']
+                rows.append(r)
+                if rate == rates[0]:
+                    hist[label] = lat
+        if args.soak > 0:
+            soak_result = soak(driver, Q, keys, rates[0], args.soak, node_cpu)
     finally:
         driver.close()
-
-    pin = f'driver on CPU {cpus[0]}, node on CPU {node_cpu}' if node_cpu is not None else 'not pinned'
-    print(f'\nround trip joint_states -> node -> command, {args.rate:.0f} Hz, {args.seconds:g} s x '
-          f'{args.rounds} alternating rounds, arm7 (7 joints), SingleThreadedExecutor everywhere, {pin}')
-    print(f"{'node':<10}{'sent':>8}{'drops':>7}{'rate Hz':>9}{'median ms':>11}{'p99 ms':>9}{'max ms':>9}"
-          f"{'x echo med':>12}{'x echo p99':>12}")
-    stats = {}
-    for kind in ('echo', 'dynamics'):
-        lat = np.concatenate([x[0] for x in results[kind]])
-        drops = sum(x[1] for x in results[kind])
-        ach = np.mean([x[2] for x in results[kind]])
-        ok = lat[~np.isnan(lat)] * 1e3
-        stats[kind] = (np.median(ok), np.percentile(ok, 99), ok.max(), drops, len(lat), ach)
-    for kind in ('echo', 'dynamics'):
-        m, p, mx, drops, n, ach = stats[kind]
-        print(f'{kind:<10}{n:>8}{drops:>7}{ach:>9.0f}{m:>11.3f}{p:>9.3f}{mx:>9.3f}'
-              f'{m / stats["echo"][0]:>12.2f}{p / stats["echo"][1]:>12.2f}')
-    per_round = [np.nanmedian(d[0]) / np.nanmedian(e[0]) for e, d in zip(results['echo'], results['dynamics'])]
-    print('median ratio per round: ' + ', '.join(f'{r:.2f}' for r in per_round))
-    print('\nhighest sustained rate without a drop (2 s steps):')
-    for kind, (best, failed, d, ach) in sustained.items():
-        tail = (f'; at {failed:.0f} Hz: {d} drops, driver reached {ach:.0f} Hz' if failed else
-                '; all steps passed (limit not reached)')
-        print(f'  {kind:<10}{(f"{best:.0f} Hz" if best else "< first step"):>10}{tail}')
-    return 0
+    md = markdown(rows, rates[0], soak_result, callback)
+    print(md)
+    common.write_tables(args.out, 'node_latency', md, dict(rows=rows, soak=soak_result, targets=TARGETS), rows)
+    plot(hist, os.path.join(args.out, 'node_latency.png'))
+    return rows, soak_result
 
 
 if __name__ == '__main__':

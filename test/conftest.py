@@ -3,37 +3,16 @@
 ROS 2 environment for tests that start rclpy (set at import, before any `rclpy.init`):
 a private log/home directory, discovery limited to this machine, and DDS domains of our own
 per pytest-xdist worker, so parallel workers and other runs on the machine do not see each
-other's topics. Each domain is reserved with a lock file held for the worker's lifetime: two
-test runs on one machine (a developer's and CI's, say) can never share a domain, which once
-let one run's demo processes command the other's simulated arm.
+other's topics. Each domain is reserved with a lock file held for the worker's lifetime
+(lie_dynamics.ros.domains): two test runs on one machine (a developer's and CI's, say) can never
+share a domain, which once let one run's demo processes command the other's simulated arm.
 """
-import fcntl
 import os
 import tempfile
 import time
 import zlib
 
-DOMAINS = 232  # Fast DDS: ports 7400 + 250 * domain must stay below 65536
-_HELD = []     # lock files of the reserved domains, open until the process ends
-
-
-def reserve_domains(count, start):
-    """`count` DDS domains from 1..DOMAINS no other process on this machine holds, searching
-    from `start`; each stays reserved while this process lives."""
-    found = []
-    for k in range(DOMAINS):
-        domain = 1 + (start + k) % DOMAINS
-        fh = open(os.path.join(tempfile.gettempdir(), f'lie_dynamics_dds_domain_{domain}.lock'), 'w')
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:  # another run holds it
-            fh.close()
-            continue
-        _HELD.append(fh)
-        found.append(domain)
-        if len(found) == count:
-            return found
-    raise RuntimeError('no free DDS domain on this machine')
+from lie_dynamics.ros.domains import reserve_domains
 
 
 def _ros_test_environment():

@@ -26,6 +26,7 @@ import time
 import numpy as np
 
 from .. import default_urdf_path
+from ..ros.domains import reserve_domains
 from .trajectory_source import desired_state
 from ..model.urdf import load_urdf
 
@@ -127,7 +128,7 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
 
     node_params, with_traj = scenarios()[name]
     env = dict(os.environ)
-    env['ROS_DOMAIN_ID'] = str(domain if domain is not None else 50 + os.getpid() % 50)
+    env['ROS_DOMAIN_ID'] = str(domain if domain is not None else reserve_domains(1)[0])
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     log_dir = log_dir or tempfile.mkdtemp(prefix='lie_dynamics_demo_')
     os.makedirs(log_dir, exist_ok=True)
@@ -320,7 +321,8 @@ def _run(args):
         m = metrics(name, {k: np.asarray(v, dtype=float) for k, v in rec.items()})
         err = m.get('rms_error', m.get('drift', np.nan))
         sys.stdout.write(f"\r{name:22s} t = {rec['t'][-1]:7.2f} s  "
-                         f"{'rms error' if 'rms_error' in m else 'drift'} (last {STATUS_WINDOW_S:g} s) {err:.2e} rad   ")
+                         f"{'rms error' if 'rms_error' in m else 'drift'} (last {STATUS_WINDOW_S:g} s) "
+                         f"{err:.2e} rad   ")
         sys.stdout.flush()
 
     records = {}
@@ -335,7 +337,8 @@ def _run(args):
     except KeyboardInterrupt:
         print('\ninterrupted: processes stopped')
     rows = [metrics(n, r) for n, r in records.items()]
-    print(f"\n{'scenario':24s} {'samples':>8s} {'max drift (rad)':>16s} {'RMS error (rad)':>16s} {'max error (rad)':>16s}")
+    print(f"\n{'scenario':24s} {'samples':>8s} {'max drift (rad)':>16s} {'RMS error (rad)':>16s} "
+          f"{'max error (rad)':>16s}")
     for r in rows:
         cells = (f'{r[k]:16.3e}' if k in r else ' ' * 16 for k in ('drift', 'rms_error', 'max_error'))
         print(f"{r['scenario']:24s} {r['samples']:8d} " + ' '.join(cells))  # not applicable: empty
