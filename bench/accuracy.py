@@ -69,7 +69,7 @@ def methods(model, xml, q, qd, qdd, tau, NB, S_mr):
         lambda: model.inverse_dynamics(qb, qdb, qddb), NB)
 
     def vect(i):
-        return rnea._reference_inverse_dynamics(model, np.array([q[i], qd[i], qdd[i]]), None, True)
+        return rnea.inverse_dynamics_vectorized(model, q[i], qd[i], qdd[i])
     add(op, 'lie_dynamics vectorised path', 'lie_dynamics', 'single', each(vect), lambda: vect(0))
     add(op, 'bench RNEA float64', 'bench', 'batched', first(lambda: f64.inverse_dynamics(qb, qdb, qddb)),
         lambda: f64.inverse_dynamics(qb, qdb, qddb), NB)

@@ -58,14 +58,13 @@ def _build(model, urdf_xml, op, N, rng, mr_states):
     Mlist, Glist, Slist = modern_robotics_lists(model)
     g = model.gravity_vector
     k = min(N, mr_states)
-    names = ('q', 'qd', 'qdd')
 
     if op == 'inverse_dynamics':
         args = (q[0], qd[0], qdd[0]) if N == 1 else (q, qd, qdd)
         ours = lambda: model.inverse_dynamics(*args)  # noqa: E731
 
         def vect():
-            return rnea._reference_inverse_dynamics(model, np.array(rnea._states(model, args, names)), None, True)
+            return rnea.inverse_dynamics_vectorized(model, *args)
         if N == 1:
             pino = lambda: pin.rnea(pm, pd, q[0], qd[0], qdd[0])  # noqa: E731
         else:
@@ -79,7 +78,7 @@ def _build(model, urdf_xml, op, N, rng, mr_states):
         ours = lambda: model.gravity(args)  # noqa: E731
 
         def vect():
-            return rnea._reference_gravity(model, rnea._states(model, (args,), ('q',))[0])
+            return rnea.gravity_vectorized(model, args)
         if N == 1:
             pino = lambda: pin.computeGeneralizedGravity(pm, pd, q[0])  # noqa: E731
         else:

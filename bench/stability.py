@@ -169,7 +169,7 @@ def scan_chain_length(quick):
         outs = {
             'lie_dynamics single state': np.array([model.inverse_dynamics(q[i], qd[i], qdd[i]) for i in range(S)]),
             'lie_dynamics batched': model.inverse_dynamics(*(np.resize(a, (big, n)) for a in (q, qd, qdd)))[:S],
-            'lie_dynamics vectorised path': rnea._reference_inverse_dynamics(model, np.array([q, qd, qdd]), None, True),
+            'lie_dynamics vectorised path': rnea.inverse_dynamics_vectorized(model, q, qd, qdd),
             'Pinocchio': np.array([pin.rnea(pm, pd, q[i], qd[i], qdd[i]) for i in range(S)]),
             'bench RNEA float64': Generic(model, np.float64).inverse_dynamics(q, qd, qdd),
             'bench RNEA float32': Generic(model, np.float32).inverse_dynamics(

@@ -11,7 +11,7 @@ def test_rnea_derivatives_match_pinocchio(name):
     model, oracle = case(name)
     q, qd, qdd = states(model, seed=10)
     dq, dv = model.inverse_dynamics_derivatives(q, qd, qdd)
-    ref = [np.array(r) for r in zip(*(oracle.rnea_derivatives(*s) for s in zip(q, qd, qdd)))]
+    ref = [np.array(r) for r in zip(*(oracle.rnea_derivatives(*s) for s in zip(q, qd, qdd, strict=True)), strict=True)]
     floor = 1e-4 * np.abs(model.mass_matrix(q)).max() * max(1.0, np.abs(qd).max())
     assert rel_err(dq, ref[0], floor) < 1e-8
     assert rel_err(dv, ref[1], floor) < 1e-8
@@ -42,8 +42,8 @@ def test_rnea_derivatives_match_finite_differences(name):
 
     for wr in (None, w):
         dq, dv = model.inverse_dynamics_derivatives(q, qd, qdd, wr)
-        assert rel_err(dq, fd(lambda d: model.inverse_dynamics(q + d, qd, qdd, wr)), 1e-3) < 1e-7
-        assert rel_err(dv, fd(lambda d: model.inverse_dynamics(q, qd + d, qdd, wr)), 1e-3) < 1e-7
+        assert rel_err(dq, fd(lambda d, wr=wr: model.inverse_dynamics(q + d, qd, qdd, wr)), 1e-3) < 1e-7
+        assert rel_err(dv, fd(lambda d, wr=wr: model.inverse_dynamics(q, qd + d, qdd, wr)), 1e-3) < 1e-7
     one = model.inverse_dynamics_derivatives(q[1], qd[1], qdd[1])
     full = model.inverse_dynamics_derivatives(q, qd, qdd)
     assert one[0].shape == (n, n) and np.allclose(one[0], full[0][1], rtol=1e-12, atol=1e-12)
@@ -77,7 +77,7 @@ def test_generated_kernel_paths(name):
     """Float loop and numpy-rows forms of the generated kernel, with and without wrenches."""
     model, oracle = case(name)
     q, qd, qdd = states(model, 30, seed=15)
-    ref = [np.array(r) for r in zip(*(oracle.rnea_derivatives(*s) for s in zip(q, qd, qdd)))]
+    ref = [np.array(r) for r in zip(*(oracle.rnea_derivatives(*s) for s in zip(q, qd, qdd, strict=True)), strict=True)]
     floor = 1e-4 * np.abs(model.mass_matrix(q)).max() * max(1.0, np.abs(qd).max())
     links = [ln for ln, (b, _) in model.link_frames.items() if b >= 0]
     w = {links[-1]: np.random.default_rng(3).normal(size=(30, 6))}
@@ -95,13 +95,13 @@ def test_kernel_frame_choice_does_not_change_results(name):
     """The kernel works in the frame of one body (the first by default): any body gives the same
     derivatives, with and without wrenches (covariance of the formulas)."""
     import math
-    from lie_dynamics import codegen as cg
+    from lie_dynamics.codegen import runtime
     model, oracle = case(name)
     q, qd, qdd = states(model, 3, seed=17)
-    fr = cg.frames(model)
-    P, E0, A0 = cg.model_params(model, fr, gravity=True)
+    fr = runtime.frames(model)
+    P, E0, A0 = runtime.model_params(model, fr, gravity=True)
     fx = np.random.default_rng(4).normal(size=(fr.nb * 6)).tolist()
-    ref = [np.array(r) for r in zip(*(oracle.rnea_derivatives(*s) for s in zip(q, qd, qdd)))]
+    ref = [np.array(r) for r in zip(*(oracle.rnea_derivatives(*s) for s in zip(q, qd, qdd, strict=True)), strict=True)]
     floor = 1e-4 * np.abs(model.mass_matrix(q)).max() * max(1.0, np.abs(qd).max())
     n = model.n
     centres = sorted({0, fr.nb // 2, fr.nb - 1})
@@ -110,7 +110,7 @@ def test_kernel_frame_choice_does_not_change_results(name):
         fn, _ = rnea_derivatives._build_kernel(fr, False, center=centre)
         fw, _ = rnea_derivatives._build_kernel(fr, True, center=centre)
         out = np.array([fn(a.tolist(), b.tolist(), c.tolist(), P, A0, E0, sin=math.sin, cos=math.cos)
-                        for a, b, c in zip(q, qd, qdd)]).reshape(-1, 2, n, n)
+                        for a, b, c in zip(q, qd, qdd, strict=True)]).reshape(-1, 2, n, n)
         assert rel_err(out[:, 0], ref[0], floor) < 1e-8 and rel_err(out[:, 1], ref[1], floor) < 1e-8
         with_wrench.append(np.array(fw(q[0].tolist(), qd[0].tolist(), qdd[0].tolist(), P, A0, E0, fx,
                                        sin=math.sin, cos=math.cos)))
@@ -129,7 +129,7 @@ def test_derivatives_with_locked_joints():
     model.set_locked(locked)
     oracle = Oracle(xml, joints=ctrl, locked=locked)
     q, qd, qdd = states(model, 6, seed=16)
-    ref = [np.array(r) for r in zip(*(oracle.rnea_derivatives(*s) for s in zip(q, qd, qdd)))]
+    ref = [np.array(r) for r in zip(*(oracle.rnea_derivatives(*s) for s in zip(q, qd, qdd, strict=True)), strict=True)]
     floor = 1e-4 * np.abs(model.mass_matrix(q)).max() * max(1.0, np.abs(qd).max())
     for mode in ('loop', 'rows'):
         dq, dv = rnea_derivatives._kernel_derivatives(model, q, qd, qdd, None, mode)
@@ -151,20 +151,20 @@ def test_codegen_tracer_folds_and_matches_float_evaluation():
     """The tracer behind the generated kernels: folding, cancellation, float and row evaluation."""
     import math
 
-    from lie_dynamics import codegen as cg
-    g = cg.Graph()
+    from lie_dynamics.codegen import algebra, render, runtime, tracer
+    g = tracer.Graph()
     x, y = g.input('x'), g.input('y')
     assert (x - x) == 0.0 and 0.0 * x == 0.0 and (x + 0.0).terms == x.terms and (x - 2.0 * x).terms == (-x).terms
-    z = cg.cross((x, y, 1.0), (y, x, 0.0))          # (-x, y, x^2 - y^2)
+    z = algebra.cross((x, y, 1.0), (y, x, 0.0))          # (-x, y, x^2 - y^2)
 
     def direct(a, b):
         return (-a, b, a * a - b * b, math.sin(a) * b + 2.0 / (a * a + 1.0), math.sqrt(b * b + 1.0))
 
     outs = list(z) + [g.sin(x) * y + 2.0 * g.inv(x * x + 1.0), g.sqrt(y * y + 1.0)]
-    fn, _ = cg.kernel(g, 'k', [('A', ['x', 'y'])], outs)
+    fn, _ = render.kernel(g, 'k', [('A', ['x', 'y'])], outs)
     for a, b in [(0.3, -1.2), (2.0, 0.5)]:
         assert np.allclose(fn([a, b], sin=math.sin, cos=math.cos, sqrt=math.sqrt), direct(a, b), rtol=1e-15)
-    rows = cg.run_rows(fn, [np.array([[0.3, -1.2], [2.0, 0.5]])], 5)
+    rows = runtime.run_rows(fn, [np.array([[0.3, -1.2], [2.0, 0.5]])], 5)
     assert np.allclose(rows, [direct(0.3, -1.2), direct(2.0, 0.5)], rtol=1e-15)
 
 
@@ -173,8 +173,8 @@ def test_codegen_rows_rendering_registers_and_parameters():
     into a reused register that is never one of its own operands, chunks with a short last one."""
     import math
 
-    from lie_dynamics import codegen as cg
-    g = cg.Graph()
+    from lie_dynamics.codegen import render, runtime, tracer
+    g = tracer.Graph()
     a, b = g.input('a'), g.input('b')            # per state
     p, k = g.input('p'), g.input('k')            # parameters
     s = a
@@ -182,7 +182,7 @@ def test_codegen_rows_rendering_registers_and_parameters():
         s = g.cos(s * p + b) * (1.5 + 0.1 * i) - a * k
     pk = p * k + 2.0                             # parameters only
     outs = [s, pk * a - 3.0 * b, g.inv(pk), g.sqrt(a * a + k * k), -(a - 2.0 * b) + pk]
-    fn, _ = cg.kernel(g, 'k', [('X', ['a', 'b']), ('P', ['p', 'k'])], outs)
+    fn, _ = render.kernel(g, 'k', [('X', ['a', 'b']), ('P', ['p', 'k'])], outs)
     assert fn.nreg < 10 and 'u' in fn.rows_source      # registers reused; a hoisted parameter value
     for line in fn.rows_source.splitlines():
         if 'out=' in line:                       # the target is not read by the same ufunc
@@ -192,4 +192,4 @@ def test_codegen_rows_rendering_registers_and_parameters():
     P = [0.7, -1.3]
     ref = np.array([fn(list(x), P, sin=math.sin, cos=math.cos, sqrt=math.sqrt) for x in X])
     for chunk in (None, 4):
-        assert np.allclose(cg.run_rows(fn, [X, P], len(outs), chunk=chunk), ref, rtol=1e-14, atol=1e-14)
+        assert np.allclose(runtime.run_rows(fn, [X, P], len(outs), chunk=chunk), ref, rtol=1e-14, atol=1e-14)

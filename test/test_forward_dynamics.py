@@ -100,7 +100,8 @@ def test_forward_dynamics_derivatives_match_pinocchio(name):
     model, oracle = case(name)
     q, qd, tau = states(model, seed=8)
     dq, dv, Minv = model.forward_dynamics_derivatives(q, qd, tau)
-    ref = [np.array(r) for r in zip(*(_pin_aba_derivatives(oracle, *s) for s in zip(q, qd, tau)))]
+    ref = [np.array(r) for r in zip(*(_pin_aba_derivatives(oracle, *s) for s in zip(q, qd, tau, strict=True)),
+                                    strict=True)]
     assert rel_err(dq, ref[0]) < 1e-8
     assert rel_err(dv, ref[1]) < 1e-8
     assert rel_err(Minv, ref[2]) < 1e-8
@@ -111,9 +112,9 @@ def test_forward_dynamics_derivatives_match_pinocchio(name):
         out = aba_derivatives._kernel_states(model, q, qd, tau, mode)
         assert (out is None) == (model.nb > aba_derivatives.KERNEL_MAX_BODIES)
         if out is not None:
-            assert all(rel_err(o, r) < 1e-8 for o, r in zip(out, ref))
+            assert all(rel_err(o, r) < 1e-8 for o, r in zip(out, ref, strict=True))
     one = model.forward_dynamics_derivatives(q[0], qd[0], tau[0])
-    assert all(rel_err(o[None], r[:1]) < 1e-8 for o, r in zip(one, ref))
+    assert all(rel_err(o[None], r[:1]) < 1e-8 for o, r in zip(one, ref, strict=True))
 
 
 @pytest.mark.parametrize('name', ['tree20_mimic', 'arm7'])
@@ -230,7 +231,7 @@ def test_aba_kernel_paths_match_pinocchio(name):
         assert rel_err(out, ref) < 1e-10, mode
     # default dispatch (the kernel, not the vectorised form): one state at a time on floats,
     # a small batch state by state, a large batch on rows
-    one = np.array([model.forward_dynamics(a, b, c, method='aba') for a, b, c in zip(q, qd, tau)])
+    one = np.array([model.forward_dynamics(a, b, c, method='aba') for a, b, c in zip(q, qd, tau, strict=True)])
     assert np.array_equal(one, paths['loop']) and rel_err(one, ref) < 1e-10
     assert np.array_equal(model.forward_dynamics(q[:5].tolist(), qd[:5], tau[:5], method='aba'), paths['loop'][:5])
     batch = model.forward_dynamics(q, qd, tau, method='aba')
@@ -260,7 +261,7 @@ def test_aba_kernel_follows_payload_gravity_and_locked_joints_without_recompilin
     assert rel_err(model.forward_dynamics(q[3], qd[3], tau[3], method='aba')[None], ref[3:4]) < 1e-10
     assert part.locked_joint_names
     for k, values in enumerate(((0.0,) * 4, (0.4, -1.1, 2.0, 0.3))):
-        part.set_locked(dict(zip(part.locked_joint_names, values)))
+        part.set_locked(dict(zip(part.locked_joint_names, values, strict=True)))
         oracle = Oracle(xml, joints=ctrl, locked=part.locked_values)
         q, qd, tau = states(part, seed=23 + k)
         ref = oracle_stack(oracle.aba, q, qd, tau)

@@ -1,4 +1,4 @@
-"""Generated RNEA kernels (lie_dynamics/kernels.py): every execution path gives the same torques.
+"""Generated RNEA kernels (codegen/traced/rnea.py): every execution path gives the same torques.
 
 Paths: float kernel (one state, small batches), numpy-rows kernel (chunks, tails shorter than
 a chunk), the vectorised reference (models the kernels do not cover), and their parameter
@@ -11,7 +11,8 @@ import threading
 import numpy as np
 import pytest
 
-from lie_dynamics.codegen import kernels
+from lie_dynamics.codegen import runtime
+from lie_dynamics.codegen.traced import rnea as traced_rnea
 from lie_dynamics import load_urdf
 from lie_dynamics.algorithms import rnea
 from robots import named_urdf
@@ -31,22 +32,22 @@ def _states(model, N, seed=0):
 @pytest.mark.parametrize('case', CASES)
 def test_float_rows_and_reference_paths_agree(case):
     model = load_urdf(named_urdf(case))
-    assert kernels.for_model(model) is not None
-    N = 5 + kernels.CHUNK  # one full chunk of the rows kernel plus a short tail
+    assert runtime.kernel(model, traced_rnea.INVERSE_DYNAMICS) is not None
+    N = 5 + runtime.THRESHOLDS['rows_chunk']  # one full chunk of the rows kernel plus a short tail
     q, qd, qdd = _states(model, N)
     batch = model.inverse_dynamics(q, qd, qdd)                       # rows kernel
     small = model.inverse_dynamics(q[:7], qd[:7], qdd[:7])           # float kernel in a loop
     single = np.array([model.inverse_dynamics(q[i], qd[i], qdd[i]) for i in (0, N - 1)])
-    ref = rnea._reference_inverse_dynamics(model, np.array([q, qd, qdd]), None, True)
+    ref = rnea.inverse_dynamics_vectorized(model, q, qd, qdd)
     assert _rel(batch, ref) < 1e-12 and _rel(small, ref[:7]) < 1e-12
     assert _rel(single, ref[[0, N - 1]]) < 1e-12
     g = model.gravity(q)
-    g_ref = rnea._reference_gravity(model, q)
+    g_ref = rnea.gravity_vectorized(model, q)
     assert _rel(g, g_ref) < 1e-12
     assert _rel(np.array([model.gravity(q[0]), model.gravity(q[-1])]), g_ref[[0, -1]]) < 1e-12
     assert _rel(model.gravity(q[:3]), g_ref[:3]) < 1e-12
     cor = model.coriolis_term(q, qd)
-    cor_ref = rnea._reference_inverse_dynamics(model, np.array([q, qd, 0 * qdd]), None, False)
+    cor_ref = rnea.inverse_dynamics_vectorized(model, q, qd, 0 * qdd, with_gravity=False)
     assert _rel(cor, cor_ref) < 1e-12
     assert _rel(model.coriolis_term(q[0], qd[0]), cor_ref[0]) < 1e-12
 
@@ -60,17 +61,16 @@ def test_parameter_changes_reach_the_kernels():
     model.set_payload(link, 2.0, [0.1, 0.0, -0.2], [0.02, 0.0, 0.0, 0.03, 0.0, 0.04])
     model.set_gravity([1.0, -2.0, -9.0])
     for qs in ((q, qd, qdd), (q[0], qd[0], qdd[0])):
-        a = np.array(qs)
-        assert _rel(model.inverse_dynamics(*qs), rnea._reference_inverse_dynamics(model, a, None, True)) < 1e-12
-        assert _rel(model.gravity(qs[0]), rnea._reference_gravity(model, qs[0])) < 1e-12
+        assert _rel(model.inverse_dynamics(*qs), rnea.inverse_dynamics_vectorized(model, *qs)) < 1e-12
+        assert _rel(model.gravity(qs[0]), rnea.gravity_vectorized(model, qs[0])) < 1e-12
     # locked joints: values change after compilation
     ctrl = model.joint_names[::2]
     part = load_urdf(xml, joints=ctrl)
     qq = _states(part, 40)
     part.inverse_dynamics(*qq)
     part.set_locked({j: 0.3 + 0.1 * k for k, j in enumerate(part.locked_joint_names)})
-    assert _rel(part.inverse_dynamics(*qq), rnea._reference_inverse_dynamics(part, qq, None, True)) < 1e-12
-    assert _rel(part.gravity(qq[0]), rnea._reference_gravity(part, qq[0])) < 1e-12
+    assert _rel(part.inverse_dynamics(*qq), rnea.inverse_dynamics_vectorized(part, *qq)) < 1e-12
+    assert _rel(part.gravity(qq[0]), rnea.gravity_vectorized(part, qq[0])) < 1e-12
 
 
 def test_wrenches_on_every_path():
@@ -80,10 +80,10 @@ def test_wrenches_on_every_path():
     for N in (1, 10, 300):
         q, qd, qdd = _states(model, N)
         W = {links[0]: rng.normal(size=6), links[-1]: rng.normal(size=(N, 6))}
-        ref = rnea._reference_inverse_dynamics(model, np.array([q, qd, qdd]), W, True)
+        ref = rnea.inverse_dynamics_vectorized(model, q, qd, qdd, W)
         assert _rel(model.inverse_dynamics(q, qd, qdd, W), ref) < 1e-12
     W1 = {links[-1]: rng.normal(size=6)}
-    ref = rnea._reference_inverse_dynamics(model, np.array([q[0], qd[0], qdd[0]]), W1, True)
+    ref = rnea.inverse_dynamics_vectorized(model, q[0], qd[0], qdd[0], W1)
     assert _rel(model.inverse_dynamics(q[0], qd[0], qdd[0], W1), ref) < 1e-12
 
 
@@ -111,14 +111,14 @@ def test_input_forms_and_shapes():
 
 
 def test_unsupported_screws_use_the_reference_path():
-    model = copy.deepcopy(load_urdf(named_urdf('chain7')))
-    q, qd, qdd = _states(model, 2)
-    expected = model.inverse_dynamics(q, qd, qdd)
-    model.__dict__.pop('_kernels', None)
+    original = load_urdf(named_urdf('chain7'))
+    q, qd, qdd = _states(original, 2)
+    expected = original.inverse_dynamics(q, qd, qdd)
+    model = copy.deepcopy(original)
     model.S = model.S * 1.5  # not a unit axis: the kernels' closed forms do not apply
-    assert not kernels.supports(model)
+    assert runtime.kernel(model, traced_rnea.INVERSE_DYNAMICS) is None
     got = model.inverse_dynamics(q, qd, qdd)
-    ref = rnea._reference_inverse_dynamics(model, np.array([q, qd, qdd]), None, True)
+    ref = rnea.inverse_dynamics_vectorized(model, q, qd, qdd)
     assert np.array_equal(got, ref) and not np.allclose(got, expected)
 
 

@@ -21,7 +21,7 @@ def test_regressor_matches_pinocchio(name):
     q, qd, qdd = states(model, seed=13)
     Y = model.regressor(q, qd, qdd)
     perm = pin_body_permutation(model, oracle)
-    ref = np.array([oracle.regressor(*s)[:, perm] for s in zip(q, qd, qdd)])
+    ref = np.array([oracle.regressor(*s)[:, perm] for s in zip(q, qd, qdd, strict=True)])
     assert Y.shape == (len(q), model.n, 10 * model.nb)
     assert rel_err(Y, ref) < 1e-10
     pi = model.inertial_parameters()
@@ -32,7 +32,7 @@ def test_regressor_matches_pinocchio(name):
 
 def _pin_regressor(model, oracle, q, qd, qdd):
     perm = pin_body_permutation(model, oracle)
-    return np.array([oracle.regressor(*s)[:, perm] for s in zip(q, qd, qdd)])
+    return np.array([oracle.regressor(*s)[:, perm] for s in zip(q, qd, qdd, strict=True)])
 
 
 @pytest.mark.parametrize('name', CASES)
@@ -52,7 +52,7 @@ def test_regressor_kernel_paths_match_pinocchio(name):
     assert rg.regressor_kernel(model, q, qd, qdd) is not None
     assert rel_err(model.regressor(q, qd, qdd), ref) < 1e-10
     assert rel_err(model.regressor(q[:3], qd[:3], qdd[:3]), ref[:3]) < 1e-10
-    one = np.array([model.regressor(*s) for s in zip(q, qd, qdd)])
+    one = np.array([model.regressor(*s) for s in zip(q, qd, qdd, strict=True)])
     assert rel_err(one, ref) < 1e-10
     assert rel_err(one @ model.inertial_parameters(), model.inverse_dynamics(q, qd, qdd), 1e-6) < 1e-10
     # other input forms of one state: lists, integer arrays, a (1, n) batch
@@ -80,7 +80,7 @@ def test_regressor_kernel_follows_payload_gravity_and_locked_joints(monkeypatch)
         ref = _pin_regressor(model, oracle, q, qd, qdd)
         for mode in ('loop', 'rows'):
             assert rel_err(rg.regressor_kernel(model, q, qd, qdd, mode), ref) < 1e-10
-        one = np.array([model.regressor(*s) for s in zip(q, qd, qdd)])
+        one = np.array([model.regressor(*s) for s in zip(q, qd, qdd, strict=True)])
         assert rel_err(one, ref) < 1e-10
         assert rel_err(one @ model.inertial_parameters(), model.inverse_dynamics(q, qd, qdd), 1e-6) < 1e-10
         return one
@@ -108,7 +108,7 @@ def test_regressor_dispatch_by_size(monkeypatch):
     vec = rg._vectorized
     monkeypatch.setattr(rg, '_vectorized', lambda *a: calls.append(len(a[1])) or vec(*a))
     assert rel_err(model.regressor(q[:mid - 1], qd[:mid - 1], qdd[:mid - 1]), ref[:mid - 1]) < 1e-10
-    assert rel_err(np.array([model.regressor(*s) for s in zip(q, qd, qdd)]), ref) < 1e-10
+    assert rel_err(np.array([model.regressor(*s) for s in zip(q, qd, qdd, strict=True)]), ref) < 1e-10
     assert calls == []                                   # float kernel
     assert rel_err(model.regressor(q, qd, qdd), ref) < 1e-10
     assert calls == [mid]                                # vectorised

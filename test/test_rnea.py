@@ -29,7 +29,7 @@ def _check(model, oracle, rng, N=STATES, tol=1e-10):
     q, qd, qdd = _states(rng, model, N)
     tau = model.inverse_dynamics(q, qd, qdd)
     g = model.gravity(q)
-    tau_ref = np.array([oracle.rnea(*s) for s in zip(q, qd, qdd)])
+    tau_ref = np.array([oracle.rnea(*s) for s in zip(q, qd, qdd, strict=True)])
     g_ref = np.array([oracle.gravity(x) for x in q])
     assert tau.shape == (N, model.n) and g.shape == (N, model.n)
     assert np.max(_rel(tau, tau_ref)) < tol

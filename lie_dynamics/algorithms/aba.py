@@ -31,8 +31,11 @@ import math
 import numpy as np
 
 from . import crba, rnea
-from .. import codegen as cg
-from ..codegen import model_cache
+from ..codegen import algebra as la
+from ..codegen import runtime
+from ..codegen.render import kernel
+from ..codegen.tracer import Graph, SNAP, Sym, snap
+from ..codegen.traced.rnea import trace_rnea
 from .kinematics import ad_matrices
 from ..spatial import transpose
 from .rnea import external_body_wrenches
@@ -94,10 +97,10 @@ def cho_solve(L, B):
 # ---------------------------------------------------------------------------- ABA
 def _structure(model):
     """Depth levels and the joint each body follows; cached per model."""
-    mc = model_cache(model)
-    cache = mc.get('aba')
-    if cache is not None:
-        return cache
+    return runtime.structural(model, 'aba_structure', lambda: _levels(model))
+
+
+def _levels(model):
     E = model.E
     nz = E != 0
     rows_ok = np.all(nz.sum(axis=1) <= 1) and np.all(E[nz] == 1.0)
@@ -112,9 +115,7 @@ def _structure(model):
         has_par = par >= 0
         levels.append(dict(idx=idx, par=par[has_par], child=idx[has_par], root=idx[~has_par],
                            unique=len(set(par[has_par].tolist())) == int(has_par.sum())))
-    cache = dict(E=E, supported=supported, free=free, joint_of=joint_of, levels=levels)
-    mc['aba'] = cache
-    return cache
+    return dict(E=E, supported=supported, free=free, joint_of=joint_of, levels=levels)
 
 
 def _aba(model, st, x, xd, tau, fext):
@@ -234,12 +235,12 @@ def forward_dynamics(model, q, qd, tau, wrenches=None, method='cholesky'):
         raise ValueError(f"unknown forward dynamics method {method!r}: use one of {METHODS}")
     if method == 'cholesky' and not wrenches:
         n = model.n
-        a, b, c = cg.is_fast_single(q, n), cg.is_fast_single(qd, n), cg.is_fast_single(tau, n)
+        a, b, c = runtime.is_fast_single(q, n), runtime.is_fast_single(qd, n), runtime.is_fast_single(tau, n)
         if a is not None and b is not None and c is not None:
             k = _kernel(model)
             if k:   # one state through the generated kernel, on Python floats
                 fr, fn, _ = k
-                P, E0, A0 = cg.model_params(model, fr, gravity=True)
+                P, E0, A0 = runtime.model_params(model, fr, gravity=True)
                 out = single_checked(fn, (P, A0, E0), a, b, c, n)
                 if out is not None:
                     return np.array(out)
@@ -249,7 +250,7 @@ def forward_dynamics(model, q, qd, tau, wrenches=None, method='cholesky'):
             return cho_solve(cholesky(M[None]), (np.asarray(tau, dtype=float) - h)[None])[0]
     if method == 'aba' and not wrenches:
         n = model.n
-        a, b, c = cg.is_fast_single(q, n), cg.is_fast_single(qd, n), cg.is_fast_single(tau, n)
+        a, b, c = runtime.is_fast_single(q, n), runtime.is_fast_single(qd, n), runtime.is_fast_single(tau, n)
         if a is not None and b is not None and c is not None:
             out = _aba_single(model, a, b, c)
             if out is not None:
@@ -289,12 +290,12 @@ def _build_kernel(fr):
     Outputs qdd, then the Cholesky pivots d_j^2 and the diagonal of M (the caller checks
     positive definiteness with them; a negative pivot makes sqrt fail on floats).
     """
-    g = cg.Graph()
+    g = Graph()
     co, args, params, ga, taus = trace_inputs(fr, g)
     z, M, L, inv_d, pivots = trace_forward_dynamics(fr, g, co['x'], co['xd'], params, ga, taus)
     n = fr.n
     outputs = z + pivots + [M[j][j] for j in range(n)]
-    return cg.kernel(g, 'forward_dynamics_kernel', args, outputs)
+    return kernel(g, 'forward_dynamics_kernel', args, outputs)
 
 
 def trace_inputs(fr, g):
@@ -317,7 +318,7 @@ def trace_forward_dynamics(fr, g, x, xd, params, a0, taus):
     n = fr.n
     X = [fr.joint_transform(g, b, x[b]) for b in range(fr.nb)]
     M = crba_mod.trace_mass_matrix(fr, g, params, X)
-    tau_b = cg.trace_rnea(fr, g, x, xd, [0.0] * fr.nb, params, a0, X)
+    tau_b = trace_rnea(fr, g, x, xd, [0.0] * fr.nb, params, a0, X)
     h = [sum((float(fr.E[b, j]) * tau_b[b] for b in range(fr.nb) if fr.E[b, j] != 0), 0.0) for j in range(n)]
     L, inv_d, pivots = trace_cholesky(g, M)
     return trace_cho_solve(L, inv_d, [taus[j] - h[j] for j in range(n)]), M, L, inv_d, pivots
@@ -366,7 +367,7 @@ def trace_cho_solve(L, inv_d, b):
 def _kernel(model):
     if model.nb > KERNEL_MAX_BODIES:
         return False
-    return cg.compiled(model, 'forward_dynamics', _build_kernel)
+    return runtime.compiled(model, 'forward_dynamics', _build_kernel)
 
 
 def _kernel_forward_dynamics(model, q, qd, tau):
@@ -376,7 +377,7 @@ def _kernel_forward_dynamics(model, q, qd, tau):
     if not k:
         return None
     fr, fn, _ = k
-    P, E0, A0 = cg.model_params(model, fr, gravity=True)
+    P, E0, A0 = runtime.model_params(model, fr, gravity=True)
     return run_checked(fn, (P, A0, E0), q, qd, tau, model.n, q.shape[0] >= _KERNEL_ROWS_FROM)
 
 
@@ -390,7 +391,7 @@ def single_checked(fn, params, q, qd, tau, n_out):
         return None
     n = len(q)
     s = sum(vals[:n_out])
-    if s - s == 0.0 and all(p > _PD_RTOL * d for p, d in zip(vals[n_out:n_out + n], vals[n_out + n:])):
+    if s - s == 0.0 and all(p > _PD_RTOL * d for p, d in zip(vals[n_out:n_out + n], vals[n_out + n:], strict=True)):
         return vals[:n_out]
     return None
 
@@ -404,11 +405,11 @@ def run_checked(fn, params, q, qd, tau, n_out, rows):
     if not rows:
         try:
             vals = np.array([fn(a, b, c, P, A0, E0, sin=math.sin, cos=math.cos, sqrt=math.sqrt)
-                             for a, b, c in zip(q.tolist(), qd.tolist(), tau.tolist())])
+                             for a, b, c in zip(q.tolist(), qd.tolist(), tau.tolist(), strict=True)])
         except (ValueError, ZeroDivisionError):   # sqrt of a negative pivot, or a zero pivot
             return None
     else:
-        vals = cg.run_rows(fn, [q, qd, tau, P, A0, E0], n_out + 2 * n)
+        vals = runtime.run_rows(fn, [q, qd, tau, P, A0, E0], n_out + 2 * n)
     piv, diag = vals[:, n_out:n_out + n], vals[:, n_out + n:]
     if not (np.all(np.isfinite(vals[:, :n_out])) and np.all(piv > _PD_RTOL * diag)):
         return None
@@ -460,16 +461,16 @@ def _decompose(R, t):
     """
     u = R[:, 2]
     sa = math.hypot(u[0], u[1])
-    if sa < cg.SNAP:
+    if sa < SNAP:
         cp, sp, sa, ca = 1.0, 0.0, 0.0, math.copysign(1.0, u[2])
     else:
         cp, sp, ca = -u[1] / sa, u[0] / sa, u[2]
-    cp, sp, ca, sa = cg.snap([cp, sp, ca, sa]).tolist()
+    cp, sp, ca, sa = snap([cp, sp, ca, sa]).tolist()
     Rpa = _rot_np('z', cp, sp) @ _rot_np('x', ca, sa)
     W = Rpa.T @ R
     r = math.hypot(W[0, 0], W[1, 0])
-    ct, st = cg.snap([W[0, 0] / r, W[1, 0] / r]).tolist()
-    s = cg.snap(Rpa.T @ t)
+    ct, st = snap([W[0, 0] / r, W[1, 0] / r]).tolist()
+    s = snap(Rpa.T @ t)
     if (np.max(np.abs(Rpa @ _rot_np('z', ct, st) - R)) > 1e-12
             or np.max(np.abs(Rpa @ s - t)) > 1e-12 * max(1.0, float(np.max(np.abs(t))))):
         return None
@@ -499,7 +500,7 @@ def _dh_candidates(R, t):
         if r < 1e-12:
             return []
         cp, sp, ds = t[0] / r, t[1] / r, [0.0]
-    cp, sp = cg.snap([cp, sp]).tolist()
+    cp, sp = snap([cp, sp]).tolist()
     return [(_rot_np('z', cp, sp), np.array([0.0, 0.0, float(d)])) for d in ds]
 
 
@@ -554,11 +555,11 @@ class _Geometry:
         frames: codegen.inertia_to_parent with f_{b'',b'} = T_b^-1, for all bodies at once."""
         A = np.asarray(P, dtype=float).reshape(-1, 10)
         m, h = A[:, 0], A[:, 1:4]
-        I = A[:, [4, 5, 6, 5, 7, 8, 6, 8, 9]].reshape(-1, 3, 3)
+        Io = A[:, [4, 5, 6, 5, 7, 8, 6, 8, 9]].reshape(-1, 3, 3)
         R, t = self.Rinv, self.tinv
         Rh = np.einsum('bij,bj->bi', R, h)
         tRh = t[:, :, None] * Rh[:, None, :]
-        Ip = (R @ I @ np.swapaxes(R, 1, 2) - m[:, None, None] * (t[:, :, None] * t[:, None, :])
+        Ip = (R @ Io @ np.swapaxes(R, 1, 2) - m[:, None, None] * (t[:, :, None] * t[:, None, :])
               - tRh - np.swapaxes(tRh, 1, 2)
               + (m * np.sum(t * t, axis=1) + 2.0 * np.sum(t * Rh, axis=1))[:, None, None] * np.eye(3))
         out = np.column_stack([m, Rh + m[:, None] * t, Ip[:, 0, 0], Ip[:, 0, 1], Ip[:, 0, 2], Ip[:, 1, 1],
@@ -576,8 +577,8 @@ def _hat(v):
 
 def _sym6_rigid(ic):
     """A rigid inertia (m, h, I) as the 6x6 [[I, [h]], [-[h], m 1]]."""
-    m, h, I = ic
-    A = ((I[0], I[1], I[2]), (I[1], I[3], I[4]), (I[2], I[4], I[5]))
+    m, h, Io = ic
+    A = ((Io[0], Io[1], Io[2]), (Io[1], Io[3], Io[4]), (Io[2], Io[4], Io[5]))
     B = ((0.0, -h[2], h[1]), (h[2], 0.0, -h[0]), (-h[1], h[0], 0.0))
     C = ((m, 0.0, 0.0), (0.0, m, 0.0), (0.0, 0.0, m))
     return _sym6_blocks(A, B, C)
@@ -614,7 +615,7 @@ class _Rot:
         self.c, self.s = c, s
         self.ss, self.cs = s * s, c * s
         self.s2, self.ss2 = g.bake(2.0 * self.cs), g.bake(2.0 * self.ss)
-        const = not isinstance(c, cg.Sym) and not isinstance(s, cg.Sym)
+        const = not isinstance(c, Sym) and not isinstance(s, Sym)
         self.perm = tuple(map(tuple, _rot_np(axis, c, s).tolist())) if const and _trivial(c, s) else None
 
     def vec(self, v, sign=1.0):
@@ -632,7 +633,7 @@ class _Rot:
         i0, i1, i2 = self.i
         if self.perm is not None:   # a quarter turn: a signed relabelling
             R = self.perm
-            return [[cg.dot(cg.mat_vec(M, R[c]), R[r]) for c in range(3)] for r in range(3)]
+            return [[la.dot(la.mat_vec(M, R[c]), R[r]) for c in range(3)] for r in range(3)]
         b00, b01 = M[i0][i0], M[i0][i1]
         b10, b11 = M[i1][i0], M[i1][i1]
         dd = b00 - b11
@@ -664,10 +665,10 @@ def _sym6_translate(K, t):
     B' = B + [t] C,  A' = A + B [t]^T + [t] B'^T  (row i of B [t]^T is t x (row i of B)).
     """
     A, B, C = _split(K)
-    tC = [cg.cross(t, C[j]) for j in range(3)]                 # column j of [t] C
+    tC = [la.cross(t, C[j]) for j in range(3)]                 # column j of [t] C
     Bp = [[B[i][j] + tC[j][i] for j in range(3)] for i in range(3)]
-    P = [cg.cross(t, B[i]) for i in range(3)]
-    Q = [cg.cross(t, Bp[i]) for i in range(3)]
+    P = [la.cross(t, B[i]) for i in range(3)]
+    Q = [la.cross(t, Bp[i]) for i in range(3)]
     Ap = [[None] * 3 for _ in range(3)]
     for i in range(3):
         for j in range(i, 3):
@@ -684,7 +685,7 @@ class _Joint:
         sx, sy, sz = dec['s']
         steps = []
         if revolute:   # Rz(theta) Rz(x): a quarter turn folds into cos x, sin x; else cos(x + theta)
-            if _trivial(ct, st) or not isinstance(x, cg.Sym):
+            if _trivial(ct, st) or not isinstance(x, Sym):
                 c, s = g.cos(x), g.sin(x)
                 c, s = ct * c - st * s, st * c + ct * s
             else:
@@ -699,7 +700,7 @@ class _Joint:
         steps.append(_Rot(g, 'z', *dec['psi']))
         # drop identities
         self.steps = [s for s in steps if (isinstance(s, _Rot) and not (s.c == 1.0 and s.s == 0.0))
-                      or (isinstance(s, tuple) and any(isinstance(v, cg.Sym) or v != 0.0 for v in s))]
+                      or (isinstance(s, tuple) and any(isinstance(v, Sym) or v != 0.0 for v in s))]
 
     def inertia_to_parent(self, K):
         """X^T K X."""
@@ -714,7 +715,7 @@ class _Joint:
             if isinstance(st, _Rot):
                 n_, f_ = st.vec(n_), st.vec(f_)
             else:
-                n_ = cg.vadd(n_, cg.cross(st, f_))
+                n_ = la.vadd(n_, la.cross(st, f_))
         return list(n_) + list(f_)
 
     def twist_to_child(self, V):
@@ -724,7 +725,7 @@ class _Joint:
             if isinstance(st, _Rot):
                 w, v = st.vec(w, -1.0), st.vec(v, -1.0)
             else:
-                v = cg.vsub(v, cg.cross(st, w))
+                v = la.vsub(v, la.cross(st, w))
         return list(w) + list(v)
 
 
@@ -760,11 +761,11 @@ def trace_aba(fr, geom, g, x, xd, taus, params, a0, fext=None):
     for b in reversed(range(nb)):
         p, k = fr.parent[b], kk[b]
         w, v = tuple(V[b][:3]), tuple(V[b][3:])
-        n_, f_ = cg.ad_t((w, v), cg.inertia_times(params[b], (w, v)))
+        n_, f_ = la.ad_t((w, v), la.inertia_times(params[b], (w, v)))
         own = [-e for e in n_ + f_]                              # eq 20: -ad_V^T J V
         if fext is not None:
-            own = [a - e for a, e in zip(own, fext[b][0] + fext[b][1])]
-        P = own if pa[b] is None else [a + e for a, e in zip(pa[b], own)]
+            own = [a - e for a, e in zip(own, fext[b][0] + fext[b][1], strict=True)]
+        P = own if pa[b] is None else [a + e for a, e in zip(pa[b], own, strict=True)]
         K = _sym6_rigid(params[b])
         if Ia[b] is not None:
             K = _sym6_add(Ia[b], K)
@@ -783,23 +784,23 @@ def trace_aba(fr, geom, g, x, xd, taus, params, a0, fext=None):
                     if i != k and j != k:
                         Ka[i][j] = Ka[j][i] = K[i][j] - col[i] * U[b][j]
             # pa + Ia^A c + U u / D; its entry k is tau exactly
-            P = [taus[b] if i == k else P[i] + cg.dot(Ka[i], c[b]) + U[b][i] * u[b] for i in range(6)]
+            P = [taus[b] if i == k else P[i] + la.dot(Ka[i], c[b]) + U[b][i] * u[b] for i in range(6)]
             K = Ka
         else:
             if p < 0:
                 continue
-            P = [P[i] + cg.dot(K[i], c[b]) for i in range(6)]
+            P = [P[i] + la.dot(K[i], c[b]) for i in range(6)]
         Kp = X[b].inertia_to_parent(K)
         Ia[p] = Kp if Ia[p] is None else _sym6_add(Ia[p], Kp)
         Pp = X[b].wrench_to_parent(P)
-        pa[p] = Pp if pa[p] is None else [a + e for a, e in zip(pa[p], Pp)]
+        pa[p] = Pp if pa[p] is None else [a + e for a, e in zip(pa[p], Pp, strict=True)]
     acc = [None] * nb
     base = [0.0, 0.0, 0.0] + list(a0)
     res = [None] * nb
     for b in range(nb):                                          # eq 19
         p, k = fr.parent[b], kk[b]
         ap = X[b].twist_to_child(acc[p] if p >= 0 else base)
-        ap = [a + e for a, e in zip(ap, c[b])]
+        ap = [a + e for a, e in zip(ap, c[b], strict=True)]
         if free[b]:
             s = u[b] * Dinv[b]
             for i in range(6):
@@ -822,7 +823,7 @@ def _build_aba_kernel(fr, wrench=False):
     geom = _Geometry(fr)
     if not geom.ok:
         return None
-    g = cg.Graph()
+    g = Graph()
     co = fr.trace_coordinates(g, rates=1)
     parg, params = fr.trace_params(g)
     ga = [g.input(f'g{k}') for k in range(3)]
@@ -848,7 +849,7 @@ def _build_aba_kernel(fr, wrench=False):
         if joint_of[b] is not None:
             per_joint[joint_of[b]] = res[b]
     outputs = [r[i] for i in range(3) for r in per_joint]
-    return cg.kernel(g, 'aba_kernel', args, outputs) + (geom,)
+    return kernel(g, 'aba_kernel', args, outputs) + (geom,)
 
 
 def _aba_kernel(model, wrench=False):
@@ -856,39 +857,34 @@ def _aba_kernel(model, wrench=False):
     mimic joints, or screws other than unit revolute / prismatic axes)."""
     if model.nb > ABA_KERNEL_MAX_BODIES or not _structure(model)['supported']:
         return False
-    return cg.compiled(model, 'aba_wrench' if wrench else 'aba', lambda fr: _build_aba_kernel(fr, wrench))
+    return runtime.compiled(model, 'aba_wrench' if wrench else 'aba', lambda fr: _build_aba_kernel(fr, wrench))
 
 
 def _aba_params(model, k):
-    """(P, A0, E0) for an ABA kernel: the inertias in its frames, cached until J changes."""
+    """(P, A0, E0) for an ABA kernel: the inertias in its frames, cached until the model changes."""
     fr, _, _, geom = k
-    P, E0, A0 = cg.model_params(model, fr, gravity=True)
-    mc = model_cache(model)
-    c = mc.get('aba_params')
-    if c is None or c[0] is not P or c[1] is not geom:
-        c = mc['aba_params'] = (P, geom, geom.params(P))
-    return c[2], A0, E0
+    P, E0, A0 = runtime.model_params(model, fr, gravity=True)
+    return runtime.derived(model, 'aba_params', lambda: geom.params(P)), A0, E0
 
 
 def _aba_accept(out, n):
     """Every D_i above _PD_RTOL times its scale (trace_aba), and a finite result."""
     s = sum(out[:n])
-    return s - s == 0.0 and all(d > _PD_RTOL * m for d, m in zip(out[n:2 * n], out[2 * n:]))
+    return s - s == 0.0 and all(d > _PD_RTOL * m for d, m in zip(out[n:2 * n], out[2 * n:], strict=True))
 
 
 def _aba_single(model, q, qd, tau):
     """One state (lists of floats) through the ABA kernel on Python floats; None when there is
     no kernel or the articulated inertias fail the check (the caller then reports it)."""
-    mc = model_cache(model)
-    c = mc.get('aba_single')   # one look-up for the kernel and its parameters
-    if c is None or c[0] is not model.J or c[1] is not model.e0 or c[2] is not model.base_acceleration:
+    def bind():
         k = _aba_kernel(model)
-        c = mc['aba_single'] = (model.J, model.e0, model.base_acceleration, k and k[1]) + (_aba_params(model, k) if k else ())
-    fn = c[3]
+        return (k and k[1],) + (_aba_params(model, k) if k else ())
+    c = runtime.derived(model, 'aba_single', bind)   # one look-up for the kernel and its parameters
+    fn = c[0]
     if not fn:
         return None
     try:
-        out = fn(q, qd, tau, *c[4:], sin=math.sin, cos=math.cos)
+        out = fn(q, qd, tau, *c[1:], sin=math.sin, cos=math.cos)
     except (ValueError, ZeroDivisionError, OverflowError):
         return None
     n = model.n
@@ -913,7 +909,7 @@ def _aba_kernel_forward_dynamics(model, q, qd, tau, fext=None, mode=None):
     extra = [] if fext is None else [geom.wrenches(fext)]
     if mode == 'loop':
         vals = []
-        for r in zip(q.tolist(), qd.tolist(), tau.tolist(), *[e.tolist() for e in extra]):
+        for r in zip(q.tolist(), qd.tolist(), tau.tolist(), *[e.tolist() for e in extra], strict=True):
             try:
                 out = fn(*r[:3], P, A0, E0, *r[3:], sin=math.sin, cos=math.cos)
             except (ValueError, ZeroDivisionError, OverflowError):
@@ -924,7 +920,7 @@ def _aba_kernel_forward_dynamics(model, q, qd, tau, fext=None, mode=None):
         return np.array(vals).reshape(N, n)
 
     try:
-        vals = cg.run_rows(fn, [q, qd, tau, P, A0, E0] + extra, 3 * n)
+        vals = runtime.run_rows(fn, [q, qd, tau, P, A0, E0] + extra, 3 * n)
     except (ZeroDivisionError, OverflowError):   # D from parameters alone (Python floats) is 0
         return None
     D, scale = vals[:, n:2 * n], vals[:, 2 * n:]

@@ -16,7 +16,9 @@ state and small batches and on numpy rows for large ones.
 import numpy as np
 
 from . import aba, crba, rnea
-from .. import codegen as cg
+from ..codegen import runtime
+from ..codegen.render import kernel
+from ..codegen.tracer import Graph
 from . import rnea_derivatives as rd
 from .aba import cho_solve, cholesky
 from .rnea_derivatives import inverse_dynamics_derivatives
@@ -36,7 +38,7 @@ def forward_dynamics_derivatives(model, q, qd, tau, wrenches=None):
     """
     n = model.n
     if not wrenches:
-        a, b, c = cg.is_fast_single(q, n), cg.is_fast_single(qd, n), cg.is_fast_single(tau, n)
+        a, b, c = runtime.is_fast_single(q, n), runtime.is_fast_single(qd, n), runtime.is_fast_single(tau, n)
         if a is not None and b is not None and c is not None:
             out = _kernel_single(model, a, b, c)
             if out is not None:
@@ -77,7 +79,7 @@ def _build_kernel(fr):
     Outputs dqdd/dq, dqdd/dqd, M^-1 (row-major), then the pivots and diag(M) for the
     positive-definiteness check (as aba's Cholesky kernel).
     """
-    g = cg.Graph()
+    g = Graph()
     co, args, params, ga, taus = aba.trace_inputs(fr, g)
     qdd, M, L, inv_d, pivots = aba.trace_forward_dynamics(fr, g, co['x'], co['xd'], params, ga, taus)
     n, nb = fr.n, fr.nb
@@ -91,13 +93,13 @@ def _build_kernel(fr):
     for k in range(3):
         outputs += [cols[k * n + c][r] for r in range(n) for c in range(n)]
     outputs += pivots + [M[j][j] for j in range(n)]
-    return cg.kernel(g, 'forward_dynamics_derivatives_kernel', args, outputs)
+    return kernel(g, 'forward_dynamics_derivatives_kernel', args, outputs)
 
 
 def _kernel(model):
     if model.nb > KERNEL_MAX_BODIES:
         return False
-    return cg.compiled(model, 'forward_dynamics_derivatives', _build_kernel)
+    return runtime.compiled(model, 'forward_dynamics_derivatives', _build_kernel)
 
 
 def _kernel_single(model, q, qd, tau):
@@ -107,7 +109,7 @@ def _kernel_single(model, q, qd, tau):
     if not k:
         return None
     fr, fn, _ = k
-    P, E0, A0 = cg.model_params(model, fr, gravity=True)
+    P, E0, A0 = runtime.model_params(model, fr, gravity=True)
     n = model.n
     vals = aba.single_checked(fn, (P, A0, E0), q, qd, tau, 3 * n * n)
     return None if vals is None else np.fromiter(vals, float, 3 * n * n).reshape(3, n, n)
@@ -128,7 +130,7 @@ def _kernel_states(model, q, qd, tau, mode=None):
     if not k:
         return None
     fr, fn, _ = k
-    P, E0, A0 = cg.model_params(model, fr, gravity=True)
+    P, E0, A0 = runtime.model_params(model, fr, gravity=True)
     n = q.shape[1]
     vals = aba.run_checked(fn, (P, A0, E0), q, qd, tau, 3 * n * n, mode == 'rows')
     if vals is None:

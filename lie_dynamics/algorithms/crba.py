@@ -22,7 +22,10 @@ import math
 
 import numpy as np
 
-from .. import codegen as cg
+from ..codegen import algebra as la
+from ..codegen import runtime
+from ..codegen.render import kernel
+from ..codegen.tracer import Graph
 from ..spatial import transpose
 from .lagrangian import body_matrices, kinematic_state, subtree_sum, world_inertias
 
@@ -78,24 +81,24 @@ def trace_mass_matrix(fr, g, params, X):
     for b in reversed(range(nb)):
         p = fr.parent[b]
         if p >= 0:
-            m, h, I = cg.inertia_to_parent(ic[b], *X[b])
+            m, h, Io = la.inertia_to_parent(ic[b], *X[b])
             mp, hp, Ip = ic[p]
-            ic[p] = (mp + m, cg.vadd(hp, h), cg.vadd(Ip, I))
+            ic[p] = (mp + m, la.vadd(hp, h), la.vadd(Ip, Io))
 
     def s_dot(b, F):
         return F[0][2] if fr.revolute[b] else F[1][2]
 
     Mx = [[0.0] * nb for _ in range(nb)]
     for b in range(nb):
-        m, h, I = ic[b]
+        m, h, Io = ic[b]
         if fr.revolute[b]:
-            F = ((I[2], I[4], I[5]), (-h[1], h[0], 0.0))
+            F = ((Io[2], Io[4], Io[5]), (-h[1], h[0], 0.0))
         else:
             F = ((h[1], -h[0], 0.0), (0.0, 0.0, m))
         Mx[b][b] = s_dot(b, F)
         j = b
         while fr.parent[j] >= 0:
-            F = cg.wrench_to_parent(F, *X[j])
+            F = la.wrench_to_parent(F, *X[j])
             j = fr.parent[j]
             Mx[j][b] = Mx[b][j] = s_dot(j, F)
     Mq = fr.project(Mx)
@@ -104,19 +107,19 @@ def trace_mass_matrix(fr, g, params, X):
 
 
 def _build_kernel(fr):
-    g = cg.Graph()
+    g = Graph()
     co = fr.trace_coordinates(g)
     parg, params = fr.trace_params(g)
     X = [fr.joint_transform(g, b, co['x'][b]) for b in range(fr.nb)]
     M = trace_mass_matrix(fr, g, params, X)
     outputs = [v for row in M for v in row]
-    return cg.kernel(g, 'mass_kernel', co['args'] + [parg, co['offset_args']], outputs)
+    return kernel(g, 'mass_kernel', co['args'] + [parg, co['offset_args']], outputs)
 
 
 def _kernel(model):
     if model.nb > KERNEL_MAX_BODIES:
         return False
-    return cg.compiled(model, 'crba', _build_kernel)
+    return runtime.compiled(model, 'crba', _build_kernel)
 
 
 def mass_matrix_kernel(model, q):
@@ -128,9 +131,9 @@ def mass_matrix_kernel(model, q):
     if not k:
         return None
     fr, fn, _ = k
-    P, E0 = cg.model_params(model, fr)
+    P, E0 = runtime.model_params(model, fr)
     n = model.n
-    lst = cg.is_fast_single(q, n)
+    lst = runtime.is_fast_single(q, n)
     if lst is not None:
         return np.array(fn(lst, P, E0, sin=math.sin, cos=math.cos)).reshape(n, n)
     single = np.ndim(q) == 1
@@ -141,5 +144,5 @@ def mass_matrix_kernel(model, q):
     if N < _ROWS_FROM:
         vals = np.array([fn(row, P, E0, sin=math.sin, cos=math.cos) for row in qb.tolist()])
     else:
-        vals = cg.run_rows(fn, [qb, P, E0], n * n)
+        vals = runtime.run_rows(fn, [qb, P, E0], n * n)
     return vals.reshape(N, n, n)

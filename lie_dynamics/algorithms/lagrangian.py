@@ -68,38 +68,29 @@ Every function takes a single state (n,) or a batch (N, n) and returns matching 
 """
 import numpy as np
 
-from ..codegen import model_cache
+from ..codegen.runtime import THRESHOLDS, derived, structural
 from ..spatial import cross, transpose
 from .kinematics import ad_matrices, adjoints, spatial_screws, world_poses
-
-# states per pass: bounds the work arrays (the O(n^3) ones scale with nb^3 per state)
-_BUDGET = 1 << 21
 
 
 # ---------------------------------------------------------------------------- helpers
 def chunks(N, per_state):
-    """Slices over N states so that a chunk holds about _BUDGET floats of work arrays
-    (per_state: floats of work per state). Every vectorised algorithm batches this way."""
-    size = max(1, min(N, _BUDGET // max(1, per_state)))
+    """Slices over N states so that a chunk holds about THRESHOLDS['vectorized_budget'] floats
+    of work arrays (per_state: floats of work per state; the O(n^3) ones scale with nb^3).
+    Every vectorised algorithm batches this way."""
+    size = max(1, min(N, THRESHOLDS['vectorized_budget'] // max(1, per_state)))
     return [slice(i, min(N, i + size)) for i in range(0, N, size)]
 
 
 def body_constants(model):
-    """Per-model constants derived from the (settable) inertias, cached per model."""
-    mc = model_cache(model)
-    cache = mc.get('lagrangian')
-    if cache is not None and cache['J'] is model.J:
-        return cache
-    J, E, anc = model.J, model.E, model.ancestors
-    mass = J[:, 3, 3].copy()
-    first = np.stack([J[:, 2, 4], J[:, 0, 5], J[:, 1, 3]], axis=-1)  # m c, body frame
-    identity = E.shape[0] == E.shape[1] and np.array_equal(E, np.eye(E.shape[0]))
-    masks = mc.get('masks')
-    if masks is None:
-        masks = mc['masks'] = _christoffel_masks(anc)
-    cache = dict(J=model.J, mass=mass, first=first, identity=identity, masks=masks)
-    mc['lagrangian'] = cache
-    return cache
+    """Per-model constants derived from the (settable) inertias, cached until the model changes."""
+    def compute():
+        J, E = model.J, model.E
+        return dict(mass=J[:, 3, 3].copy(),
+                    first=np.stack([J[:, 2, 4], J[:, 0, 5], J[:, 1, 3]], axis=-1),  # m c, body frame
+                    identity=E.shape[0] == E.shape[1] and np.array_equal(E, np.eye(E.shape[0])),
+                    masks=structural(model, 'christoffel_masks', lambda: _christoffel_masks(model.ancestors)))
+    return derived(model, 'body_constants', compute)
 
 
 def _christoffel_masks(anc):

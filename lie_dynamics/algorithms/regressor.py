@@ -30,7 +30,10 @@ import struct
 
 import numpy as np
 
-from .. import codegen as cg
+from ..codegen import algebra as la
+from ..codegen import runtime
+from ..codegen.render import kernel
+from ..codegen.tracer import Graph, Sym, snap
 from .kinematics import ad_matrices
 from ..spatial import hat3
 from ..model.inertia import PARAMETER_NAMES, inertia_to_parameters, parameter_consistency, parameters_to_inertia  # noqa: F401
@@ -122,7 +125,7 @@ def regressor(model, q, qd, qdd):
     measured crossovers say it is faster, else the vectorised form.
     """
     n = model.n
-    a, b, c = cg.is_fast_single(q, n), cg.is_fast_single(qd, n), cg.is_fast_single(qdd, n)
+    a, b, c = runtime.is_fast_single(q, n), runtime.is_fast_single(qd, n), runtime.is_fast_single(qdd, n)
     if a is not None and b is not None and c is not None and _pairs(model) <= FLOAT_MAX_PAIRS:
         k = _kernel(model)
         if k:
@@ -196,16 +199,16 @@ def _joint_transform(g, M, S, revolute, x):
     MR, Mp = M[:3, :3], M[:3, 3]
     if revolute:
         u = S[:3]
-        K1 = cg.snap(MR @ _skew(u))
-        K2 = cg.snap(K1 @ _skew(u))
-        C0 = cg.snap(MR + K2)
+        K1 = snap(MR @ _skew(u))
+        K2 = snap(K1 @ _skew(u))
+        C0 = snap(MR + K2)
         c, s = g.cos(x), g.sin(x)
         R = tuple(tuple(float(C0[r, k]) + float(K1[r, k]) * s - float(K2[r, k]) * c for k in range(3))
                   for r in range(3))
-        return R, _tuple3(cg.snap(Mp))
-    d = cg.snap(MR @ S[3:])
-    return tuple(_tuple3(row) for row in cg.snap(MR)), tuple(float(o) + float(dk) * x for o, dk in
-                                                             zip(cg.snap(Mp), d))
+        return R, _tuple3(snap(Mp))
+    d = snap(MR @ S[3:])
+    return tuple(_tuple3(row) for row in snap(MR)), tuple(float(o) + float(dk) * x for o, dk in
+                                                             zip(snap(Mp), d, strict=True))
 
 
 def _body_columns(V, A):
@@ -216,7 +219,7 @@ def _body_columns(V, A):
     """
     (w, v), (al, a) = V, A
     zero3 = (0.0, 0.0, 0.0)
-    acc = cg.vadd(a, cg.cross(w, v))
+    acc = la.vadd(a, la.cross(w, v))
     sq = [wk * wk for wk in w]
     B = [[None] * 3 for _ in range(3)]
     for r in range(3):
@@ -231,13 +234,13 @@ def _body_columns(V, A):
     for j in range(3):
         e = [0.0, 0.0, 0.0]
         e[j] = 1.0
-        cols.append((cg.cross(e, acc), (B[0][j], B[1][j], B[2][j])))
+        cols.append((la.cross(e, acc), (B[0][j], B[1][j], B[2][j])))
 
     def L(u):   # columns of L(u), I u = L(u) (xx, xy, yy, xz, yz, zz)
         return ((u[0], 0.0, 0.0), (u[1], u[0], 0.0), (0.0, u[1], 0.0), (u[2], 0.0, u[0]),
                 (0.0, u[2], u[1]), (0.0, 0.0, u[2]))
-    for la, lw in zip(L(al), L(w)):
-        cols.append((cg.vadd(la, cg.cross(w, lw)), zero3))
+    for lal, lw in zip(L(al), L(w), strict=True):
+        cols.append((la.vadd(lal, la.cross(w, lw)), zero3))
     return cols
 
 
@@ -266,23 +269,24 @@ def trace_regressor(fr, g, M, S, x, xd, xdd, a0):
         R, t = _joint_transform(g, M[b], S[b], fr.revolute[b], x[b])
         Sb = (_tuple3(S[b, :3]), _tuple3(S[b, 3:]))
         Vp, Ap = (V[p], A[p]) if p >= 0 else ((zero3, zero3), (zero3, tuple(a0)))
-        Sxd = cg.twist_scale(xd[b], Sb)
-        V[b] = cg.twist_add(cg.twist_to_child(Vp, R, t), Sxd)                                 # eq 18
-        A[b] = cg.twist_add(cg.twist_add(cg.twist_to_child(Ap, R, t), cg.twist_scale(xdd[b], Sb)),
-                            cg.bracket(V[b], Sxd))                                              # eq 19
+        Sxd = la.twist_scale(xd[b], Sb)
+        V[b] = la.twist_add(la.twist_to_child(Vp, R, t), Sxd)                                 # eq 18
+        A[b] = la.twist_add(la.twist_add(la.twist_to_child(Ap, R, t), la.twist_scale(xdd[b], Sb)),
+                            la.bracket(V[b], Sxd))                                              # eq 19
         cols = _body_columns(V[b], A[b])
         Z[b] = {b: Sb}
         k = b
         while k >= 0:
             if k != b:
-                Z[b][k] = cg.twist_to_child(Z[p][k], R, t)
-            Y[k][b] = [cg.dot6(Z[b][k], col) for col in cols]
+                Z[b][k] = la.twist_to_child(Z[p][k], R, t)
+            Y[k][b] = [la.dot6(Z[b][k], col) for col in cols]
             k = fr.parent[k]
     return [[v for blk in row for v in blk] for row in Y]
 
 
-def _build_kernel(fr, M, S):
-    g = cg.Graph()
+def _build_kernel(fr):
+    M, S = fr.M, fr.S
+    g = Graph()
     co = fr.trace_coordinates(g, rates=2)
     a0 = [g.input(f'g{k}') for k in range(3)]
     rows = trace_regressor(fr, g, M, S, co['x'], co['xd'], co['xdd'], a0)
@@ -298,7 +302,7 @@ def _build_kernel(fr, M, S):
     # Only the non-zero outputs are returned: zeros (bodies off a joint's subtree, folded
     # terms) are pad bytes ('x', packed as NUL bytes, i.e. 0.0) of the struct that writes the
     # float path's result: ~3x faster than np.array/np.fromiter of the returned tuple.
-    idx = [i for i, o in enumerate(flat) if isinstance(o, cg.Sym) or o != 0.0]
+    idx = [i for i, o in enumerate(flat) if isinstance(o, Sym) or o != 0.0]
     fmt, i = [], 0
     keep = np.zeros(len(flat), bool)
     keep[idx] = True
@@ -310,32 +314,23 @@ def _build_kernel(fr, M, S):
         i = j
     packer = struct.Struct('=' + ''.join(fmt))   # native byte order, no alignment
     args = co['args'] + [('A0', [f'g{k}' for k in range(3)]), co['offset_args']]
-    return cg.kernel(g, 'regressor_kernel', args, [flat[i] for i in idx]) + (np.array(idx, dtype=np.intp), packer)
+    return kernel(g, 'regressor_kernel', args, [flat[i] for i in idx]) + (np.array(idx, dtype=np.intp), packer)
 
 
 def _pairs(model):
-    """Number of (body, ancestor-or-self) pairs, cached per model."""
-    mc = cg.model_cache(model)
-    p = mc.get('regressor_pairs')
-    if p is None:
-        p = mc['regressor_pairs'] = int(model.depth.sum())
-    return p
+    """Number of (body, ancestor-or-self) pairs."""
+    return runtime.pairs(model)
 
 
 def _kernel(model):
-    """The model's kernel tuple, or False (cached per model; built on first use)."""
-    mc = cg.model_cache(model)
-    k = mc.get('regressor_kernel')
-    if k is None:
-        k = mc['regressor_kernel'] = _pairs(model) <= KERNEL_MAX_PAIRS and cg.compiled(
-            model, 'regressor', lambda fr: _build_kernel(fr, model.M, model.S))
-    return k
+    """The model's kernel tuple, or False (built on first use)."""
+    return _pairs(model) <= KERNEL_MAX_PAIRS and runtime.compiled(model, 'regressor', _build_kernel)
 
 
 def _single(model, k, q, qd, qdd):
     """One state (float lists) on the float kernel -> (n, 10 nb)."""
     fr, fn, _, _, packer = k
-    _, E0, A0 = cg.model_params(model, fr, gravity=True)
+    _, E0, A0 = runtime.model_params(model, fr, gravity=True)
     out = np.empty((model.n, 10 * model.nb))
     packer.pack_into(out, 0, *fn(q, qd, qdd, A0, E0, sin=math.sin, cos=math.cos))
     return out
@@ -369,15 +364,15 @@ def _kernel_regressor(model, q, qd, qdd, mode=None):
     if not k:
         return None
     fr, fn, _, idx, packer = k
-    _, E0, A0 = cg.model_params(model, fr, gravity=True)
+    _, E0, A0 = runtime.model_params(model, fr, gravity=True)
     m = 10 * model.nb * n
     if mode == 'loop':
         out = np.empty((N, n, 10 * model.nb))
-        for s, (a, b, c) in enumerate(zip(q.tolist(), qd.tolist(), qdd.tolist())):
+        for s, (a, b, c) in enumerate(zip(q.tolist(), qd.tolist(), qdd.tolist(), strict=True)):
             packer.pack_into(out, 8 * m * s, *fn(a, b, c, A0, E0, sin=math.sin, cos=math.cos))
         return out
     out = np.zeros((N, m))
     for s in range(0, N, _ROWS_CHUNK):   # bounds the (outputs, states) work array of run_rows
         sl = slice(s, s + _ROWS_CHUNK)
-        out[sl, idx] = cg.run_rows(fn, [q[sl], qd[sl], qdd[sl], A0, E0], len(idx))
+        out[sl, idx] = runtime.run_rows(fn, [q[sl], qd[sl], qdd[sl], A0, E0], len(idx))
     return out.reshape(N, n, 10 * model.nb)

@@ -35,7 +35,10 @@ import math
 
 import numpy as np
 
-from .. import codegen as cg
+from ..codegen import algebra as la
+from ..codegen import runtime
+from ..codegen.render import kernel
+from ..codegen.tracer import Graph
 from .kinematics import ad_matrices
 from ..spatial import transpose
 from .rnea import external_body_wrenches
@@ -96,12 +99,12 @@ def inverse_dynamics_derivatives(model, q, qd, qdd, wrenches=None):
     """
     n = model.n
     if not wrenches:
-        a, b, c = cg.is_fast_single(q, n), cg.is_fast_single(qd, n), cg.is_fast_single(qdd, n)
+        a, b, c = runtime.is_fast_single(q, n), runtime.is_fast_single(qd, n), runtime.is_fast_single(qdd, n)
         if a is not None and b is not None and c is not None:
             k = _kernel(model, False)
             if k:
                 fr, fn, _ = k
-                P, E0, A0 = cg.model_params(model, fr, gravity=True)
+                P, E0, A0 = runtime.model_params(model, fr, gravity=True)
                 out = np.fromiter(fn(a, b, c, P, A0, E0, sin=math.sin, cos=math.cos), float,
                                   2 * n * n).reshape(2, n, n)
                 return out[0], out[1]
@@ -164,7 +167,7 @@ def trace_derivatives(fr, g, x, xd, xdd, params, a0, fext=None, center=0):
     nb = fr.nb
     zero3 = (0.0, 0.0, 0.0)
     Rw, pw, Rb = _poses(fr, g, x, center)
-    ga = cg.mat_vec(Rb, a0)
+    ga = la.mat_vec(Rb, a0)
     A, V, a, Z, Y = ([None] * nb for _ in range(5))
     for b in range(nb):   # forward: screws and twists
         p = fr.parent[b]
@@ -173,12 +176,12 @@ def trace_derivatives(fr, g, x, xd, xdd, params, a0, fext=None, center=0):
         else:
             Vp, ap = (zero3, zero3), (zero3, tuple(ga))
         axis = (Rw[b][0][2], Rw[b][1][2], Rw[b][2][2])
-        A[b] = (axis, cg.cross(pw[b], axis)) if fr.revolute[b] else (zero3, axis)
-        V[b] = cg.twist_add(Vp, cg.twist_scale(xd[b], A[b]))
-        Z[b] = cg.bracket(A[b], Vp)                                      # [A_b, V_b] = [A_b, V_p]
-        Y[b] = cg.twist_add(cg.bracket(A[b], ap), cg.bracket(Vp, Z[b]))  # [A, a] + [V, Z] (xd_b terms cancel)
-        a[b] = cg.twist_add(cg.twist_add(ap, cg.twist_scale(xdd[b], A[b])),
-                            cg.twist_scale(-1.0, cg.twist_scale(xd[b], Z[b])))   # [V_b, A_b xd_b]
+        A[b] = (axis, la.cross(pw[b], axis)) if fr.revolute[b] else (zero3, axis)
+        V[b] = la.twist_add(Vp, la.twist_scale(xd[b], A[b]))
+        Z[b] = la.bracket(A[b], Vp)                                      # [A_b, V_b] = [A_b, V_p]
+        Y[b] = la.twist_add(la.bracket(A[b], ap), la.bracket(Vp, Z[b]))  # [A, a] + [V, Z] (xd_b terms cancel)
+        a[b] = la.twist_add(la.twist_add(ap, la.twist_scale(xdd[b], A[b])),
+                            la.twist_scale(-1.0, la.twist_scale(xd[b], Z[b])))   # [V_b, A_b xd_b]
     # backward: body terms, subtree sums (composites), then joint b's products with its
     # ancestors at once, so that few values are live at a time (see codegen._MAX_FAST)
     Jc, Dc, Hc, Fc = ([None] * nb for _ in range(4))
@@ -186,44 +189,44 @@ def trace_derivatives(fr, g, x, xd, xdd, params, a0, fext=None, center=0):
     dv = [[0.0] * nb for _ in range(nb)]
     for m in reversed(range(nb)):
         Js = _inertia_to_root(params[m], Rw[m], pw[m])   # f_{0,m'} = (Rw, pw)
-        H = cg.inertia_times(Js, V[m])
-        F = cg.twist_add(cg.inertia_times(Js, a[m]), cg.twist_scale(-1.0, cg.ad_t(V[m], H)))
+        H = la.inertia_times(Js, V[m])
+        F = la.twist_add(la.inertia_times(Js, a[m]), la.twist_scale(-1.0, la.ad_t(V[m], H)))
         if fext is not None:   # body-frame wrench (in frame m') to the root frame
-            F = cg.twist_add(F, cg.twist_scale(-1.0, cg.wrench_to_parent(fext[m], Rw[m], pw[m])))
-        D = cg.inertia_rate(Js, V[m])
+            F = la.twist_add(F, la.twist_scale(-1.0, la.wrench_to_parent(fext[m], Rw[m], pw[m])))
+        D = la.inertia_rate(Js, V[m])
         if Jc[m] is None:
             Jc[m], Dc[m], Hc[m], Fc[m] = Js, D, H, F
         else:
-            Jc[m], Dc[m] = cg.inertia_add(Jc[m], Js), cg.inertia_add(Dc[m], D)
-            Hc[m], Fc[m] = cg.twist_add(Hc[m], H), cg.twist_add(Fc[m], F)
+            Jc[m], Dc[m] = la.inertia_add(Jc[m], Js), la.inertia_add(Dc[m], D)
+            Hc[m], Fc[m] = la.twist_add(Hc[m], H), la.twist_add(Fc[m], F)
         J, Am, Zm = Jc[m], A[m], Z[m]
 
-        def Bc(y):  # Bc_m y = -(d/dt Jc_m) y
-            return cg.twist_scale(-1.0, cg.inertia_times(Dc[m], y))
-        JcA = cg.inertia_times(J, Am)
+        def Bc(y, D=Dc[m]):  # Bc_m y = -(d/dt Jc_m) y
+            return la.twist_scale(-1.0, la.inertia_times(D, y))
+        JcA = la.inertia_times(J, Am)
         BcA = Bc(Am)
-        adAH = cg.ad_t(Am, Hc[m])
-        P = cg.twist_add(cg.twist_add(cg.twist_scale(-1.0, cg.inertia_times(J, Y[m])), Bc(Zm)),
-                         cg.twist_add(cg.ad_t(Zm, Hc[m]), cg.twist_scale(-1.0, cg.ad_t(Am, Fc[m]))))
-        Pv = cg.twist_scale(-1.0, cg.twist_add(cg.twist_add(BcA, cg.twist_scale(2.0, cg.inertia_times(J, Zm))),
+        adAH = la.ad_t(Am, Hc[m])
+        P = la.twist_add(la.twist_add(la.twist_scale(-1.0, la.inertia_times(J, Y[m])), Bc(Zm)),
+                         la.twist_add(la.ad_t(Zm, Hc[m]), la.twist_scale(-1.0, la.ad_t(Am, Fc[m]))))
+        Pv = la.twist_scale(-1.0, la.twist_add(la.twist_add(BcA, la.twist_scale(2.0, la.inertia_times(J, Zm))),
                                                adAH))
-        R = (cg.twist_scale(-1.0, JcA), cg.twist_add(BcA, cg.twist_scale(-1.0, adAH)))
-        Rv = (cg.twist_add(adAH, cg.twist_scale(-1.0, BcA)),
+        R = (la.twist_scale(-1.0, JcA), la.twist_add(BcA, la.twist_scale(-1.0, adAH)))
+        Rv = (la.twist_add(adAH, la.twist_scale(-1.0, BcA)),
               tuple(tuple(g.bake(-2.0 * c) for c in v) for v in JcA))   # used in O(n) products
-        dq[m][m], dv[m][m] = cg.dot6(Am, P), cg.dot6(Am, Pv)
+        dq[m][m], dv[m][m] = la.dot6(Am, P), la.dot6(Am, Pv)
         k = fr.parent[m]
         while k >= 0:          # k < m
-            dq[k][m], dv[k][m] = cg.dot6(A[k], P), cg.dot6(A[k], Pv)
-            dq[m][k] = cg.dot6(R[0], Y[k]) + cg.dot6(R[1], Z[k])
-            dv[m][k] = cg.dot6(Rv[0], A[k]) + cg.dot6(Rv[1], Z[k])
+            dq[k][m], dv[k][m] = la.dot6(A[k], P), la.dot6(A[k], Pv)
+            dq[m][k] = la.dot6(R[0], Y[k]) + la.dot6(R[1], Z[k])
+            dv[m][k] = la.dot6(Rv[0], A[k]) + la.dot6(Rv[1], Z[k])
             k = fr.parent[k]
         p = fr.parent[m]
         if p >= 0:
             if Jc[p] is None:
                 Jc[p], Dc[p], Hc[p], Fc[p] = Jc[m], Dc[m], Hc[m], Fc[m]
             else:
-                Jc[p], Dc[p] = cg.inertia_add(Jc[p], Jc[m]), cg.inertia_add(Dc[p], Dc[m])
-                Hc[p], Fc[p] = cg.twist_add(Hc[p], Hc[m]), cg.twist_add(Fc[p], Fc[m])
+                Jc[p], Dc[p] = la.inertia_add(Jc[p], Jc[m]), la.inertia_add(Dc[p], Dc[m])
+                Hc[p], Fc[p] = la.twist_add(Hc[p], Hc[m]), la.twist_add(Fc[p], Fc[m])
     return fr.project(dq), fr.project(dv)
 
 
@@ -234,7 +237,7 @@ def _build_kernel(fr, wrench, center=0, coriolis=False):
     coriolis: only C = 1/2 dtau/dqd, which depends on neither qdd nor gravity; the kernel then
     takes (Q, QD, P, E0) and everything only dtau/dq needs is pruned.
     """
-    g = cg.Graph()
+    g = Graph()
     co = fr.trace_coordinates(g, rates=1 if coriolis else 2)
     parg, params = fr.trace_params(g)
     if coriolis:
@@ -256,7 +259,7 @@ def _build_kernel(fr, wrench, center=0, coriolis=False):
         outputs = [0.5 * dv[r][c] for r in range(n) for c in range(n)]
     else:
         outputs = [dq[r][c] for r in range(n) for c in range(n)] + [dv[r][c] for r in range(n) for c in range(n)]
-    return cg.kernel(g, 'rnea_derivatives_kernel', args, outputs)
+    return kernel(g, 'rnea_derivatives_kernel', args, outputs)
 
 
 def _poses(fr, g, x, r):
@@ -272,8 +275,8 @@ def _poses(fr, g, x, r):
     c = r
     while True:
         R, t = X[c]
-        Rp = tuple(tuple(cg.dot(Rw[c][i], R[j]) for j in range(3)) for i in range(3))   # R_c R^T
-        pp = cg.vsub(pw[c], cg.mat_vec(Rp, t))
+        Rp = tuple(tuple(la.dot(Rw[c][i], R[j]) for j in range(3)) for i in range(3))   # R_c R^T
+        pp = la.vsub(pw[c], la.mat_vec(Rp, t))
         p = fr.parent[c]
         if p < 0:
             Rb, pb = Rp, pp
@@ -285,8 +288,8 @@ def _poses(fr, g, x, r):
             p = fr.parent[b]
             R, t = X[b]
             Rp, pp = (Rw[p], pw[p]) if p >= 0 else (Rb, pb)
-            Rw[b] = cg.mat_mat(Rp, R)
-            pw[b] = cg.vadd(pp, cg.mat_vec(Rp, t))
+            Rw[b] = la.mat_mat(Rp, R)
+            pw[b] = la.vadd(pp, la.mat_vec(Rp, t))
     return Rw, pw, Rb
 
 
@@ -295,13 +298,13 @@ def _inertia_to_root(ic, R, t):
 
     With g = R h + m t / 2: I' = R I R^T + 2 (t . g) 1 - t g^T - g t^T, h' = R h + m t.
     """
-    m, h, I = ic
-    Rh = cg.mat_vec(R, h)
-    mt = cg.vscale(m, t)
-    hp = cg.vadd(Rh, mt)
-    gv = cg.vadd(Rh, cg.vscale(0.5, mt))
-    Ir = cg.sym_rot(R, I)
-    d = 2.0 * cg.dot(t, gv)
+    m, h, Io = ic
+    Rh = la.mat_vec(R, h)
+    mt = la.vscale(m, t)
+    hp = la.vadd(Rh, mt)
+    gv = la.vadd(Rh, la.vscale(0.5, mt))
+    Ir = la.sym_rot(R, Io)
+    d = 2.0 * la.dot(t, gv)
     Ip = []
     for k, (r, c) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
         v = Ir[k] - (t[r] * gv[c] + gv[r] * t[c])
@@ -314,14 +317,14 @@ def _inertia_to_root(ic, R, t):
 def _kernel(model, wrench):
     if model.nb > KERNEL_MAX_BODIES:
         return False
-    return cg.compiled(model, 'rnea_derivatives_wrench' if wrench else 'rnea_derivatives',
+    return runtime.compiled(model, 'rnea_derivatives_wrench' if wrench else 'rnea_derivatives',
                        lambda fr: _build_kernel(fr, wrench))
 
 
 def _coriolis_kernel(model):
     if model.nb > KERNEL_MAX_BODIES:
         return False
-    return cg.compiled(model, 'coriolis', lambda fr: _build_kernel(fr, False, coriolis=True))
+    return runtime.compiled(model, 'coriolis', lambda fr: _build_kernel(fr, False, coriolis=True))
 
 
 def coriolis_matrix(model, q, qd):
@@ -331,12 +334,12 @@ def coriolis_matrix(model, q, qd):
     q, qd: (n,) or (N, n) -> (n, n) or (N, n, n).
     """
     n = model.n
-    a, b = cg.is_fast_single(q, n), cg.is_fast_single(qd, n)
+    a, b = runtime.is_fast_single(q, n), runtime.is_fast_single(qd, n)
     if a is not None and b is not None:
         k = _coriolis_kernel(model)
         if k:
             fr, fn, _ = k
-            P, E0 = cg.model_params(model, fr)
+            P, E0 = runtime.model_params(model, fr)
             return np.fromiter(fn(a, b, P, E0, sin=math.sin, cos=math.cos), float, n * n).reshape(n, n)
     single = np.ndim(q) == 1
     q, qd = model.check_states(q=q, qd=qd)
@@ -346,11 +349,12 @@ def coriolis_matrix(model, q, qd):
         C = 0.5 * inverse_dynamics_derivatives_vectorized(model, q, qd, np.zeros_like(qd))[1]
     else:
         fr, fn, _ = k
-        P, E0 = cg.model_params(model, fr)
+        P, E0 = runtime.model_params(model, fr)
         if N < _LOOP_BELOW:
-            C = np.array([fn(a, b, P, E0, sin=math.sin, cos=math.cos) for a, b in zip(q.tolist(), qd.tolist())])
+            C = np.array([fn(a, b, P, E0, sin=math.sin, cos=math.cos)
+                          for a, b in zip(q.tolist(), qd.tolist(), strict=True)])
         else:
-            C = cg.run_rows(fn, [q, qd, P, E0], n * n)
+            C = runtime.run_rows(fn, [q, qd, P, E0], n * n)
         C = C.reshape(N, n, n)
     return C[0] if single else C
 
@@ -368,15 +372,15 @@ def _kernel_derivatives(model, q, qd, qdd, fext, mode=None):
     if not k:
         return None
     fr, fn, _ = k
-    P, E0, A0 = cg.model_params(model, fr, gravity=True)
+    P, E0, A0 = runtime.model_params(model, fr, gravity=True)
     N, n = q.shape
     extra = ()
     if fext is not None:
         extra = (fr.wrench_params(fext).reshape(N, -1),)
     if mode == 'loop':
-        rows = zip(q.tolist(), qd.tolist(), qdd.tolist(), *[e.tolist() for e in extra])
+        rows = zip(q.tolist(), qd.tolist(), qdd.tolist(), *[e.tolist() for e in extra], strict=True)
         vals = np.array([fn(*r[:3], P, A0, E0, *r[3:], sin=math.sin, cos=math.cos) for r in rows])
     else:
-        vals = cg.run_rows(fn, [q, qd, qdd, P, A0, E0] + list(extra), 2 * n * n)
+        vals = runtime.run_rows(fn, [q, qd, qdd, P, A0, E0] + list(extra), 2 * n * n)
     vals = vals.reshape(N, 2, n, n)
     return vals[:, 0], vals[:, 1]

@@ -1,0 +1,475 @@
+"""Running the generated kernels: one cache, one threshold table, one dispatch, one batch runner.
+
+Compiled code depends only on a model's structure (home poses, screws, tree, mimic map), so
+it is cached by a fingerprint of that structure in one bounded LRU shared by all models:
+copies of a model, and models loaded from the same URDF, share their kernels. What changes
+at run time (inertias and payloads, gravity, locked-joint values) enters the kernels as
+parameter lists, cached per model until the model's version changes (every setter bumps it).
+
+A kernel is described by a `Spec` (its traced form lives in codegen/traced/): how to build
+it from the model's Frames, which parameter lists follow the per-state arguments, and which
+entry of THRESHOLDS says when it runs. `route` is the one dispatch decision: the float
+kernel (one state, or a small batch state by state), the kernel on numpy rows (a large
+batch), or None: the algorithm's vectorised reference.
+"""
+import collections
+import contextlib
+import hashlib
+import threading
+import weakref
+from typing import NamedTuple
+
+import numpy as np
+
+from .frames import Frames
+from .render import rows_function
+
+
+class Limits(NamedTuple):
+    """When a kernel runs, by model size (`size`: bodies, or (body, ancestor-or-self) pairs,
+    the sum of the body depths) and by the number of states N of a call."""
+    compile_max: int          # no kernel above this size (compile time grows with the source)
+    float_max: int            # above: one state and small batches take the vectorised reference
+    loop_below: int           # N below this: the float kernel, state by state
+    rows_from: int            # N from this: the kernel on numpy rows; in between: vectorised
+    size: str = 'bodies'
+    large: int = None         # above this size, rows from rows_from_large states
+    rows_from_large: int = None
+
+
+# Every size threshold of the algorithms, with the measurement that chose it (timings on the
+# 7-DoF arm and random chains and trees, this 2-core machine, numpy 2.4, Python 3.11).
+THRESHOLDS = {
+    # RNEA: compile time grows with the source, and above 256 bodies the vectorised form is
+    # as fast for batches. The float kernel (~15 ns per flop) is slower than the vectorised
+    # reference for one state above ~48 bodies. A Python loop of the float kernel beats the
+    # rows kernel below ~30 states on the arm (each row operation costs ~0.5 us whatever its
+    # length).
+    'inverse_dynamics': Limits(256, 48, 32, 32),
+    # Gravity (subtree masses, a few operations per body): the float kernel wins for one
+    # state at every size up to the compile cap; loop/rows crossover as inverse dynamics.
+    'gravity': Limits(256, 256, 32, 32),
+    # CRBA: the O(n^2) source takes long to compile above 24 bodies; the float loop beats the
+    # vectorised form up to ~40 states on the arm, where the in-place rows take over.
+    'mass_matrix': Limits(24, 24, 40, 40),
+    # Cholesky forward dynamics (CRBA + RNEA bias + factorisation, O(n^2) source, the CRBA's
+    # cap); the float loop beats the rows up to ~48 states on the arm, and the kernel beats
+    # the composed numpy path at every batch size.
+    'forward_dynamics': Limits(24, 24, 48, 48),
+    # ABA (O(n) source): build time grows ~12 ms per body (0.3 s at 24, 1.2 s at 120) while
+    # the kernel stays ~10x faster than the vectorised form; loop/rows crossovers 28-48
+    # states for 2-24 bodies, the vectorised form never clearly faster in between.
+    'aba': Limits(128, 128, 32, 32),
+    # Derivatives of inverse dynamics (and C = 1/2 dtau/dqd): above 16 bodies one state is
+    # faster through the vectorised form; crossovers 4 (loop) and 128 (rows) on 7-20 bodies.
+    'inverse_dynamics_derivatives': Limits(16, 16, 4, 128),
+    # Derivatives of forward dynamics (the derivative kernel's cap); crossovers on the arm
+    # ~8 (loop) and ~80 (rows).
+    'forward_dynamics_derivatives': Limits(16, 16, 8, 80),
+    # Regressor, sized in pairs: 300 pairs (a 24-body chain) compile in ~0.5-0.8 s. The
+    # float kernel (~22 ns per operation, 60-95 per pair) beats the vectorised form for one
+    # state up to ~130-160 pairs. Loop below ~7 states on the arm (3-5 on 10-12-body robots
+    # with general axes); rows from ~80 states on the arm and 20-100 up to 64 pairs, 40-280
+    # for 100-300 pairs (later for chains, earlier for branched trees).
+    'regressor': Limits(300, 128, 6, 80, size='pairs', large=64, rows_from_large=192),
+    # Batch runner: states per chunk, large enough that each ufunc's ~0.5 us fixed cost is
+    # small next to its per-element work, small enough that the rows stay in cache (at most
+    # ~8 MB of registers and inputs per chunk).
+    'rows_chunk': 4096,
+    'rows_bytes': 8 << 20,
+    # Regressor rows: states per call of the batch runner, bounding its (outputs, states)
+    # result (up to 10 nb^2 outputs).
+    'regressor_rows_chunk': 8192,
+    # Vectorised references: floats of work arrays per chunk of states (2^21: 16 MB).
+    'vectorized_budget': 1 << 21,
+    # Compiled kernels kept for structures no live model uses (about 10 per structure).
+    'compiled_cache': 256,
+}
+
+
+def pairs(model):
+    """(body, ancestor-or-self) pairs: the sum of the body depths (the regressor's size)."""
+    return structural(model, 'pairs', lambda: int(model.depth.sum()))
+
+
+def route(model, name, N=None):
+    """The one dispatch decision for THRESHOLDS[name] and N states (None: one state):
+    'loop' (the float kernel, state by state), 'rows' (numpy rows) or None (vectorised)."""
+    t = THRESHOLDS[name]
+    size = model.nb if t.size == 'bodies' else pairs(model)
+    if size > t.compile_max:
+        return None
+    if N is None or N < t.loop_below:
+        return 'loop' if size <= t.float_max else None
+    rows_from = t.rows_from if t.large is None or size <= t.large else t.rows_from_large
+    return 'rows' if N >= rows_from else None
+
+
+# ---------------------------------------------------------------------------- caches
+class _Slot:
+    """What the runtime keeps for one live model (dropped with it): its fingerprint, Frames and
+    kernels (structure, never invalidated) and values that follow the model's version."""
+    __slots__ = ('ref', 'version', 'fingerprint', 'frames', 'kernels', 'structure', 'values', 'singles')
+
+    def __init__(self, model):
+        self.ref = weakref.ref(model)
+        self.version, self.fingerprint, self.frames = None, None, None
+        self.kernels, self.structure, self.values, self.singles = {}, {}, {}, {}
+
+
+_SLOTS = {}                                   # id(model) -> _Slot, removed when the model dies
+_SHARED = collections.OrderedDict()           # (fingerprint, name) -> kernel or Frames, LRU
+_LOCK = threading.Lock()
+_BUILDS = [0]
+
+
+def _slot(model):
+    s = _SLOTS.get(id(model))
+    if s is None or s.ref() is not model:
+        s = _SLOTS[id(model)] = _Slot(model)
+        weakref.finalize(model, _SLOTS.pop, id(model), None)
+    if s.version != model.version:
+        s.values, s.singles = {}, {}          # new dicts: concurrent readers keep the old ones
+        s.version = model.version
+    return s
+
+
+def _shared(key, make):
+    """The LRU entry `key`, made on a miss (outside the lock: builds take long)."""
+    with _LOCK:
+        v = _SHARED.get(key)
+        if v is not None:
+            _SHARED.move_to_end(key)
+            return v
+    v = make()
+    with _LOCK:
+        _BUILDS[0] += 1
+        v = _SHARED.setdefault(key, v)
+        while len(_SHARED) > THRESHOLDS['compiled_cache']:
+            _SHARED.popitem(last=False)
+    return v
+
+
+def cache_info():
+    """dict(builds=kernels and Frames built since the process started, cached=entries in the
+    shared cache, models=live models with runtime state)."""
+    return dict(builds=_BUILDS[0], cached=len(_SHARED), models=len(_SLOTS))
+
+
+def clear():
+    """Forget every compiled kernel and cached value (live models rebuild on next use)."""
+    with _LOCK:
+        _SHARED.clear()
+    _SLOTS.clear()
+
+
+def derived(model, key, compute):
+    """compute(), cached for the model until its version changes (a setter ran)."""
+    s = _slot(model)
+    v = s.values.get(key)
+    if v is None:
+        v = s.values[key] = compute()
+    return v
+
+
+def structural(model, key, compute):
+    """compute(), cached for the model's lifetime (it may only depend on the structure)."""
+    s = _slot(model)
+    v = s.structure.get(key)
+    if v is None:
+        v = s.structure[key] = compute()
+    return v
+
+
+def fingerprint(model):
+    """Hash of everything a kernel's source depends on (copies of a model share kernels)."""
+    s = _slot(model)
+    if s.fingerprint is None:
+        h = hashlib.sha1()
+        for a in (model.M, model.S, model.parent, model.E, model.L != 0, model.c0 != 0):
+            h.update(np.ascontiguousarray(a).tobytes())
+            h.update(str(np.shape(a)).encode())
+        s.fingerprint = h.hexdigest()
+    return s.fingerprint
+
+
+def frames(model):
+    """The model's Frames (shared by models of the same structure)."""
+    s = _slot(model)
+    if s.frames is None:
+        s.frames = _shared((fingerprint(model), 'frames'), lambda: Frames(model))
+    return s.frames
+
+
+def compiled(model, name, build):
+    """The kernel `name` of this model's structure: (frames, float function, source, *extra)
+    from build(frames), built once per structure; False when the model's screws are not unit
+    revolute / prismatic axes or build returns None."""
+    s = _slot(model)
+    k = s.kernels.get(name)
+    if k is None:
+        fr = frames(model)
+
+        def make():
+            res = build(fr) if fr.supported else None
+            return (fr,) + tuple(res) if res is not None else False
+        k = s.kernels[name] = _shared((fingerprint(model), name), make)
+    return k
+
+
+# ---------------------------------------------------------------------------- parameters
+def _inertia(model, fr):
+    return tuple(fr.inertia_params(model.J))
+
+
+def _subtree(model, fr):
+    return tuple(fr.subtree_params(model.J).ravel().tolist())
+
+
+def _gravity(model, fr):
+    """-g: the linear part of the base acceleration (0, -g)."""
+    return tuple(model.base_acceleration[3:].tolist())
+
+
+def _offsets(model, fr):
+    return tuple(fr.offsets(model.e0))
+
+
+PARAMETERS = {'inertia': _inertia, 'subtree': _subtree, 'gravity': _gravity, 'offsets': _offsets,
+              'no_gravity': lambda model, fr: (0.0, 0.0, 0.0)}
+
+
+def parameter(model, kind):
+    """One parameter list of the kernels, in the primed frames (codegen.frames), cached until
+    the model's version changes: 'inertia' (10 per body), 'subtree' (gravity kernel, 4 per
+    body), 'gravity' (-g), 'no_gravity' (zeros) or 'offsets' (body offsets of locked and
+    offset joints)."""
+    return derived(model, kind, lambda: PARAMETERS[kind](model, frames(model)))
+
+
+def model_params(model, fr, gravity=False):
+    """(P, E0[, A0]) of the kernels: inertias, offsets and -g."""
+    return derived(model, ('model_params', gravity), lambda: (
+        (parameter(model, 'inertia'), parameter(model, 'offsets'))
+        + ((parameter(model, 'gravity'),) if gravity else ())))
+
+
+def as_rows(values):
+    """Parameter lists as 0-d arrays, for the rows kernels: a ufunc takes a 0-d array operand
+    ~0.25 us faster than a Python float (no scalar conversion per call)."""
+    return tuple(tuple(np.array(v) for v in vs) for vs in values)
+
+
+# ---------------------------------------------------------------------------- kernels
+class Spec:
+    """A generated kernel: `name` (its cache key: specs of one name share the compiled code),
+    `build(frames)` -> render.kernel's (function, source[, extras...]) or None, `params` (the
+    parameter lists that follow its per-state arguments: PARAMETERS keys, or functions
+    (model, kernel) -> tuple), `limits` (its THRESHOLDS entry), `supports` (an extra
+    condition on the model, or None), `rows_arrays` (parameters of the rows form as 0-d
+    arrays, see as_rows) and `checked` (callers check the outputs: the rows form runs
+    without floating-point warnings)."""
+    __slots__ = ('name', 'build', 'params', 'limits', 'supports', 'rows_arrays', 'checked')
+
+    def __init__(self, name, build, params, limits, supports=None, rows_arrays=False, checked=False):
+        self.name, self.build, self.params, self.limits = name, build, tuple(params), limits
+        self.supports, self.rows_arrays, self.checked = supports, rows_arrays, checked
+
+    def variant(self, params):
+        """The same kernel with other parameter lists (e.g. gravity switched off)."""
+        return Spec(self.name, self.build, params, self.limits, self.supports, self.rows_arrays, self.checked)
+
+
+def kernel(model, spec):
+    """(frames, float function, source, *extras) of spec's kernel for this model, or None:
+    too large for THRESHOLDS, screws other than unit revolute / prismatic axes, or
+    spec.supports(model) false."""
+    t = THRESHOLDS[spec.limits]
+    if (model.nb if t.size == 'bodies' else pairs(model)) > t.compile_max:
+        return None
+    if spec.supports is not None and not spec.supports(model):
+        return None
+    return compiled(model, spec.name, spec.build) or None
+
+
+def _bind(s, model, spec):
+    """(kernel, parameter lists, those of the rows form) of spec for the model's version, or False."""
+    b = s.values.get(spec)
+    if b is None:
+        k = kernel(model, spec)
+        if k:
+            P = tuple(parameter(model, p) if isinstance(p, str) else p(model, k) for p in spec.params)
+            b = (k, P, as_rows(P) if spec.rows_arrays else P)
+        s.values[spec] = b = b or False
+    return b
+
+
+def params(model, spec, rows=False):
+    """The parameter lists of spec's kernel (for its rows form when rows), cached until the
+    model's version changes; None when the model has no such kernel."""
+    b = _bind(_slot(model), model, spec)
+    return (b[2] if rows else b[1]) if b else None
+
+
+def single(model, spec):
+    """(float function, parameter lists) when one state of this model runs spec's float
+    kernel (route), else False; cached until the model's version changes."""
+    s = _SLOTS.get(id(model))   # the hot path of a control loop: _slot, inlined
+    if s is None or s.version != model.version or s.ref() is not model:
+        s = _slot(model)
+    b = s.singles.get(spec)
+    if b is None:
+        k = _bind(s, model, spec) if route(model, spec.limits) == 'loop' else False
+        b = s.singles[spec] = (k[0][1], k[1]) if k else False
+    return b
+
+
+def forget(model):
+    """Drop what the runtime keeps for this model (e.g. after changing THRESHOLDS); its
+    kernels come back from the shared cache."""
+    _SLOTS.pop(id(model), None)
+
+
+def evaluate(model, spec, arrays, mode, out=None):
+    """spec's kernel on validated per-state arrays (N, k_i), in the kernel's order: 'loop'
+    (floats, state by state) or 'rows' (into `out` when given). Returns (N, n_out), or None
+    when the model has no such kernel or the float kernel raised (sqrt of a negative pivot,
+    a zero pivot: callers report it by the reference)."""
+    b = _bind(_slot(model), model, spec)
+    if not b:
+        return None
+    fn = b[0][1]
+    if mode == 'loop':
+        try:
+            vals = run_loop(fn, arrays, b[1])
+        except (ValueError, ZeroDivisionError, OverflowError):
+            return None
+        return np.array(vals, dtype=float).reshape(len(arrays[0]), fn.n_out)
+    return run_rows(fn, list(arrays) + list(b[2]), fn.n_out, out=out, quiet=spec.checked)
+
+
+def dispatch(model, spec, arrays, mode=None, out=None):
+    """spec's kernel on validated (N, k_i) per-state arrays where route (or a forced mode,
+    'loop' or 'rows') says so: (N, n_out) outputs, or None for the vectorised reference."""
+    mode = mode or route(model, spec.limits, len(arrays[0]))
+    return evaluate(model, spec, arrays, mode, out) if mode else None
+
+
+# ---------------------------------------------------------------------------- running kernels
+_ND = np.ndarray
+_F64 = np.dtype(float)
+_NO_ERRSTATE = contextlib.nullcontext()
+
+
+def fast_states(n, *xs):
+    """Float lists for one state given as (n,) float64 arrays or sequences of n numbers whose
+    sum is finite, else None (callers then validate in full and report what is wrong)."""
+    out = []
+    s = 0.0
+    for x in xs:
+        if type(x) is _ND:
+            if x.shape != (n,) or x.dtype != _F64:
+                return None
+            x = x.tolist()
+        elif type(x) in (list, tuple) and len(x) == n:
+            try:
+                x = [float(v) for v in x]
+            except (TypeError, ValueError):
+                return None
+        else:
+            return None
+        s += sum(x)
+        out.append(x)
+    return out if s - s == 0.0 else None   # inf - inf and nan are not 0: exact checks
+
+
+def is_fast_single(x, n):
+    """fast_states for one argument: its float list, or None."""
+    if type(x) is _ND:
+        if x.shape != (n,) or x.dtype != _F64:
+            return None
+        x = x.tolist()
+    elif type(x) in (list, tuple) and len(x) == n:
+        try:
+            x = [float(v) for v in x]
+        except (TypeError, ValueError):
+            return None
+    else:
+        return None
+    s = sum(x)
+    return x if s - s == 0.0 else None
+
+
+_LOOPS = {}
+
+
+def run_loop(fn, arrays, params):
+    """The float kernel state by state: arrays (N, k) (the per-state arguments, first in the
+    kernel's order), params the parameter lists that follow them. A list of output tuples."""
+    key = (len(arrays), len(params))
+    loop = _LOOPS.get(key)
+    if loop is None:   # the arguments spelt out: ~0.2 us per state less than fn(*r, *params)
+        a = ', '.join(f'a{i}' for i in range(key[0]))
+        p = ''.join(f', p{i}' for i in range(key[1]))
+        rows = 'lists[0]' if key[0] == 1 else 'zip(*lists, strict=True)'
+        src = (f'def loop(fn, lists, params):\n    ({p[2:]}{"," if p else ""}) = params\n'
+               f'    return [fn({a}{p}) for {a} in {rows}]\n')
+        ns = {}
+        exec(compile(src, '<lie_dynamics run_loop>', 'exec'), ns)
+        loop = _LOOPS[key] = ns['loop']
+    return loop(fn, [x.tolist() for x in arrays], params)
+
+
+def run_rows(fn, args, n_out, chunk=None, out=None, quiet=True):
+    """Run a kernel's rows form on a batch: args in the kernel's order, (N, k) arrays for the
+    per-state lists and parameter sequences otherwise. Returns (N, n_out): `out` when given
+    (written column by column), else the transpose of a state-last array. quiet: no
+    floating-point warnings (for callers that check the outputs).
+
+    States go in chunks (THRESHOLDS rows_chunk / rows_bytes), copied transposed into input
+    rows of one register block; every operation writes into the block (render.emit_rows), so
+    a chunk allocates nothing but its outputs. Blocks are reused across chunks and calls from
+    a pool per kernel, so concurrent callers never share one and later calls touch no fresh
+    pages.
+    """
+    rows_fn = rows_function(fn)
+    lay = fn.layout
+    if lay is None or lay[0] != len(args):   # where the per-state arrays are: fixed per kernel
+        idx = tuple(i for i, a in enumerate(args) if isinstance(a, _ND) and a.ndim == 2)
+        height = fn.nreg + 1 + sum(args[i].shape[1] for i in idx)
+        size = int(min(THRESHOLDS['rows_chunk'], max(256, THRESHOLDS['rows_bytes'] // (8 * height))))
+        lay = fn.layout = (len(args), idx, height, size)
+    _, idx, height, size = lay
+    size = chunk or size
+    regs = fn.nreg + 1
+    N = args[idx[0]].shape[0]
+    try:
+        buf = fn.pool.pop()
+    except IndexError:
+        buf = None
+    if buf is None or buf.size < height * size:
+        buf = np.empty(height * size)
+    res = np.empty((n_out, N)) if out is None else None
+    call = list(args)
+    errs = np.errstate(all='ignore') if quiet else _NO_ERRSTATE
+    try:
+        with errs:
+            for start in range(0, N, size):
+                stop = min(N, start + size)
+                view = buf[:height * (stop - start)].reshape(height, stop - start)   # adjacent rows
+                r = regs
+                for i in idx:
+                    w = args[i].shape[1]
+                    view[r:r + w] = args[i][start:stop].T
+                    call[i] = view[r:r + w]
+                    r += w
+                vals = rows_fn(*call, list(view[:regs]))
+                if out is None:
+                    for k, v in enumerate(vals):
+                        res[k, start:stop] = v
+                else:
+                    for k, v in enumerate(vals):
+                        out[start:stop, k] = v
+    finally:
+        fn.pool.append(buf)
+    return res.T if out is None else out

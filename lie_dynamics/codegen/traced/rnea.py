@@ -1,0 +1,216 @@
+"""The recursive Newton-Euler algorithm, traced (paper section 3.2, eqs 16-21).
+
+The paper's recursion runs link by link in body frames, with f_{i-1,i} = M_i e^{[S_i] x_i}
+(eqs 16-17):
+    V_i  = Ad_{f_{i-1,i}^-1} V_{i-1} + S_i xd_i                                   (18)
+    Vd_i = S_i xdd_i + Ad_{f_{i-1,i}^-1} Vd_{i-1} + ad_{V_i}(S_i xd_i)            (19)
+    F_i  = Ad*_{f_{i,i+1}^-1} F_{i+1} + J_i Vd_i - ad*_{V_i}(J_i V_i)             (20)
+    tau_i = S_i^T F_i                                                              (21)
+with V_0 = 0, Vd_0 = (0, -g) (gravity as a base acceleration).
+
+Traced in the primed frames of codegen.frames (body frame b' turned so that the joint axis
+is z): f_{p',b'}(x) = M'_b Rz(x) or M'_b Trans(z x), S'_b = (e_z, 0) or (0, e_z), and
+tau_b = S'_b^T F_b is one component of the wrench. Inertias are parameters in the primed
+frames, so payload, gravity and locked-joint changes never recompile.
+"""
+import numpy as np
+
+from .. import algebra as la
+from ..render import kernel
+from ..runtime import Spec
+from ..tracer import Graph
+from ...spatial import hat3
+
+
+def _lin(K, vec, add=None):
+    """K @ vec (+ add) for a constant matrix K: zero entries fold away."""
+    out = []
+    for j in range(K.shape[0]):
+        acc = add[j] if add is not None else 0.0
+        for k in range(len(vec)):
+            c = float(K[j, k])
+            if c != 0.0:
+                acc = acc + c * vec[k]
+        out.append(acc)
+    return tuple(out)
+
+
+def _rz(c, s, u, transpose):
+    """Rz(x) u, or Rz(x)^T u, with c = cos x, s = sin x."""
+    if transpose:
+        return (c * u[0] + s * u[1], c * u[1] - s * u[0], u[2])
+    return (c * u[0] - s * u[1], s * u[0] + c * u[1], u[2])
+
+
+def _home_adjoints(fr):
+    """Ad_{M'^-1} = [[R'^T, 0], [-R'^T [t'], R'^T]] per body (constant 6x6 arrays)."""
+    out = []
+    for R, t in zip(fr.R, fr.t, strict=True):
+        R = np.array(R)
+        K = np.zeros((6, 6))
+        K[:3, :3] = K[3:, 3:] = R.T
+        K[3:, :3] = -R.T @ hat3(np.array(t))
+        out.append(K)
+    return out
+
+
+def _coordinates(fr, g, rates):
+    co = fr.trace_coordinates(g, rates=rates)
+    cs = [(g.cos(x), g.sin(x)) if rev else None for x, rev in zip(co['x'], fr.revolute, strict=True)]
+    return co, cs
+
+
+def _torques(fr, tau_b):
+    return [sum((float(fr.E[b, j]) * tau_b[b] for b in range(fr.nb) if fr.E[b, j] != 0), 0.0)
+            for j in range(fr.n)]
+
+
+def build_inverse_dynamics(fr, wrench):
+    """k(Q, QD, QDD[, FX], P, A0, E0) -> tau tuple: eqs 18-21 in primed frames, as render.kernel
+    (the float function, with the rows form as its attribute)."""
+    g = Graph()
+    co, cs = _coordinates(fr, g, 2)
+    x, xd, xdd = co['x'], co['xd'], co['xdd']
+    nb = fr.nb
+    Ks = _home_adjoints(fr)
+    parg, params = fr.trace_params(g)
+    ga = tuple(g.input(f'g{k}') for k in range(3))
+    args = list(co['args'])
+    if wrench:   # per-state arguments first, then the parameters
+        names = [f'f{b}_{k}' for b in range(nb) for k in range(6)]
+        args.append(('FX', names))
+        fx = [g.input(nm) for nm in names]
+    args += [parg, ('A0', ['g0', 'g1', 'g2']), co['offset_args']]
+    V, Vd, F = [None] * nb, [None] * nb, [None] * nb
+    zero = (0.0, 0.0, 0.0)
+    for b in range(nb):
+        p = fr.parent[b]
+        Vp = V[p] if p >= 0 else zero + zero
+        Vdp = Vd[p] if p >= 0 else zero + ga
+        K = Ks[b]
+        U, Ud = _lin(K, Vp), _lin(K, Vdp)              # Ad_{M'^-1} V_{i-1}
+        if fr.revolute[b]:
+            c, s = cs[b]
+            w = _rz(c, s, U[:3], True)
+            w = (w[0], w[1], w[2] + xd[b])                                     # eq 18
+            v = _rz(c, s, U[3:], True)
+            wd = _rz(c, s, Ud[:3], True)
+            vd = _rz(c, s, Ud[3:], True)
+            # eq 19: + S xdd + ad_{V_i}(S xd); ad_V(e_z xd, 0) = (w x e_z xd, v x e_z xd)
+            wd = (wd[0] + w[1] * xd[b], wd[1] - w[0] * xd[b], wd[2] + xdd[b])
+            vd = (vd[0] + v[1] * xd[b], vd[1] - v[0] * xd[b], vd[2])
+        else:
+            xb = x[b]
+            # Ad_{Trans(z x)^-1}: v += x (w_y, -w_x, 0); then S xd = (0, e_z xd)
+            w = U[:3]
+            v = (U[3] + xb * w[1], U[4] - xb * w[0], U[5] + xd[b])
+            wd = Ud[:3]
+            # eq 19: ad_V(0, e_z xd) = (0, w x e_z xd)
+            vd = (Ud[3] + xb * wd[1] + w[1] * xd[b], Ud[4] - xb * wd[0] - w[0] * xd[b], Ud[5] + xdd[b])
+        V[b], Vd[b] = w + v, wd + vd
+        # eq 20, body term J Vd - ad*_V (J V) with J = [[I_o, [h]], [-[h], m]], rewritten with
+        # the Jacobi identity (fewer products, same value): with a = vd + w x v,
+        #   n = I_o wd + w x (I_o w) + h x a,   f = m a + wd x h + w x (w x h)
+        m, h, (ixx, ixy, ixz, iyy, iyz, izz) = params[b]
+        Io = ((ixx, ixy, ixz), (ixy, iyy, iyz), (ixz, iyz, izz))
+        acc = la.vadd(vd, la.cross(w, v))
+        Iw = la.sym_vec((ixx, ixy, ixz, iyy, iyz, izz), w)
+        wh = la.cross(w, h)
+        Fn = la.vadd(la.vadd(tuple(Io[r][0] * wd[0] + Io[r][1] * wd[1] + Io[r][2] * wd[2] for r in range(3)),
+                             la.cross(w, Iw)), la.cross(h, acc))
+        Ff = la.vadd(la.vadd(la.vscale(m, acc), la.cross(wd, h)), la.cross(w, wh))
+        if wrench:
+            Fn = la.vsub(Fn, fx[6 * b:6 * b + 3])
+            Ff = la.vsub(Ff, fx[6 * b + 3:6 * b + 6])
+        F[b] = list(Fn) + list(Ff)
+    tau_b = [None] * nb
+    for b in range(nb - 1, -1, -1):                        # backward pass, eqs 20-21
+        Fb = F[b]
+        tau_b[b] = Fb[2] if fr.revolute[b] else Fb[5]
+        p = fr.parent[b]
+        if p < 0:
+            continue
+        if fr.revolute[b]:
+            c, s = cs[b]
+            G = _rz(c, s, Fb[:3], False) + _rz(c, s, Fb[3:], False)
+        else:  # Ad*_{Trans(z x)}: n += (z x) x f
+            xb = x[b]
+            G = (Fb[0] - xb * Fb[4], Fb[1] + xb * Fb[3], Fb[2]) + tuple(Fb[3:])
+        F[p] = list(_lin(Ks[b].T, G, add=F[p]))       # Ad*_{M'^-1} = K^T
+    return kernel(g, 'inverse_dynamics_kernel', args, _torques(fr, tau_b))
+
+
+def build_gravity(fr):
+    """k(Q, P, A0, E0) -> g(q) tuple, P = Frames.subtree_params (as build_inverse_dynamics).
+
+    With V = 0 and Vdot_0 = (0, -g), eq 19 leaves only the linear acceleration a_i = R^T a_p,
+    and the subtree sum of eq 20 is (H_i x a_i, m_i a_i): subtree mass m_i (a parameter)
+    and first moment H_i = h'_i + sum_c (R_c H_c + m_c p_c), its constant part folded into
+    the parameters. Eq 21 is then one component.
+    """
+    g = Graph()
+    co, cs = _coordinates(fr, g, 0)
+    x = co['x']
+    nb = fr.nb
+    names = [f'p{b}_{k}' for b in range(nb) for k in range(4)]
+    syms = [g.input(nm) for nm in names]
+    params = [syms[4 * b:4 * b + 4] for b in range(nb)]
+    ga = tuple(g.input(f'g{k}') for k in range(3))
+    args = co['args'] + [('P', names), ('A0', ['g0', 'g1', 'g2']), co['offset_args']]
+    R0 = [np.array(R) for R in fr.R]
+    acc = [None] * nb
+    for b in range(nb):
+        p = fr.parent[b]
+        u = _lin(R0[b].T, acc[p] if p >= 0 else ga)
+        acc[b] = _rz(*cs[b], u, True) if fr.revolute[b] else u
+    H = [tuple(ps[1:]) for ps in params]
+    tau_b = [None] * nb
+    for b in range(nb - 1, -1, -1):
+        a = acc[b]
+        tau_b[b] = H[b][0] * a[1] - H[b][1] * a[0] if fr.revolute[b] else params[b][0] * a[2]
+        p = fr.parent[b]
+        if p < 0:
+            continue
+        if fr.revolute[b]:
+            u = _rz(*cs[b], H[b], False)
+        else:  # H + m_sub z x
+            u = (H[b][0], H[b][1], H[b][2] + params[b][0] * x[b])
+        H[p] = _lin(R0[b], u, add=H[p])
+    return kernel(g, 'gravity_kernel', args, _torques(fr, tau_b))
+
+
+def trace_rnea(fr, g, x, xd, xdd, params, a0, X=None):
+    """Body-torques of the RNEA (eqs 16-21) in the primed frames, traced.
+
+    x, xd, xdd: body coordinates and rates; params: per body (m, h, I); a0: base linear
+    acceleration -g (3 values); X: optional precomputed joint transforms.
+    """
+    nb = fr.nb
+    zero3 = (0.0, 0.0, 0.0)
+    X = X or [fr.joint_transform(g, b, x[b]) for b in range(nb)]
+    V, A, F = [None] * nb, [None] * nb, [None] * nb
+    for b in range(nb):
+        p = fr.parent[b]
+        Vp, Ap = (V[p], A[p]) if p >= 0 else ((zero3, zero3), (zero3, tuple(a0)))
+        R, t = X[b]
+        S = ((0.0, 0.0, 1.0), zero3) if fr.revolute[b] else (zero3, (0.0, 0.0, 1.0))
+        Sxd = la.twist_scale(xd[b], S)
+        V[b] = la.twist_add(la.twist_to_child(Vp, R, t), Sxd)                       # eq 18
+        A[b] = la.twist_add(la.twist_add(la.twist_to_child(Ap, R, t), la.twist_scale(xdd[b], S)),
+                            la.bracket(V[b], Sxd))                                   # eq 19
+        H = la.inertia_times(params[b], V[b])
+        F[b] = la.twist_add(la.inertia_times(params[b], A[b]), la.twist_scale(-1.0, la.ad_t(V[b], H)))
+    tau = [None] * nb
+    for b in reversed(range(nb)):
+        tau[b] = F[b][0][2] if fr.revolute[b] else F[b][1][2]                       # eq 21
+        p = fr.parent[b]
+        if p >= 0:
+            F[p] = la.twist_add(F[p], la.wrench_to_parent(F[b], *X[b]))
+    return tau
+
+
+INVERSE_DYNAMICS = Spec('inverse_dynamics', lambda fr: build_inverse_dynamics(fr, False),
+                        ('inertia', 'gravity', 'offsets'), 'inverse_dynamics', rows_arrays=True)
+INVERSE_DYNAMICS_WRENCH = Spec('inverse_dynamics_wrench', lambda fr: build_inverse_dynamics(fr, True),
+                               ('inertia', 'gravity', 'offsets'), 'inverse_dynamics', rows_arrays=True)
+GRAVITY = Spec('gravity', build_gravity, ('subtree', 'gravity', 'offsets'), 'gravity', rows_arrays=True)
