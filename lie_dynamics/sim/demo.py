@@ -11,8 +11,9 @@ and stops everything (SIGINT, then SIGKILL after a grace period; also on Ctrl-C)
   2. gravity compensation   the arm holds its pose   max drift (rad), target < 1e-3
   3. tracking               PD only vs PD + model feedforward: RMS tracking error (rad)
 Prints a table and writes a PNG (joint angles and torques over time) and a CSV of the metrics.
-The simulator runs in lockstep with the controller (each state waits for its command), so
-the numbers do not depend on how loaded the machine is.
+The simulator runs in lockstep with the controller (each step waits for the command answering
+the last state, and in the tracking scenarios for the desired state of the next step), so the
+numbers do not depend on how loaded the machine is, and it steps as soon as the answers are in.
 """
 import collections
 import itertools
@@ -42,6 +43,8 @@ HISTORY_S = 60.0
 # controller); shorter waits made results depend on machine load.
 LOCKSTEP_TIMEOUT = 2.0
 STATUS_WINDOW_S = 2.0
+# where trajectory_source publishes and the node (desired_topic ~/desired) listens
+DESIRED_TOPIC = '/dynamics_node/desired'
 PKG_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # lie_dynamics/
 CONFIG = os.path.join(os.path.dirname(PKG_DIR), 'config', 'arm7_gravity.yaml')
 
@@ -181,7 +184,10 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
                          'lockstep': 'true' if node_params is not None else 'false',
                          'lockstep_timeout': f'{LOCKSTEP_TIMEOUT:.1f}',
                          'min_subscribers': str(1 + (node_params is not None) + with_traj),
-                         'max_steps': str(steps)}, ends_by_itself=steps > 0)
+                         'max_steps': str(steps),
+                         # the tracking scenarios also wait for the desired state of the next step
+                         **({'lockstep_stamped_topic': DESIRED_TOPIC} if with_traj and node_params else {})},
+                        ends_by_itself=steps > 0)
             last_check = last_status = 0.0
             drain_until = None
             try:

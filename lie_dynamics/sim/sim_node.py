@@ -1,7 +1,7 @@
 """ROS 2 node: a simulated arm standing in for a ros2_control robot with an effort controller.
 
     ros2 run lie_dynamics sim_node
-    python -m lie_dynamics.sim_node --ros-args -p rate:=1000.0
+    python -m lie_dynamics.sim.sim_node --ros-args -p rate:=1000.0
 
 Publishes   robot_description (std_msgs/String, reliable, transient local, depth 1),
             joint_states (sensor_msgs/JointState: position, velocity, effort = applied torque;
@@ -10,10 +10,14 @@ Subscribes  <command_topic> (std_msgs/Float64MultiArray, ordered as `joints`), h
             next one like JointGroupEffortController; a message of the wrong length or with a
             non-finite value is dropped with a log line (recent controllers drop them too).
 
-Parameters: see PARAMETERS below, or `python -m lie_dynamics.sim_node --help`. With lockstep
-the simulator holds the initial state until the first command arrives, then waits for the
-command answering each published state, re-sending the state every `resend_period` s and
-stepping anyway after `lockstep_timeout` s: results then do not depend on machine load.
+Parameters: see PARAMETERS below, or `python -m lie_dynamics.sim.sim_node --help`. With lockstep
+the simulator holds the initial state until the first command arrives, then steps as soon as the
+command answering each published state has arrived (not on a timer: as fast as the round trip
+allows), re-sending the state every `resend_period` s and stepping anyway after
+`lockstep_timeout` s: results then do not depend on machine load. With
+`lockstep_stamped_topic` it also waits for the message on that topic stamped with the state's
+time (the demo's desired state for the next step), so the controller has it before the next
+state: the loop is then as deterministic as the timer-paced one, only faster.
 """
 import math
 import sys
@@ -22,9 +26,9 @@ import numpy as np
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
+from trajectory_msgs.msg import JointTrajectory
 
 from .. import default_urdf_path
 from ..ros.run import node_parser, run
@@ -47,10 +51,12 @@ PARAMETERS = (
     ('resend_period', 0.01, 'lockstep: re-send an unanswered state every this many s, > 0'),
     ('min_subscribers', 0, 'do not start before this many joint_states readers match, >= 0'),
     ('max_steps', 0, 'exit after this many steps, >= 0 (0: run until shut down)'),
+    ('lockstep_stamped_topic', '',
+     'lockstep: also wait for a trajectory_msgs/JointTrajectory stamped with the last state (empty: none)'),
 )
 EXAMPLE = """
 ros2 run lie_dynamics sim_node --ros-args -p rate:=500.0 -p "initial_positions:=[0.0,-0.6,0.0,2.0,0.0,1.6,0.8]"
-python -m lie_dynamics.sim_node --ros-args -p lockstep:=true -p max_steps:=5000
+python -m lie_dynamics.sim.sim_node --ros-args -p lockstep:=true -p max_steps:=5000
 """
 
 
@@ -100,14 +106,22 @@ class SimNode(Node):
         # states while the lockstep loop with a fast controller runs ahead of it.
         self.state_pub = self.create_publisher(JointState, 'joint_states', 1000)
         self.create_subscription(Float64MultiArray, self.command_topic, self._on_command, 10)
+        self.stamped_topic = v['lockstep_stamped_topic'].strip()
+        self.stamped = not (self.lockstep and self.stamped_topic)  # the stamped message of this state came
+        if not self.stamped:
+            self.create_subscription(JointTrajectory, self.stamped_topic, self._on_stamped, 10)
         self.fresh_command = False
+        self.readers_ok = False  # every joint_states reader matched and acknowledged the first state
         self.started = not self.lockstep
         self.wait_ticks = 0
-        self.timeout_ticks = max(1, int(round(self.lockstep_timeout * rate)))
-        self.resend_ticks = max(1, int(round(self.resend_period * rate)))
+        # Free-running, the timer steps the simulation at `rate`. In lockstep the answers step it
+        # (_ready_to_step) and the timer only re-sends and times out, so it ticks more slowly.
+        tick = min(self.resend_period, self.lockstep_timeout) / 2.0 if self.lockstep else 1.0 / rate
+        self.timeout_ticks = max(1, int(round(self.lockstep_timeout / tick)))
+        self.resend_ticks = max(1, int(round(self.resend_period / tick)))
         self.steps = 0
         self.bad_commands = 0
-        self.timer = self.create_timer(1.0 / rate, self._tick)
+        self.timer = self.create_timer(tick, self._tick)
         self._publish_state()
         self.get_logger().info(f'simulating {model.name} ({model.n} joints) at {rate:g} Hz'
                                f"{', lockstep' if self.lockstep else ''}; commands on {self.command_topic}")
@@ -121,44 +135,69 @@ class SimNode(Node):
             return
         self.sim.set_command(data)
         self.fresh_command = True
+        self._ready_to_step()
+
+    def _on_stamped(self, msg):
+        if (msg.header.stamp.sec, msg.header.stamp.nanosec) == self._stamp():
+            self.stamped = True
+            self._ready_to_step()
+
+    def _ready_to_step(self):
+        """Lockstep: step at once when the answers to the last state are all in."""
+        if (self.lockstep and self.fresh_command and self.stamped and self.readers_ok
+                and not (self.max_steps and self.steps >= self.max_steps)):
+            self._advance()
+
+    def _advance(self):
+        self.started = True
+        self.wait_ticks = 0
+        self.fresh_command = False
+        self.stamped = not (self.lockstep and self.stamped_topic)
+        self.sim.step()
+        self.steps += 1
+        self._publish_state()
 
     def _tick(self):
         if self.max_steps and self.steps >= self.max_steps:
             return
-        if not self.steps and not self._readers_ready():
+        if not self.readers_ok:
+            self.readers_ok = self._readers_ready()
+            self._ready_to_step()
             return  # discovery still under way
-        if self.lockstep and not self.fresh_command:
-            if not self.steps:  # _readers_ready counts the ticks and re-sends before the first step
-                return
-            # The answer to the last state has not come (yet): wait, re-sending the state in
-            # case a best-effort reader lost it; before the first command, wait indefinitely.
+        if not self.lockstep:
+            self._advance()
+            return
+        if not (self.fresh_command and self.stamped):
+            # The answers to the last state have not all come (yet): wait, re-sending the state
+            # in case a best-effort reader lost it; before the first step, wait indefinitely.
             self.wait_ticks += 1
             if not self.started or self.wait_ticks < self.timeout_ticks:
                 if self.wait_ticks % self.resend_ticks == 0:
                     self._publish_state()
                 return
-            self.get_logger().warn(f'no command within {self.lockstep_timeout} s: stepping with the held one',
+            self.get_logger().warn(f'no answer within {self.lockstep_timeout} s: stepping with the held command',
                                    throttle_duration_sec=2.0)
-        self.started = True
-        self.wait_ticks = 0
-        self.fresh_command = False
-        self.sim.step()
-        self.steps += 1
-        self._publish_state()
+        self._advance()
 
     def _readers_ready(self):
         """Before the first step: enough joint_states readers matched, and every reliable one
-        has acknowledged the initial state (so it has matched us too: none misses the start)."""
+        has acknowledged the initial state (so it has matched us too: none misses the start).
+        Checked before re-sending: a state sent just now cannot have been acknowledged yet."""
+        if (self.state_pub.get_subscription_count() >= self.min_subscribers
+                and self.state_pub.wait_for_all_acked(Duration(seconds=0))):
+            return True
         self.wait_ticks += 1
         if self.wait_ticks % self.resend_ticks == 0:
             self._publish_state()
-        if self.state_pub.get_subscription_count() < self.min_subscribers:
-            return False
-        return self.state_pub.wait_for_all_acked(Duration(seconds=0))
+        return False
+
+    def _stamp(self):
+        ns = int(round(self.sim.t * 1e9))
+        return ns // 1_000_000_000, ns % 1_000_000_000
 
     def _publish_state(self):
         msg = JointState()
-        msg.header.stamp = Time(nanoseconds=int(round(self.sim.t * 1e9))).to_msg()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = self._stamp()
         msg.name = self.names
         msg.position = self.sim.q.tolist()
         msg.velocity = self.sim.qd.tolist()
