@@ -198,7 +198,7 @@ def ad(V):
 
 
 def ad_star(V):
-    """Dual ad*_V = ad_V^T (used with a minus sign in paper eq 20)."""
+    """Dual ad*_V = ad_V^T (the RNEA's backward pass subtracts ad*_V(J V): codegen/traced/rnea.py)."""
     return np.swapaxes(ad(V), -1, -2)
 
 

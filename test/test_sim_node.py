@@ -15,6 +15,9 @@ ROOT = os.path.join(os.path.dirname(__file__), '..')
     (['-p', 'initial_positions:=[0.0, 1.0]'], 'initial_positions needs 7 values, got 2'),
     (['-p', 'rate:=-5.0'], 'rate must be positive'),
     (['-p', 'joints:=[nope]'], "unknown joint 'nope'"),
+    (['-p', 'external.link:=nope', '-p', 'external.duration:=0.1'], "unknown link 'nope' for the external wrench"),
+    (['-p', 'external.link:=hand', '-p', 'external.duration:=0.1', '-p', 'external.wrench:=[1.0]'],
+     'external wrench must be 6 finite numbers'),
 ])
 def test_sim_node_refuses_bad_parameters(params, msg):
     r = subprocess.run([sys.executable, '-m', 'lie_dynamics.sim.sim_node', '--ros-args'] + params,
@@ -42,3 +45,4 @@ def test_desired_state_starts_at_rest_and_is_consistent():
         _, qd, qdd = desired_state(t, home, amp, freq)
         np.testing.assert_allclose((qp - qm) / (2 * h), qd, atol=1e-8)
         np.testing.assert_allclose((qdp - qdm) / (2 * h), qdd, atol=1e-7)
+

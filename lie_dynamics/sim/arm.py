@@ -1,9 +1,13 @@
 """A simulated fixed-base arm: forward dynamics integrated at a fixed step (no ROS here).
 
 Per step of length dt (default: semi-implicit Euler):
-    tau   = clip(command, -effort_limit, effort_limit) - damping * qd
-    qdd   = forward_dynamics(q, qd, tau)
+    motor = clip(command, -effort_limit, effort_limit)       (what a drive reports as effort)
+    tau   = motor - damping * qd
+    qdd   = forward_dynamics(q, qd, tau, wrenches)            (+ J^T F of an external wrench)
     qd   += dt * qdd ;  q += dt * qd
+An external wrench F = (m, f) on a link, in the link frame, can act during a window of simulated
+time (`set_external`): it is the ground truth for external-torque estimation, and
+`external_torque` holds its joint torques J^T F of the last step.
 Other integrators (integrators.py: explicit Euler, RK4, the symplectic Lie-group midpoint) are
 selected with `integrator=`; they re-evaluate the damping torque wherever they need a force.
 Semi-implicit Euler in (q, qd) is symplectic only for a constant mass matrix: with M(q) its energy
@@ -37,7 +41,33 @@ class ArmSim:
         self.limits = limits
         self.command = np.zeros(model.n)
         self.last_qdd = np.zeros(model.n)
-        self.applied = np.zeros(model.n)
+        self.applied = np.zeros(model.n)   # motor - damping * qd of the last step
+        self.motor = np.zeros(model.n)     # the clipped command of the last step
+        self.external_torque = np.zeros(model.n)
+        self._external = None              # (link, wrench (6,), start, stop)
+
+    def set_external(self, link=None, wrench=None, start=0.0, duration=np.inf):
+        """Apply `wrench` (m, f) to `link`, in the link frame, while start <= t < start + duration
+        (simulated seconds); link None removes it. Only the default integrator applies it."""
+        if link is None:
+            self._external = None
+            return
+        if link not in self.model.link_frames:
+            raise ValueError(f"unknown link '{link}' for the external wrench")
+        w = np.asarray(wrench, dtype=float)
+        if w.shape != (6,) or not np.all(np.isfinite(w)):
+            raise ValueError(f'external wrench must be 6 finite numbers (m, f), got {wrench!r}')
+        if not (np.isfinite(start) and duration >= 0):
+            raise ValueError(f'external wrench window must be finite and non-negative, got {start}, {duration}')
+        if self.integrator != 'semi_implicit_euler':
+            raise ValueError('external wrenches are applied by the semi_implicit_euler integrator only')
+        self._external = (link, w, float(start), float(start) + float(duration))
+
+    def _wrenches(self):
+        e = self._external
+        if e is None or not (e[2] <= self.t + 1e-12 < e[3]):
+            return None
+        return {e[0]: e[1]}
 
     def set_command(self, tau):
         """Hold a new effort command (like ros2_control's JointGroupEffortController)."""
@@ -52,9 +82,16 @@ class ArmSim:
         m = self.model
         lim = m.effort_limits
         for _ in range(n):
-            tau = np.clip(self.command, -lim, lim) - self.damping * self.qd
+            motor = np.clip(self.command, -lim, lim)
+            tau = motor - self.damping * self.qd
+            wrenches = self._wrenches()
+            zero = np.zeros(m.n)
+            # J^T F: what the wrench adds to the joint torques (inverse dynamics is linear in F)
+            self.external_torque = (zero if wrenches is None else
+                                    m.inverse_dynamics(self.q, self.qd, zero) -
+                                    m.inverse_dynamics(self.q, self.qd, zero, wrenches))
             if self.integrator == 'semi_implicit_euler':
-                qdd = m.forward_dynamics(self.q, self.qd, tau)
+                qdd = m.forward_dynamics(self.q, self.qd, tau, wrenches)
                 self.qd = self.qd + self.dt * qdd
                 self.q = self.q + self.dt * self.qd
             else:
@@ -71,6 +108,7 @@ class ArmSim:
             self.t += self.dt
             self.last_qdd = qdd
             self.applied = tau
+            self.motor = motor
         return self.q
 
     def energy(self):

@@ -269,7 +269,7 @@ def plot(records, path):
             ax_tau.plot(t, rec['tau'], lw=1)
         ax_q.set_title(name)
         ax_q.set_ylabel('q - q_home (rad)' if 'compensation' in name else 'q (solid), q_d (dashed) (rad)')
-        ax_tau.set_ylabel('joint torque: command - damping (Nm)')
+        ax_tau.set_ylabel('motor torque: clipped command (Nm)')
         ax_tau.set_xlabel('simulated time (s)')
         ax_q.grid(alpha=0.3)
         ax_tau.grid(alpha=0.3)

@@ -4,8 +4,10 @@
     python -m lie_dynamics.sim.sim_node --ros-args -p rate:=1000.0
 
 Publishes   robot_description (std_msgs/String, reliable, transient local, depth 1),
-            joint_states (sensor_msgs/JointState: position, velocity, effort = applied torque;
-            header.stamp = simulated time)
+            joint_states (sensor_msgs/JointState: position, velocity, effort = the motor torque,
+            i.e. the clipped command, as a drive reports it; header.stamp = simulated time),
+            ~/external_torques_true (sensor_msgs/JointState, effort = J^T F of the external wrench,
+            while external.duration > 0: the ground truth of external-torque estimates)
 Subscribes  <command_topic> (std_msgs/Float64MultiArray, ordered as `joints`), held until the
             next one like JointGroupEffortController; a message of the wrong length or with a
             non-finite value is dropped with a log line (recent controllers drop them too).
@@ -51,6 +53,10 @@ PARAMETERS = (
     ('resend_period', 0.01, 'lockstep: re-send an unanswered state every this many s, > 0'),
     ('min_subscribers', 0, 'do not start before this many joint_states readers match, >= 0'),
     ('max_steps', 0, 'exit after this many steps, >= 0 (0: run until shut down)'),
+    ('external.link', '', 'link an external wrench acts on (empty: none)'),
+    ('external.wrench', [0.0, 0.0, 0.0, 0.0, 0.0, 0.0], 'external wrench (m, f) in the link frame, N m and N'),
+    ('external.start', 0.0, 'simulated time the external wrench starts, s'),
+    ('external.duration', 0.0, 'how long it acts, s (0: never)'),
     ('lockstep_stamped_topic', '',
      'lockstep: also wait for a trajectory_msgs/JointTrajectory stamped with the last state (empty: none)'),
 )
@@ -100,6 +106,11 @@ class SimNode(Node):
             raise ValueError(f'initial_positions needs {model.n} values, got {len(q0)}')
         self.sim = ArmSim(model, dt=1.0 / rate, q0=q0, damping=damping)
         self.names = model.joint_names
+        self.truth_pub = None
+        if v['external.link'] and v['external.duration'] > 0:
+            self.sim.set_external(v['external.link'], list(v['external.wrench']), v['external.start'],
+                                  v['external.duration'])
+            self.truth_pub = self.create_publisher(JointState, '~/external_torques_true', 1000)
         self.desc_pub = self.create_publisher(String, 'robot_description', DESCRIPTION_QOS)
         self.desc_pub.publish(String(data=self.xml))
         # Deep history: a reliable reader whose acknowledgements lag (a busy recorder) must not lose
@@ -201,8 +212,14 @@ class SimNode(Node):
         msg.name = self.names
         msg.position = self.sim.q.tolist()
         msg.velocity = self.sim.qd.tolist()
-        msg.effort = self.sim.applied.tolist()
+        msg.effort = self.sim.motor.tolist()
         self.state_pub.publish(msg)
+        if self.truth_pub is not None:
+            truth = JointState()
+            truth.header.stamp = msg.header.stamp
+            truth.name = self.names
+            truth.effort = self.sim.external_torque.tolist()
+            self.truth_pub.publish(truth)
 
 
 def main(args=None):
