@@ -216,6 +216,8 @@ def _slope(ns, ts, lo=FIT_FROM):
 def run_growth(quick, rounds, target):
     from lie_dynamics.algorithms import crba, rnea_derivatives
     from lie_dynamics import load_urdf
+    from lie_dynamics.codegen import runtime
+    from lie_dynamics.codegen.traced import derivatives as traced_derivatives
     ns = list(GROWTH_N_QUICK if quick else GROWTH_N)
     ext = list(EXTENDED_N_QUICK if quick else EXTENDED_N)
     series = {k: [] for k in ('closed_form', 'crba_vectorised', 'crba_kernel', 'christoffel', 'coriolis',
@@ -243,7 +245,7 @@ def run_growth(quick, rounds, target):
         if n in ns:
             t0 = time.perf_counter()
             k1 = crba.mass_matrix_kernel(model, q)
-            k2 = rnea_derivatives._kernel(model, False) if n <= rnea_derivatives.KERNEL_MAX_BODIES else False
+            k2 = runtime.kernel(model, traced_derivatives.INVERSE_DYNAMICS_DERIVATIVES)
             compile_times.append((n, time.perf_counter() - t0))
             if k1 is not None:
                 fns['crba_kernel'] = lambda: crba.mass_matrix_kernel(model, q)
@@ -277,7 +279,8 @@ def markdown(res):
          f"Python {meta['python']}, numpy {meta['numpy']}, Pinocchio {meta['pinocchio']}, "
          f"{meta['cpu_count']} CPUs, {meta['rounds']} interleaved rounds (medians). "
          f"Batch: N = {arm['N']} states in one call; Pinocchio in a Python loop. "
-         f"Generated kernels compile once per robot structure (all of this table's: {arm['kernel_compile_s'] * 1e3:.0f} ms here).", '',
+         "Generated kernels compile once per robot structure "
+         f"(all of this table's: {arm['kernel_compile_s'] * 1e3:.0f} ms here).", '',
          '| function | Pinocchio counterpart | single µs | Pinocchio µs | ratio | batch µs/state | '
          'Pinocchio loop µs/state | batch ratio |', '|---|---|---:|---:|---:|---:|---:|---:|']
     for r in arm['rows']:

@@ -1,4 +1,5 @@
-"""The math core imports no ROS package."""
+"""The linter (ruff, configured in ruff.toml) passes on the whole repository, and the math core
+imports no ROS package."""
 import os
 import subprocess
 import sys
@@ -6,6 +7,12 @@ import sys
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ROS_FREE = ('spatial', 'model', 'algorithms', 'codegen', 'trajectory', 'cli', 'laws', 'identification',
             'sim.arm', 'sim.integrators', 'ros.params', 'ros.compensator')
+
+
+def test_ruff_is_clean():
+    r = subprocess.run([sys.executable, '-m', 'ruff', 'check', '--no-cache', '.'], cwd=ROOT, capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stdout[-5000:] + r.stderr[-2000:]
 
 
 def test_math_core_imports_no_ros_package():
