@@ -114,6 +114,32 @@ def identify(model, q, qd, qdd, tau, prior=None, weights=None, rcond=1e-8):
 
     Y = (model.regressor(q, qd, qdd) * w[None, :, None]).reshape(N * n, p)
     y = (tau * w).reshape(N * n)
+    fit = least_squares(Y, y, prior, rcond)
+    r, pi, resid = fit['rank'], fit['parameters'], fit['residual']
+    if r == 0:
+        raise ValueError('the stacked regressor is zero: the trajectory moves no mass')
+
+    missing = p - r
+    if missing:
+        what = 'the minimum-norm' if not np.any(prior) else 'the prior-closest'
+        warnings.warn(f'{missing} of {p} inertial-parameter directions are not identifiable from these data '
+                      f'(structural or not excited); identified {r} base parameters and returned '
+                      f'{what} full parameter vector (result.fully_identifiable is False)',
+                      UnidentifiableWarning, stacklevel=2)
+    rms = np.sqrt(np.mean((resid.reshape(N, n) / w) ** 2, axis=0))
+    return IdentificationResult(parameters=pi, base_parameters=fit['base_parameters'], base_columns=fit['base_columns'],
+                                base_matrix=fit['base_matrix'], base_std=fit['base_std'], rank=r, n_parameters=p,
+                                n_unidentifiable=missing, fully_identifiable=missing == 0,
+                                condition_number=fit['condition_number'], residual_rms=rms)
+
+
+def least_squares(Y, y, prior, rcond=1e-8):
+    """The least-squares engine of `identify` (steps 1-4 of the module docstring) on a stacked
+    regressor Y (rows, p) and measurements y (rows,): a dict with rank, base_columns,
+    base_matrix, base_parameters, base_std, condition_number, parameters (closest to `prior`
+    along the unidentifiable directions), residual and determined (p,) booleans (a parameter the
+    data fix on its own: no null-space direction moves it)."""
+    p = Y.shape[1]
     scale = np.sqrt(np.sum(Y * Y, axis=0))
     seen = scale > 1e-12 * max(scale.max(), 1e-300)
     scale = np.where(seen, scale, 1.0)
@@ -122,8 +148,8 @@ def identify(model, q, qd, qdd, tau, prior=None, weights=None, rcond=1e-8):
     U, s, Vt = np.linalg.svd(Ys, full_matrices=False)
     r = int(np.sum(s > rcond * s[0])) if s.size and s[0] > 0 else 0
     if r == 0:
-        raise ValueError('the stacked regressor is zero: the trajectory moves no mass')
-
+        return dict(rank=0, parameters=np.array(prior, dtype=float), residual=np.array(y, dtype=float),
+                    determined=np.zeros(p, dtype=bool))
     # base parameters: r independent columns; dependent columns are combinations of them
     B = _pivoted_columns(np.diag(s[:r]) @ Vt[:r], r)
     D = np.setdiff1d(np.arange(p), B)
@@ -134,32 +160,21 @@ def identify(model, q, qd, qdd, tau, prior=None, weights=None, rcond=1e-8):
     base_matrix = Ks * (1.0 / scale[B])[:, None] * scale[None, :]   # beta = K pi (unscaled)
     YB = Ys[:, B]
     zB, *_ = np.linalg.lstsq(YB, y, rcond=None)
-    beta = zB / scale[B]
     resid = y - YB @ zB
-    dof = max(N * n - r, 1)
-    sigma2 = float(resid @ resid) / dof
+    sigma2 = float(resid @ resid) / max(len(y) - r, 1)
     sB = np.linalg.svd(YB, compute_uv=False)
-    cond = float(sB[0] / sB[-1]) if sB[-1] > 0 else np.inf
     cov_z = sigma2 * np.linalg.pinv(YB.T @ YB)
-    base_std = np.sqrt(np.clip(np.diag(cov_z), 0, None)) / scale[B]
-
     # full vector: closest to the prior (in scaled units) among the solutions
     zp = prior * scale
     dz = Vt[:r].T @ ((U[:, :r].T @ (y - Ys @ zp)) / s[:r])
     pi = (zp + dz) / scale
     pi[~seen] = prior[~seen]
-
-    missing = p - r
-    if missing:
-        what = 'the minimum-norm' if not np.any(prior) else 'the prior-closest'
-        warnings.warn(f'{missing} of {p} inertial-parameter directions are not identifiable from these data '
-                      f'(structural or not excited); identified {r} base parameters and returned '
-                      f'{what} full parameter vector (result.fully_identifiable is False)',
-                      UnidentifiableWarning, stacklevel=2)
-    rms = np.sqrt(np.mean((resid.reshape(N, n) / w) ** 2, axis=0))
-    return IdentificationResult(parameters=pi, base_parameters=beta, base_columns=B, base_matrix=base_matrix,
-                                base_std=base_std, rank=r, n_parameters=p, n_unidentifiable=missing,
-                                fully_identifiable=missing == 0, condition_number=cond, residual_rms=rms)
+    null = Vt[r:]  # the directions the data do not see (scaled units)
+    determined = seen & (np.linalg.norm(null, axis=0) < 1e-6 if len(null) else np.ones(p, dtype=bool))
+    return dict(rank=r, base_columns=B, base_matrix=base_matrix, base_parameters=zB / scale[B],
+                base_std=np.sqrt(np.clip(np.diag(cov_z), 0, None)) / scale[B],
+                condition_number=float(sB[0] / sB[-1]) if sB[-1] > 0 else np.inf, parameters=pi,
+                residual=resid, determined=determined)
 
 
 def excitation_trajectory(model, duration=10.0, rate=100.0, harmonics=5, base_frequency=0.1, seed=0,
