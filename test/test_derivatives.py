@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from dyn_cases import CASES, case, oracle_stack, rel_err, states
-from lie_dynamics.algorithms import rnea, rnea_derivatives
+from lie_dynamics.algorithms import rnea_derivatives
 
 
 @pytest.mark.parametrize('name', CASES)
@@ -15,7 +15,7 @@ def test_rnea_derivatives_match_pinocchio(name):
     floor = 1e-4 * np.abs(model.mass_matrix(q)).max() * max(1.0, np.abs(qd).max())
     assert rel_err(dq, ref[0], floor) < 1e-8
     assert rel_err(dv, ref[1], floor) < 1e-8
-    # the vectorised form (used above KERNEL_MAX_BODIES) and the per-state kernel loop
+    # the vectorised form (used above the kernel size cap) and the per-state kernel loop
     vq, vv = rnea_derivatives.inverse_dynamics_derivatives_vectorized(model, q, qd, qdd)
     assert rel_err(vq, ref[0], floor) < 1e-8 and rel_err(vv, ref[1], floor) < 1e-8
     sq, sv = model.inverse_dynamics_derivatives(q[:4], qd[:4], qdd[:4])
@@ -81,12 +81,11 @@ def test_generated_kernel_paths(name):
     floor = 1e-4 * np.abs(model.mass_matrix(q)).max() * max(1.0, np.abs(qd).max())
     links = [ln for ln, (b, _) in model.link_frames.items() if b >= 0]
     w = {links[-1]: np.random.default_rng(3).normal(size=(30, 6))}
-    fext = rnea.external_body_wrenches(model, w, 30)
     vec = rnea_derivatives.inverse_dynamics_derivatives_vectorized(model, q, qd, qdd, w)
     for mode in ('loop', 'rows'):
-        dq, dv = rnea_derivatives._kernel_derivatives(model, q, qd, qdd, None, mode)
+        dq, dv = rnea_derivatives.inverse_dynamics_derivatives_kernel(model, q, qd, qdd, None, mode)
         assert rel_err(dq, ref[0], floor) < 1e-8 and rel_err(dv, ref[1], floor) < 1e-8
-        wq, wv = rnea_derivatives._kernel_derivatives(model, q, qd, qdd, fext, mode)
+        wq, wv = rnea_derivatives.inverse_dynamics_derivatives_kernel(model, q, qd, qdd, w, mode)
         assert rel_err(wq, vec[0], floor) < 1e-10 and rel_err(wv, vec[1], floor) < 1e-10
 
 
@@ -96,10 +95,11 @@ def test_kernel_frame_choice_does_not_change_results(name):
     derivatives, with and without wrenches (covariance of the formulas)."""
     import math
     from lie_dynamics.codegen import runtime
+    from lie_dynamics.codegen.traced import derivatives as traced
     model, oracle = case(name)
     q, qd, qdd = states(model, 3, seed=17)
     fr = runtime.frames(model)
-    P, E0, A0 = runtime.model_params(model, fr, gravity=True)
+    P, A0, E0 = runtime.params(model, traced.INVERSE_DYNAMICS_DERIVATIVES)
     fx = np.random.default_rng(4).normal(size=(fr.nb * 6)).tolist()
     ref = [np.array(r) for r in zip(*(oracle.rnea_derivatives(*s) for s in zip(q, qd, qdd, strict=True)), strict=True)]
     floor = 1e-4 * np.abs(model.mass_matrix(q)).max() * max(1.0, np.abs(qd).max())
@@ -107,12 +107,12 @@ def test_kernel_frame_choice_does_not_change_results(name):
     centres = sorted({0, fr.nb // 2, fr.nb - 1})
     with_wrench = []
     for centre in centres:
-        fn, _ = rnea_derivatives._build_kernel(fr, False, center=centre)
-        fw, _ = rnea_derivatives._build_kernel(fr, True, center=centre)
+        fn, _ = traced.build_inverse_dynamics_derivatives(fr, False, center=centre)
+        fw, _ = traced.build_inverse_dynamics_derivatives(fr, True, center=centre)
         out = np.array([fn(a.tolist(), b.tolist(), c.tolist(), P, A0, E0, sin=math.sin, cos=math.cos)
                         for a, b, c in zip(q, qd, qdd, strict=True)]).reshape(-1, 2, n, n)
         assert rel_err(out[:, 0], ref[0], floor) < 1e-8 and rel_err(out[:, 1], ref[1], floor) < 1e-8
-        with_wrench.append(np.array(fw(q[0].tolist(), qd[0].tolist(), qdd[0].tolist(), P, A0, E0, fx,
+        with_wrench.append(np.array(fw(q[0].tolist(), qd[0].tolist(), qdd[0].tolist(), fx, P, A0, E0,
                                        sin=math.sin, cos=math.cos)))
     for w in with_wrench[1:]:
         assert rel_err(w, with_wrench[0], floor) < 1e-10
@@ -132,7 +132,7 @@ def test_derivatives_with_locked_joints():
     ref = [np.array(r) for r in zip(*(oracle.rnea_derivatives(*s) for s in zip(q, qd, qdd, strict=True)), strict=True)]
     floor = 1e-4 * np.abs(model.mass_matrix(q)).max() * max(1.0, np.abs(qd).max())
     for mode in ('loop', 'rows'):
-        dq, dv = rnea_derivatives._kernel_derivatives(model, q, qd, qdd, None, mode)
+        dq, dv = rnea_derivatives.inverse_dynamics_derivatives_kernel(model, q, qd, qdd, None, mode)
         assert rel_err(dq, ref[0], floor) < 1e-8 and rel_err(dv, ref[1], floor) < 1e-8
     dq, dv = rnea_derivatives.inverse_dynamics_derivatives_vectorized(model, q, qd, qdd)
     assert rel_err(dq, ref[0], floor) < 1e-8 and rel_err(dv, ref[1], floor) < 1e-8

@@ -6,7 +6,10 @@ import pinocchio as pin
 import pytest
 
 from dyn_cases import ARM, CASES, case, oracle_stack, rel_err, states, xml_of
-from lie_dynamics.algorithms import aba, rnea
+from lie_dynamics.algorithms import aba, cholesky
+from lie_dynamics.codegen import runtime
+from lie_dynamics.codegen.traced import aba as traced_aba
+from lie_dynamics.codegen.traced import derivatives as traced_derivatives
 from lie_dynamics import load_urdf
 from oracle import Oracle
 from robots import random_urdf, with_payload
@@ -43,7 +46,7 @@ def test_forward_dynamics_matches_pinocchio_aba(name):
     assert rel_err(model.forward_dynamics(q[:5], qd[:5], tau[:5]), ref[:5]) < 1e-10
     M = model.mass_matrix(q)
     h = model.inverse_dynamics(q, qd, np.zeros_like(qd))
-    assert rel_err(aba.cho_solve(aba.cholesky(M), tau - h), ref) < 1e-10
+    assert rel_err(cholesky.cho_solve(cholesky.cholesky(M), tau - h), ref) < 1e-10
     for method in ('cholesky',) if _has_mimic(model) else ('cholesky', 'aba'):
         one = model.forward_dynamics(q[5], qd[5], tau[5], method=method)
         assert one.shape == (model.n,) and rel_err(one[None], ref[5:6]) < 1e-10
@@ -84,7 +87,7 @@ def test_large_batches_use_the_substitution_solver():
     assert rel_err(model.forward_dynamics(q, qd, tau), ref) < 1e-10
     M = model.mass_matrix(q)
     B = np.random.default_rng(1).normal(size=(300, 7, 3))
-    X = aba.cho_solve(aba.cholesky(M), B)
+    X = cholesky.cho_solve(cholesky.cholesky(M), B)
     assert rel_err(M @ X, B, 1.0) < 1e-12
 
 
@@ -109,8 +112,8 @@ def test_forward_dynamics_derivatives_match_pinocchio(name):
     # model's size), and one state through the default dispatch
     from lie_dynamics.algorithms import aba_derivatives
     for mode in ('loop', 'rows'):
-        out = aba_derivatives._kernel_states(model, q, qd, tau, mode)
-        assert (out is None) == (model.nb > aba_derivatives.KERNEL_MAX_BODIES)
+        out = aba_derivatives.forward_dynamics_derivatives_kernel(model, q, qd, tau, mode)
+        assert (out is None) == (model.nb > runtime.THRESHOLDS['forward_dynamics_derivatives'].compile_max)
         if out is not None:
             assert all(rel_err(o, r) < 1e-8 for o, r in zip(out, ref, strict=True))
     one = model.forward_dynamics_derivatives(q[0], qd[0], tau[0])
@@ -143,7 +146,7 @@ def test_forward_dynamics_derivatives_kernel_matches_finite_differences(name):
     directly (mimic joints couple the coordinates)."""
     from lie_dynamics.algorithms import aba_derivatives
     model, _ = case(name)
-    assert aba_derivatives._kernel(model)
+    assert runtime.kernel(model, traced_derivatives.FORWARD_DYNAMICS_DERIVATIVES)
     q, qd, tau = states(model, 5, seed=19)
     h, n = 1e-6, model.n
 
@@ -151,7 +154,7 @@ def test_forward_dynamics_derivatives_kernel_matches_finite_differences(name):
         return np.stack([(fun(h * e) - fun(-h * e)) / (2 * h) for e in np.eye(n)], axis=-1)
 
     for mode in ('loop', 'rows'):
-        dq, dv, Minv = aba_derivatives._kernel_states(model, q, qd, tau, mode)
+        dq, dv, Minv = aba_derivatives.forward_dynamics_derivatives_kernel(model, q, qd, tau, mode)
         assert rel_err(dq, fd(lambda d: model.forward_dynamics(q + d, qd, tau)), 1e-3) < 1e-7
         assert rel_err(dv, fd(lambda d: model.forward_dynamics(q, qd + d, tau)), 1e-3) < 1e-7
         assert rel_err(Minv, np.linalg.inv(model.mass_matrix(q))) < 1e-10
@@ -165,7 +168,7 @@ def test_massless_chain_raises():
     with pytest.raises(ValueError, match=r'mass matrix is not positive definite at state 0 '):
         model.forward_dynamics(np.zeros((2, 2)), np.zeros((2, 2)), np.zeros((2, 2)))
     with pytest.raises(ValueError, match=r'mass matrix is not positive definite at state 1 '):
-        aba.cholesky(np.array([np.eye(2), [[1.0, 0.0], [0.0, -1.0]]]))
+        cholesky.cholesky(np.array([np.eye(2), [[1.0, 0.0], [0.0, -1.0]]]))
     many = np.zeros((60, 2))   # the generated kernel on rows: NaN pivots are caught, then reported
     with pytest.raises(ValueError, match='mass matrix is not positive definite at state 0'):
         model.forward_dynamics(many, many, many)
@@ -178,7 +181,7 @@ def test_massless_chain_raises():
             model.forward_dynamics_derivatives(np.zeros((N, 2)), np.zeros((N, 2)), np.zeros((N, 2)))
     # a singular matrix that LAPACK's Cholesky still factors is caught by the pivot test
     with pytest.raises(ValueError, match='mass matrix is not positive definite'):
-        aba.cholesky(np.array([[[1.0, 1.0], [1.0, 1.0 + 1e-15]]]))
+        cholesky.cholesky(np.array([[[1.0, 1.0], [1.0, 1.0 + 1e-15]]]))
 
 
 def test_forward_dynamics_error_paths():
@@ -210,11 +213,11 @@ def test_arm_file_in_package_matches_config():
 ABA_CASES = [nm for nm in CASES if not load_urdf(xml_of(nm)).mimic_joints]
 
 
-def _aba_paths(model, q, qd, tau, fext=None):
+def _aba_paths(model, q, qd, tau, wrenches=None):
     """qdd from the ABA kernel forced to Python floats and to numpy rows (both must exist)."""
     out = {}
     for mode in ('loop', 'rows'):
-        out[mode] = aba._aba_kernel_forward_dynamics(model, q, qd, tau, fext, mode)
+        out[mode] = aba.aba_kernel(model, q, qd, tau, wrenches, mode)
         assert out[mode] is not None, mode
     return out
 
@@ -222,7 +225,7 @@ def _aba_paths(model, q, qd, tau, fext=None):
 @pytest.mark.parametrize('name', ABA_CASES)
 def test_aba_kernel_paths_match_pinocchio(name):
     model, oracle = case(name)
-    assert aba._aba_kernel(model), 'every supported case is within the size cap'
+    assert runtime.kernel(model, traced_aba.ABA), 'every supported case is within the size cap'
     q, qd, tau = states(model, seed=21)
     tau = tau * 10
     ref = oracle_stack(oracle.aba, q, qd, tau)
@@ -235,7 +238,7 @@ def test_aba_kernel_paths_match_pinocchio(name):
     assert np.array_equal(one, paths['loop']) and rel_err(one, ref) < 1e-10
     assert np.array_equal(model.forward_dynamics(q[:5].tolist(), qd[:5], tau[:5], method='aba'), paths['loop'][:5])
     batch = model.forward_dynamics(q, qd, tau, method='aba')
-    assert len(q) >= aba._ABA_ROWS_FROM and np.array_equal(batch, paths['rows'])
+    assert len(q) >= runtime.THRESHOLDS['aba'].rows_from and np.array_equal(batch, paths['rows'])
     assert rel_err(aba.aba_vectorized(model, q, qd, tau), ref) < 1e-10
 
 
@@ -245,11 +248,11 @@ def test_aba_kernel_follows_payload_gravity_and_locked_joints_without_recompilin
     ctrl = model.joint_names[1::2]
     part = load_urdf(xml, joints=ctrl)
     for m in (model, part):
-        assert aba._aba_kernel(m)
+        assert runtime.kernel(m, traced_aba.ABA)
 
     def no_compile(*args, **kw):
         raise AssertionError('the ABA kernel was rebuilt')
-    monkeypatch.setattr(aba, '_build_aba_kernel', no_compile)
+    monkeypatch.setattr(traced_aba.ABA, 'build', no_compile)
     payload = ('link7', 1.7, (0.05, -0.02, 0.1), (0.01, 0.001, 0.0, 0.02, 0.0, 0.015))
     model.set_payload(*payload)
     model.set_gravity((1.0, -2.0, -9.0))
@@ -279,9 +282,8 @@ def test_aba_kernel_with_wrenches(name):
     rng = np.random.default_rng(2)
     links = [ln for ln, (b, _) in model.link_frames.items() if b >= 0]
     w = {links[-1]: rng.normal(size=6), links[len(links) // 2]: rng.normal(size=(N, 6))}
-    fext = rnea.external_body_wrenches(model, w, N)
     ref = aba.aba_vectorized(model, q, qd, tau, w)
-    for mode, out in _aba_paths(model, q, qd, tau, fext).items():
+    for mode, out in _aba_paths(model, q, qd, tau, w).items():
         assert rel_err(out, ref) < 1e-10, mode
         assert rel_err(model.inverse_dynamics(q, qd, out, w), tau, 1.0) < 1e-10
     w1 = {k: (v if v.ndim == 1 else v[0]) for k, v in w.items()}
@@ -293,16 +295,18 @@ def test_aba_falls_back_to_the_vectorised_form(monkeypatch):
     q, qd, tau = states(model, 40, seed=25)
     ref = oracle_stack(oracle.aba, q, qd, tau)
     # beyond the size cap
-    monkeypatch.setattr(aba, 'ABA_KERNEL_MAX_BODIES', model.nb - 1)
-    assert not aba._aba_kernel(model)
-    assert aba._aba_kernel_forward_dynamics(model, q, qd, tau, None, 'rows') is None
+    monkeypatch.setitem(runtime.THRESHOLDS, 'aba', runtime.THRESHOLDS['aba']._replace(compile_max=model.nb - 1))
+    runtime.forget(model)   # its cached routes
+    assert not runtime.kernel(model, traced_aba.ABA)
+    assert aba.aba_kernel(model, q, qd, tau, None, 'rows') is None
     assert rel_err(model.forward_dynamics(q, qd, tau, method='aba'), ref) < 1e-10
     assert rel_err(model.forward_dynamics(q[0], qd[0], tau[0], method='aba')[None], ref[:1]) < 1e-10
     monkeypatch.undo()
+    runtime.forget(model)
     # screws that are not unit revolute / prismatic axes: no kernel
     other = copy.deepcopy(model)
     other.S = other.S * 1.5
-    assert not aba._aba_kernel(other)
+    assert not runtime.kernel(other, traced_aba.ABA)
     got = other.forward_dynamics(q, qd, tau, method='aba')
     assert np.array_equal(got, aba.aba_vectorized(other, q, qd, tau)) and not np.allclose(got, ref)
     # mimic joints: the same error on every path
@@ -320,7 +324,7 @@ def test_aba_massless_chain_raises_on_every_path():
         z = np.zeros((N, 2))
         q = np.full((N, 2), 0.3)
         for mode in ('loop', 'rows'):
-            assert aba._aba_kernel_forward_dynamics(model, q, z, z, None, mode) is None
+            assert aba.aba_kernel(model, q, z, z, None, mode) is None
         with pytest.raises(ValueError, match=msg):
             model.forward_dynamics(q, z, z, method='aba')
         with pytest.raises(ValueError, match=msg):

@@ -58,11 +58,11 @@ def test_coriolis_matrix_matches_pinocchio_and_rnea(name):
     assert rel_err(np.einsum('nij,nj->ni', C, qd), h, max(floor, 1e-5 * np.abs(g).max())) < 1e-10
     # the same matrix as 1/2 dtau/dqd of the differentiated recursion: generated kernel state by
     # state, on numpy rows, the vectorised form in between, and one state
-    from lie_dynamics.algorithms import rnea_derivatives as rd
-    for N in (rd._LOOP_BELOW - 1, rd._LOOP_BELOW, len(q)):
+    limits = runtime.THRESHOLDS['inverse_dynamics_derivatives']
+    for N in (limits.loop_below - 1, limits.loop_below, len(q)):
         assert rel_err(model.coriolis_matrix(q[:N], qd[:N], method='recursive'), ref[:N], floor) < 1e-10
     rows = model.coriolis_matrix(np.tile(q, (2, 1)), np.tile(qd, (2, 1)), method='recursive')
-    assert len(rows) >= rd._ROWS_FROM and rel_err(rows[:len(q)], ref, floor) < 1e-10
+    assert len(rows) >= limits.rows_from and rel_err(rows[:len(q)], ref, floor) < 1e-10
     assert rel_err(model.coriolis_matrix(q[0], qd[0], method='recursive')[None], ref[:1], floor) < 1e-10
 
 

@@ -10,6 +10,8 @@ from dyn_cases import ARM, CASES, ROOT, case, pin_body_permutation, rel_err, sta
 from lie_dynamics.algorithms import identification
 from lie_dynamics import load_urdf
 from lie_dynamics.algorithms import regressor as rg
+from lie_dynamics.codegen import runtime
+from lie_dynamics.codegen.traced.regressor import REGRESSOR
 from lie_dynamics.algorithms.regressor import inertia_to_parameters, parameters_to_inertia, physical_consistency
 from oracle import Oracle
 from robots import random_urdf
@@ -41,7 +43,7 @@ def test_regressor_kernel_paths_match_pinocchio(name):
     q, qd, qdd = states(model, seed=21)
     ref = _pin_regressor(model, oracle, q, qd, qdd)
     if name == 'chain30':   # above the compile cap: no kernel, the vectorised form throughout
-        assert rg._pairs(model) > rg.KERNEL_MAX_PAIRS
+        assert runtime.pairs(model) > runtime.THRESHOLDS['regressor'].compile_max
         assert rg.regressor_kernel(model, q, qd, qdd, 'rows') is None
         assert rel_err(model.regressor(q[0], qd[0], qdd[0])[None], ref[:1]) < 1e-10
         return
@@ -74,7 +76,7 @@ def test_regressor_kernel_follows_payload_gravity_and_locked_joints(monkeypatch)
 
     def no_build(*args):
         raise AssertionError('the regressor kernel was rebuilt')
-    monkeypatch.setattr(rg, '_build_kernel', no_build)
+    monkeypatch.setattr(REGRESSOR, 'build', no_build)
 
     def check(oracle):
         ref = _pin_regressor(model, oracle, q, qd, qdd)
@@ -100,28 +102,28 @@ def test_regressor_kernel_follows_payload_gravity_and_locked_joints(monkeypatch)
 
 def test_regressor_dispatch_by_size(monkeypatch):
     model, oracle = case('arm7')
-    assert rg._pairs(model) == 28 and 2 <= rg._LOOP_BELOW < rg._ROWS_FROM
-    mid = rg._LOOP_BELOW                                 # a batch between the crossovers
+    limits = runtime.THRESHOLDS['regressor']
+    assert runtime.pairs(model) == 28 and 2 <= limits.loop_below < limits.rows_from
+    mid = limits.loop_below                              # a batch between the crossovers
     q, qd, qdd = states(model, mid, seed=23)
     ref = _pin_regressor(model, oracle, q, qd, qdd)
-    calls = []
-    vec = rg._vectorized
-    monkeypatch.setattr(rg, '_vectorized', lambda *a: calls.append(len(a[1])) or vec(*a))
+    routes = [runtime.route(model, 'regressor', N) for N in (None, mid - 1, mid, limits.rows_from)]
+    assert routes == ['loop', 'loop', None, 'rows']      # float kernel, vectorised, numpy rows
     assert rel_err(model.regressor(q[:mid - 1], qd[:mid - 1], qdd[:mid - 1]), ref[:mid - 1]) < 1e-10
     assert rel_err(np.array([model.regressor(*s) for s in zip(q, qd, qdd, strict=True)]), ref) < 1e-10
-    assert calls == []                                   # float kernel
     assert rel_err(model.regressor(q, qd, qdd), ref) < 1e-10
-    assert calls == [mid]                                # vectorised
-    monkeypatch.setattr(rg, 'FLOAT_MAX_PAIRS', 27)       # as if the arm were larger
-    monkeypatch.setattr(rg, '_LARGE_PAIRS', 27)
-    monkeypatch.setattr(rg, '_ROWS_FROM_LARGE', mid)
+    # as if the arm were larger: one state and small batches vectorised, rows from mid states
+    monkeypatch.setitem(runtime.THRESHOLDS, 'regressor',
+                        limits._replace(float_max=27, large=27, rows_from_large=mid))
+    runtime.forget(model)
+    assert [runtime.route(model, 'regressor', N) for N in (None, 1, mid)] == [None, None, 'rows']
     assert rel_err(model.regressor(q[0], qd[0], qdd[0])[None], ref[:1]) < 1e-10
     assert rel_err(model.regressor(q[:1], qd[:1], qdd[:1]), ref[:1]) < 1e-10
-    assert calls == [mid, 1, 1]                          # one state and small batches: vectorised
     assert rel_err(model.regressor(q, qd, qdd), ref) < 1e-10
-    assert calls == [mid, 1, 1]                          # from _ROWS_FROM_LARGE: numpy rows
-    monkeypatch.setattr(rg, '_ROWS_CHUNK', 4)            # rows in chunks of states, last one short
+    monkeypatch.setitem(runtime.THRESHOLDS, 'regressor_rows_chunk', 4)   # rows in chunks, last one short
     assert rel_err(rg.regressor_kernel(model, q, qd, qdd, 'rows'), ref) < 1e-10
+    monkeypatch.undo()
+    runtime.forget(model)
 
 
 def test_regressor_kernel_copies_and_unsupported_screws():
@@ -133,7 +135,7 @@ def test_regressor_kernel_copies_and_unsupported_screws():
     # copies (pickle, deepcopy, new parameters) have the same structure: same kernel, no rebuild
     for other in (pickle.loads(pickle.dumps(model)), copy.deepcopy(model),
                   model.with_inertial_parameters(1.3 * model.inertial_parameters())):
-        assert rg._kernel(other) is rg._kernel(model)
+        assert runtime.kernel(other, REGRESSOR) is runtime.kernel(model, REGRESSOR)
         assert np.array_equal(other.regressor(q, qd, qdd), Y)
     # a screw that is not a unit URDF axis: no kernel, the vectorised form
     odd = copy.deepcopy(model)

@@ -201,7 +201,7 @@ def frames(model):
     return s.frames
 
 
-def compiled(model, name, build):
+def _compiled(model, name, build):
     """The kernel `name` of this model's structure: (frames, float function, source, *extra)
     from build(frames), built once per structure; False when the model's screws are not unit
     revolute / prismatic axes or build returns None."""
@@ -247,13 +247,6 @@ def parameter(model, kind):
     return derived(model, kind, lambda: PARAMETERS[kind](model, frames(model)))
 
 
-def model_params(model, fr, gravity=False):
-    """(P, E0[, A0]) of the kernels: inertias, offsets and -g."""
-    return derived(model, ('model_params', gravity), lambda: (
-        (parameter(model, 'inertia'), parameter(model, 'offsets'))
-        + ((parameter(model, 'gravity'),) if gravity else ())))
-
-
 def as_rows(values):
     """Parameter lists as 0-d arrays, for the rows kernels: a ufunc takes a 0-d array operand
     ~0.25 us faster than a Python float (no scalar conversion per call)."""
@@ -289,7 +282,7 @@ def kernel(model, spec):
         return None
     if spec.supports is not None and not spec.supports(model):
         return None
-    return compiled(model, spec.name, spec.build) or None
+    return _compiled(model, spec.name, spec.build) or None
 
 
 def _bind(s, model, spec):
@@ -312,15 +305,15 @@ def params(model, spec, rows=False):
 
 
 def single(model, spec):
-    """(float function, parameter lists) when one state of this model runs spec's float
-    kernel (route), else False; cached until the model's version changes."""
+    """(float function, parameter lists, kernel) when one state of this model runs spec's
+    float kernel (route), else False; cached until the model's version changes."""
     s = _SLOTS.get(id(model))   # the hot path of a control loop: _slot, inlined
     if s is None or s.version != model.version or s.ref() is not model:
         s = _slot(model)
     b = s.singles.get(spec)
     if b is None:
         k = _bind(s, model, spec) if route(model, spec.limits) == 'loop' else False
-        b = s.singles[spec] = (k[0][1], k[1]) if k else False
+        b = s.singles[spec] = (k[0][1], k[1], k[0]) if k else False
     return b
 
 
@@ -339,19 +332,25 @@ def evaluate(model, spec, arrays, mode, out=None):
     if not b:
         return None
     fn = b[0][1]
-    if mode == 'loop':
-        try:
-            vals = run_loop(fn, arrays, b[1])
-        except (ValueError, ZeroDivisionError, OverflowError):
-            return None
-        return np.array(vals, dtype=float).reshape(len(arrays[0]), fn.n_out)
-    return run_rows(fn, list(arrays) + list(b[2]), fn.n_out, out=out, quiet=spec.checked)
+    try:
+        if mode == 'loop':
+            return np.array(run_loop(fn, arrays, b[1]), dtype=float).reshape(len(arrays[0]), fn.n_out)
+        return run_rows(fn, list(arrays) + list(b[2]), fn.n_out, out=out, quiet=spec.checked)
+    except (ValueError, ZeroDivisionError, OverflowError):   # also from parameters alone, as floats
+        return None
+
+
+def check_mode(mode):
+    """A forced mode of the kernel paths: 'loop', 'rows' or None (route decides)."""
+    if mode not in (None, 'loop', 'rows'):
+        raise ValueError(f"mode must be 'loop', 'rows' or None, got {mode!r}")
+    return mode
 
 
 def dispatch(model, spec, arrays, mode=None, out=None):
     """spec's kernel on validated (N, k_i) per-state arrays where route (or a forced mode,
     'loop' or 'rows') says so: (N, n_out) outputs, or None for the vectorised reference."""
-    mode = mode or route(model, spec.limits, len(arrays[0]))
+    mode = check_mode(mode) or route(model, spec.limits, len(arrays[0]))
     return evaluate(model, spec, arrays, mode, out) if mode else None
 
 

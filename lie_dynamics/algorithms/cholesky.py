@@ -1,0 +1,70 @@
+"""Dense Cholesky factorisation and solves for batches of mass matrices, with the positive
+definiteness test shared by every forward-dynamics path (the generated kernels' pivots too)."""
+import numpy as np
+
+from ..spatial import transpose
+
+# A pivot d_j^2 below PD_RTOL times its diagonal entry M_jj means near-dependence: a joint
+# that moves no mass of its own (massless body or chain). Blind to the scale of the masses.
+PD_RTOL = 1e-12
+
+
+def cholesky(M):
+    """Lower factor L of M = L L^T for (N, n, n); ValueError if some M is not positive definite."""
+    try:
+        L = np.linalg.cholesky(M)
+    except np.linalg.LinAlgError:
+        L = None
+    else:
+        # LAPACK factors some singular matrices (a zero pivot rounded positive): test each pivot
+        # against its own diagonal entry, so the test is blind to scale (graded masses are fine)
+        # and sees only near-dependence (a joint that moves no mass of its own)
+        d = np.diagonal(L, axis1=-2, axis2=-1)
+        if (d * d > PD_RTOL * np.diagonal(M, axis1=-2, axis2=-1)).all():
+            return L
+    bad = [k for k in range(M.shape[0]) if not _is_pd(M[k])]
+    k = int(bad[0])
+    ev = np.linalg.eigvalsh(M[k])
+    where = f'at state {k} ' if M.shape[0] > 1 else ''
+    raise ValueError(f'mass matrix is not positive definite {where}(smallest eigenvalue {ev[0]:.3g}, '
+                     f'largest {ev[-1]:.3g}): some joint moves no mass (massless body or chain), '
+                     'so forward dynamics is undefined')
+
+
+def _is_pd(M):
+    try:
+        L = np.linalg.cholesky(M)
+    except np.linalg.LinAlgError:
+        return False
+    return bool(np.all(np.diagonal(L) ** 2 > PD_RTOL * np.diagonal(M)))
+
+
+def cho_solve(L, B):
+    """Solve L L^T X = B for batches: L (N, n, n), B (N, n) or (N, n, k)."""
+    vec = B.ndim == 2
+    B = B[..., None] if vec else B
+    N, n = L.shape[:2]
+    if N > 2 * n:
+        # many small systems: substitution, one row for all states at a time
+        Y = np.empty(B.shape)
+        for j in range(n):
+            Y[:, j] = (B[:, j] - np.einsum('ni,nik->nk', L[:, j, :j], Y[:, :j])) / L[:, j, j, None]
+        X = np.empty(B.shape)
+        for j in range(n - 1, -1, -1):
+            X[:, j] = (Y[:, j] - np.einsum('ni,nik->nk', L[:, j + 1:, j], X[:, j + 1:])) / L[:, j, j, None]
+    else:
+        X = np.linalg.solve(transpose(L), np.linalg.solve(L, B))
+    return X[..., 0] if vec else X
+
+
+def kernel_accepts(vals, n_out):
+    """Outputs of a Cholesky kernel (traced/cholesky.py: n_out results, then the pivots and
+    diag(M), n each) for one state (a tuple) or a batch (N, k): a finite result and every
+    pivot above PD_RTOL times its diagonal entry."""
+    if isinstance(vals, np.ndarray):
+        n = (vals.shape[1] - n_out) // 2
+        piv, diag = vals[:, n_out:n_out + n], vals[:, n_out + n:]
+        return bool(np.all(np.isfinite(vals[:, :n_out])) and np.all(piv > PD_RTOL * diag))
+    n = (len(vals) - n_out) // 2
+    s = sum(vals[:n_out])
+    return s - s == 0.0 and all(p > PD_RTOL * d for p, d in zip(vals[n_out:n_out + n], vals[n_out + n:], strict=True))
