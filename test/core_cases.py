@@ -21,9 +21,12 @@ def big_limits(xml, effort='1e6'):
 
 
 def make(xml, ctrl, clock=None, **settings):
-    """A Compensator on the model of `xml` controlling `ctrl`, friction off unless given."""
+    """A Compensator on the model of `xml` controlling `ctrl`; friction, ramps and the position
+    plausibility check (random URDF limits are narrow) out of the way unless given."""
     settings.setdefault('friction.viscous', [0.0])
     settings.setdefault('friction.coulomb', [0.0])
+    settings.setdefault('ramp_time', 0.0)
+    settings.setdefault('position_margin', 1000.0)
     c = Compensator(dict(joints=ctrl, **settings), clock=clock or Clock())
     c.set_model(load_urdf(xml, joints=ctrl))
     return c

@@ -121,7 +121,7 @@ def test_mode_switch_stale_desired_fallback_and_recovery(chain):
     gravity_law = o.rnea(q, qd, np.zeros(n))   # the gravity mode, with include_velocity_terms
     np.testing.assert_allclose(c.on_joint_state(ctrl, q, qd), gravity_law, atol=TOL, rtol=0)
     c.update({'mode': 'feedforward'})
-    assert ('info', None, 'mode: feedforward') in c.events
+    assert ('info', 'mode', 'mode: feedforward') in c.events
     c.events.clear()
     # no desired state yet: gravity at the measured state, said once
     for _ in range(3):

@@ -62,6 +62,7 @@ class Harness:
         self.js_pub = t.create_publisher(JointState, 'joint_states', 10)
         self.cmds, self.efforts, self.logs = [], [], []
         self.diag = None
+        self.diag_messages = []
         t.create_subscription(Float64MultiArray, CMD, lambda m: self.cmds.append(np.array(m.data)), 100)
         t.create_subscription(JointState, '/dynamics_node/commanded_efforts', self.efforts.append, 100)
         t.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
@@ -85,6 +86,7 @@ class Harness:
         for st in msg.status:
             if st.name.startswith('dynamics_node'):
                 self.diag = st
+                self.diag_messages.append(st.message)
 
     def _on_log(self, msg):
         if msg.name == 'dynamics_node':
@@ -98,9 +100,11 @@ class Harness:
 
     def start(self, wait_model=True, params_file=None, **params):
         params.setdefault('stale_timeout', 60.0)
-        if params_file is None:
+        if params_file is None:  # out of the way unless a test is about them (random URDF limits are narrow)
             params.setdefault('friction.viscous', [0.0])
             params.setdefault('friction.coulomb', [0.0])
+            params.setdefault('ramp_time', 0.0)
+            params.setdefault('position_margin', 1000.0)
         overrides = [Parameter(k, value=v) for k, v in params.items()]
         cli = ['--ros-args', '--params-file', str(params_file)] if params_file else None
         self.node = DynamicsNode(context=self.ctx, parameter_overrides=overrides, cli_args=cli)
@@ -123,10 +127,17 @@ class Harness:
         assert len(self.cmds) == n0 + 1
         return self.cmds[n0]
 
+    def publish_processed(self, names, position, velocity=(), effort=()):
+        """Publish one joint_states message and wait until the node has taken it (joint_states
+        keeps only the newest message: a second one sent at once could replace it)."""
+        r0 = self.node.core.count.received
+        self.publish(names, position, velocity, effort)
+        wait_until(lambda: self.node.core.count.received > r0, what='joint_states processed')
+
     def send_rejected(self, good, names, position, velocity=(), effort=()):
         """Publish a bad message, then a good one: exactly one command (the good one's) must come."""
         n0, r0 = len(self.cmds), self.node.core.count.rejected
-        self.publish(names, position, velocity, effort)
+        self.publish_processed(names, position, velocity, effort)
         out = self.send(*good)
         assert len(self.cmds) == n0 + 1 and self.node.core.count.rejected == r0 + 1
         return out
@@ -177,10 +188,8 @@ def test_gravity_compensation_matches_pinocchio(ros, chain):
     rng = np.random.default_rng(0)
     names = [locked, 'some_other_joint'] + ctrl[::-1]   # arbitrary order and extra joints
     sent = [(rng.uniform(-2, 2, len(ctrl)), rng.uniform(-1.5, 1.5)) for _ in range(40)]
-    for q, ql in sent:
-        ros.publish(names, [ql, 0.5] + q[::-1].tolist())
-        time.sleep(0.002)
-    wait_until(lambda: len(ros.cmds) >= len(sent), what='40 commands')
+    for q, ql in sent:  # one at a time: joint_states keeps only the newest message (depth 1)
+        ros.send(names, [ql, 0.5] + q[::-1].tolist())
     time.sleep(0.05)
     assert len(ros.cmds) == len(sent)  # one command per accepted message
     for (q, ql), tau in zip(sent, ros.cmds, strict=True):
@@ -355,15 +364,22 @@ def test_services_enable_and_reload(ros, chain, tmp_path):
     assert ros.call(SetBool, '/dynamics_node/set_enabled', SetBool.Request(data=True)).success
     np.testing.assert_allclose(ros.send(ctrl, q), ref, atol=TOL, rtol=0)
 
+    # the reload runs in the background: answered at once, the new model swaps in when ready
     heavier = re.sub(r'<mass value="([^"]*)"', lambda m: f'<mass value="{2 * float(m.group(1))!r}"', xml)
     path.write_text(heavier)
+    model = ros.node.core.model
     res = ros.call(Trigger, '/dynamics_node/reload_model', Trigger.Request())
-    assert res.success, res.message
+    assert res.success and 'loading' in res.message, res.message
+    wait_until(lambda: ros.node.core.model is not model, what='reloaded model')
     np.testing.assert_allclose(ros.send(ctrl, q), Oracle(heavier, joints=ctrl).gravity(q), atol=TOL, rtol=0)
     path.write_text('<robot name="broken"><link name=')
     res = ros.call(Trigger, '/dynamics_node/reload_model', Trigger.Request())
-    assert not res.success and 'malformed' in res.message
+    assert res.success, res.message  # started; the failure is reported by the log and the diagnostics
+    wait_until(lambda: 'malformed' in ros.node.core.description_error, what='reload failure')
     np.testing.assert_allclose(ros.send(ctrl, q), Oracle(heavier, joints=ctrl).gravity(q), atol=TOL, rtol=0)
+    path.unlink()  # refused at once: nothing to read
+    res = ros.call(Trigger, '/dynamics_node/reload_model', Trigger.Request())
+    assert not res.success and 'not found' in res.message
 
 
 def test_no_model_publishes_nothing_and_parameter_validation(ros, chain):
@@ -375,8 +391,7 @@ def test_no_model_publishes_nothing_and_parameter_validation(ros, chain):
     ros.t.destroy_publisher(volatile)
     q = np.zeros(len(ctrl))
     for _ in range(3):
-        ros.publish(ctrl, q)
-    wait_until(lambda: node.core.count.received == 3, what='3 messages without a model')
+        ros.publish_processed(ctrl, q)
     wait_until(lambda: any('no robot model' in line for line in ros.logs), what='no-model log')
     assert ros.cmds == []
     ros.desc_pub.publish(String(data=xml))
@@ -415,7 +430,8 @@ def test_parameter_change_is_validated_whole_then_applied(ros, chain):
                                           Parameter('gravity_scale', value=0.5),
                                           Parameter('publish_joint_state', value=True)])
     assert res.successful, res.reason
-    assert node.core.model is not model and node.core.settings['gravity_scale'] == 0.5
+    assert node.core.settings['gravity_scale'] == 0.5   # at once; the model when loaded (background)
+    wait_until(lambda: node.core.model is not model, what='new model')
     wait_until(lambda: ros.t.count_publishers('/dynamics_node/commanded_efforts') == 1, what='joint state publisher')
     ref = Oracle(heavier, joints=ctrl, gravity=(0.0, 0.0, -9.81 * 0.5)).gravity(q)
     np.testing.assert_allclose(ros.send(ctrl, q), ref, atol=TOL, rtol=0)
@@ -443,9 +459,10 @@ def test_inertia_policy_strict_refuses_then_warn_loads(ros):
     assert node.core.model is None and 'tip' in node.core.description_error   # start-up load is synchronous
     wait_until(lambda: ros.diag_level() == 2 and 'tip' in ros.diag_values().get('description_error', ''),
                what='strict refusal in the diagnostics')
-    # the policy change reloads the start-up description
+    # the policy change reloads the start-up description (in the background)
     assert all(r.successful for r in ros.set_params(inertia_policy='warn'))
-    assert node.core.model is not None and node.core.model.name == 'bad_inertia'
+    wait_until(lambda: node.core.model is not None, what='reload under the new policy')
+    assert node.core.model.name == 'bad_inertia'
     wait_until(lambda: ros.diag_values().get('inertia_warnings') == '1', what='inertia diagnostics')
     wait_until(lambda: any('tip' in line and 'triangle inequality' in line for line in ros.logs),
                what='inertia log line')
@@ -464,10 +481,11 @@ def test_shipped_wall_mount_config(ros):
     assert node.core.layout == joints and node.core.model.name == 'lie_arm7'
     xml_p = with_payload(xml, 'tool0', 1.5, [0.0, 0.0, 0.06], [0.004, 0.0, 0.0, 0.004, 0.0, 0.002])
     o = Oracle(xml_p, joints=joints, gravity=(-9.81, 0.0, 0.0))
-    lim = 0.9 * load_urdf(xml).effort_limits
+    model = load_urdf(xml)
+    lim = 0.9 * model.effort_limits
     rng = np.random.default_rng(7)
-    for _ in range(5):
-        q, qd = rng.uniform(-1.5, 1.5, 7), rng.uniform(-1, 1, 7)
+    for _ in range(5):  # within the joint limits: the shipped config checks positions against them
+        q, qd = rng.uniform(model.position_lower, model.position_upper), rng.uniform(-1, 1, 7)
         tau = ros.send(joints, q, qd)
         np.testing.assert_allclose(tau, np.clip(o.rnea(q, qd, np.zeros(7)), -lim, lim), atol=TOL, rtol=0)
 

@@ -2,6 +2,7 @@
 per-period diagnostics status (level, message, key/value list) and the bounds on any text
 that ends up in the log or on /diagnostics.
 """
+import re
 import time
 
 # diagnostic_msgs/DiagnosticStatus levels
@@ -15,9 +16,33 @@ INERTIA_DIAG_MESSAGES = 3
 DIAG_TEXT_MAX = 1000
 
 
+# Longest log line; every diagnostics value is cut to DIAG_TEXT_MAX.
+LOG_TEXT_MAX = 1000
+# Names shown of a list quoted from input, and characters shown of each.
+NAMES_SHOWN = 8
+NAME_TEXT_MAX = 60
+
+
 def clip(text, n):
     """text cut to at most n characters ('...' marks a cut)."""
     return text if len(text) <= n else text[:n - 3] + '...'
+
+
+_VARYING = re.compile(r"'[^']*'|\"[^\"]*\"|\[[^\]]*\]?|[-+.\w]*\d[-+.\w]*")
+
+
+def problem_key(text, n=80):
+    """The problem class of an error text, to throttle its log lines by: the text without what
+    varies from message to message (numbers, quoted names, lists), cut to n characters."""
+    return _VARYING.sub('#', text)[:n]
+
+
+def names_text(names, shown=NAMES_SHOWN):
+    """A list of names quoted from input, bounded: at most `shown` names of at most
+    NAME_TEXT_MAX characters each, then how many more there are."""
+    names = list(names)
+    text = repr([clip(str(n), NAME_TEXT_MAX) for n in names[:shown]])
+    return text if len(names) <= shown else f'{text[:-1]}, ... (+{len(names) - shown} more)]'
 
 
 class Throttle:
@@ -27,16 +52,23 @@ class Throttle:
         self.period = period
         self.clock = clock
         self._last = {}
+        self._held = {}   # key -> lines held back since the last one let through
 
-    def ready(self, key, now=None):
+    def check(self, key, now=None):
+        """None when a line for `key` is held back now, else how many were held back before it."""
         now = self.clock() if now is None else now
         last = self._last.get(key)
         if last is not None and now - last < self.period:
-            return False
-        if len(self._last) > 1000:  # keys may carry message text: forget the expired ones
+            self._held[key] = self._held.get(key, 0) + 1
+            return None
+        if len(self._last) > 1000:  # bounded whatever the keys: forget the expired ones
             self._last = {k: t for k, t in self._last.items() if now - t < self.period}
+            self._held = {k: c for k, c in self._held.items() if k in self._last}
         self._last[key] = now
-        return True
+        return self._held.pop(key, 0)
+
+    def ready(self, key, now=None):
+        return self.check(key, now) is not None
 
 
 class Counters:
@@ -57,7 +89,8 @@ class Counters:
 
 
 class Window:
-    """One diagnostics period: its start, the counters at its start and the compute times."""
+    """One diagnostics period: its start, the counters at its start and the compute times
+    (count, sum, max: nothing grows per message)."""
 
     def __init__(self, counters, now):
         self.counters = counters
@@ -66,7 +99,13 @@ class Window:
     def restart(self, now):
         self.start = now
         self.base = self.counters.copy()
-        self.times = []
+        self.n_times, self.sum_time, self.max_time = 0, 0.0, 0.0
+
+    def add_time(self, seconds):
+        self.n_times += 1
+        self.sum_time += seconds
+        if seconds > self.max_time:
+            self.max_time = seconds
 
     def count(self, name):
         """How much counter `name` grew in this window."""
@@ -76,7 +115,7 @@ class Window:
 def report(core, window, now):
     """(level, message, [(key, value-string)]) of a Compensator for `window` ending at `now`."""
     dt = max(now - window.start, 1e-9)
-    times = window.times
+    n_times = window.n_times
     accepted, rejected = window.count('accepted'), window.count('rejected')
     clamped, desired_rejected = window.count('clamp_count'), window.count('desired_rejected')
     m = core.model
@@ -86,7 +125,8 @@ def report(core, window, now):
     msgs, level = [], OK
     report_, repaired = core.inertia_report, core.inertia_repaired
     if m is None:
-        level, msgs = ERROR, ['no robot model (waiting for robot_description)']
+        level, msgs = ERROR, [f'no robot model (loading {core.loading})' if core.loading else
+                              'no robot model (waiting for robot_description)']
     else:
         if wd.last_valid_time is None:
             level = WARN
@@ -111,8 +151,10 @@ def report(core, window, now):
         if clamped:
             level = max(level, WARN)
             msgs.append(f'{clamped} commands clamped')
+        if core.loading:
+            msgs.append(f'loading {core.loading}')
         if not s['enabled']:
-            msgs.append('disabled')
+            msgs.append('disabled' if core.silent else 'disabling (ramping down)')
         if desired_rejected:
             level = max(level, WARN)
             msgs.append(f'{desired_rejected} desired states rejected')
@@ -122,10 +164,13 @@ def report(core, window, now):
         ('model_loaded', str(m is not None)),
         ('model_name', m.name if m is not None else ''),
         ('model_source', core.model_info),
+        ('model_state', f'loading {core.loading}' if core.loading else ('ready' if m is not None else 'none')),
+        ('description_update', s['description_update']),
         ('joint_count', str(m.n if m is not None else 0)),
         ('joints', ','.join(core.layout or [])),
         ('locked_joints', ','.join(m.locked_joint_names) if m is not None else ''),
         ('enabled', str(s['enabled'])),
+        ('ramp_level', f'{core.ramp.level:.3f}'),
         ('mode', s['mode']),
         ('control_law', core.law or ''),
         ('desired_age_ms', f'{1e3 * (now - core.desired_time):.1f}' if core.desired_time is not None else 'inf'),
@@ -136,8 +181,8 @@ def report(core, window, now):
         ('trajectories_filled_total', str(c.trajectories_filled)),
         ('trajectories_rejected_total', str(c.trajectories_rejected)),
         ('input_rate_hz', f'{accepted / dt:.1f}'),
-        ('compute_time_mean_ms', f'{1e3 * sum(times) / len(times):.4f}' if times else 'nan'),
-        ('compute_time_max_ms', f'{1e3 * max(times):.4f}' if times else 'nan'),
+        ('compute_time_mean_ms', f'{1e3 * window.sum_time / n_times:.4f}' if n_times else 'nan'),
+        ('compute_time_max_ms', f'{1e3 * window.max_time:.4f}' if n_times else 'nan'),
         ('received_total', str(c.received)),
         ('accepted_total', str(c.accepted)),
         ('rejected_total', str(c.rejected)),
@@ -153,4 +198,5 @@ def report(core, window, now):
         ('inertia_repaired', str(repaired)),
         ('inertia_report', clip(' | '.join(r['message'] for r in report_[:INERTIA_DIAG_MESSAGES]), DIAG_TEXT_MAX)),
     ]
-    return level, '; '.join(msgs), values
+    # every value bounded, whatever the model or the input
+    return level, clip('; '.join(msgs), DIAG_TEXT_MAX), [(k, clip(v, DIAG_TEXT_MAX)) for k, v in values]

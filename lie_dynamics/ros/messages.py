@@ -2,10 +2,13 @@
 the command layout, and every check a joint_states or desired-state message must pass.
 
 A message that fails raises `Rejected(kind, text)`: kind is a short key (length, duplicate,
-missing, nonfinite, points) the node throttles its log line by, text says what is wrong.
-Nothing here counts or logs; the compensator does.
+missing, nonfinite, implausible, points) the node throttles its log line by, text says what is
+wrong (name lists quoted from the message are bounded, diagnostics.names_text). Nothing here
+counts or logs; the compensator does.
 """
 import numpy as np
+
+from .diagnostics import names_text
 
 
 class Rejected(ValueError):
@@ -35,13 +38,14 @@ class NameMap:
                 dup.append(name)
             index[name] = i
         if dup:
-            self.error = Rejected('duplicate', f'duplicate joint names {sorted(set(dup))}')
+            self.error = Rejected('duplicate', f'duplicate joint names {names_text(sorted(set(dup)))}')
             return index
         missing = [j for j in controlled if j not in index]
         if missing:
-            other = [j for j in names if j not in set(controlled)]
-            hint = f' (it names {other}, which are not controlled joints)' if other else ''
-            self.error = Rejected('missing', f'missing controlled joints {missing}{hint}')
+            known = set(controlled)
+            other = [j for j in names if j not in known]
+            hint = f' (it names {names_text(other)}, which are not controlled joints)' if other else ''
+            self.error = Rejected('missing', f'missing controlled joints {names_text(missing)}{hint}')
             return index
         self.idx = np.array([index[j] for j in controlled], dtype=int)
         return index
@@ -53,11 +57,13 @@ class JointStateReader:
     Controlled joints come out in model order; locked joints present in the message are fed to
     the model (model.set_locked, only when their values change) and remembered in `known`, a
     dict the owner keeps across models (the next model starts from the last measured values).
+    bounds: settings.PositionBounds, the plausible positions (None: finite is enough).
     """
 
-    def __init__(self, model, known):
+    def __init__(self, model, known, bounds=None):
         self.model = model
         self.known = known
+        self.bounds = bounds
         self.map = NameMap()
         self.lock_idx = None
         self.lock_names = ()
@@ -75,7 +81,8 @@ class JointStateReader:
 
     def positions(self, names, position, velocity, effort):
         """Controlled joint positions (model order) of one message. Raises Rejected: array lengths
-        that differ, duplicate names, a missing controlled joint, a non-finite used position."""
+        that differ, duplicate names, a missing controlled joint, a used position that is
+        non-finite or outside `bounds`."""
         n_names = len(names)
         if len(position) != n_names or len(velocity) not in (0, n_names) or len(effort) not in (0, n_names):
             raise Rejected('length', f'array lengths differ: {n_names} names, {len(position)} positions, '
@@ -87,20 +94,38 @@ class JointStateReader:
             raise m.error
         pos = np.asarray(position, dtype=float)
         q = pos[m.idx]
-        if np.count_nonzero(np.isfinite(q)) != q.size:  # (hot path: count_nonzero is cheaper than .all())
-            bad = [self.model.joint_names[k] for k in np.flatnonzero(~np.isfinite(q))]
-            raise Rejected('nonfinite', f'non-finite positions for {bad}')
+        b = self.bounds
+        # one range check also fails NaN (hot path: count_nonzero is cheaper than .all())
+        if b is None:
+            if np.count_nonzero(np.isfinite(q)) != q.size:
+                self._refuse(q, self.model.joint_names, None, None)
+        elif np.count_nonzero((q >= b.lower) & (q <= b.upper)) != q.size:
+            self._refuse(q, self.model.joint_names, b.lower, b.upper)
         if len(self.lock_idx):
             lv = pos[self.lock_idx]
-            if np.count_nonzero(np.isfinite(lv)) != lv.size:
-                bad = [self.lock_names[k] for k in np.flatnonzero(~np.isfinite(lv))]
-                raise Rejected('nonfinite', f'non-finite positions for {bad}')
+            if b is None:
+                if np.count_nonzero(np.isfinite(lv)) != lv.size:
+                    self._refuse(lv, self.lock_names, None, None)
+            elif np.count_nonzero(np.abs(lv) <= b.locked) != lv.size:
+                self._refuse(lv, self.lock_names, -b.locked, b.locked)
             if self.last_locked is None or not np.array_equal(lv, self.last_locked):
                 vals = dict(zip(self.lock_names, lv.tolist(), strict=True))
                 self.model.set_locked(vals)
                 self.known.update(vals)
                 self.last_locked = lv
         return q
+
+    @staticmethod
+    def _refuse(values, names, lower, upper):
+        """Raise Rejected for the non-finite values (nonfinite), else for those outside [lower, upper]."""
+        bad = ~np.isfinite(values)
+        if bad.any():
+            raise Rejected('nonfinite', f'non-finite positions for {names_text(np.asarray(names)[bad].tolist())}')
+        lower, upper = np.broadcast_to(lower, values.shape), np.broadcast_to(upper, values.shape)
+        out = [f'{names[k]}={values[k]:.6g} outside [{lower[k]:.6g}, {upper[k]:.6g}]'
+               for k in np.flatnonzero((values < lower) | (values > upper))]
+        raise Rejected('implausible', 'implausible positions (URDF limits widened by position_margin, '
+                                      f'continuous_position_bound): {names_text(out, 4)}')
 
     def velocity(self, velocity):
         """(qd, complete): controlled joint velocities of the message last read by `positions`;
@@ -144,6 +169,6 @@ def read_desired(names, points, layout, name_map, topic=''):
         a = np.asarray(values, dtype=float)[name_map.idx]
         if not np.isfinite(a).all():
             bad = [layout[k] for k in np.flatnonzero(~np.isfinite(a))]
-            raise Rejected('nonfinite', f'non-finite {field} for {bad}')
+            raise Rejected('nonfinite', f'non-finite {field} for {names_text(bad)}')
         out.append(a)
     return tuple(out)

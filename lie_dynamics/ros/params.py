@@ -10,12 +10,15 @@ from typing import Optional, Tuple
 
 # MODES: the torque laws (lie_dynamics.laws). Every mode but `gravity` needs the desired-state stream.
 from ..laws import COULOMB_VELOCITY_EPSILON, MODES
+from .diagnostics import clip
 
 STALE_ACTIONS = ('hold_gravity_at_last_state', 'zero')
 # load_urdf's policy for physically inconsistent link inertias.
 INERTIA_POLICIES = ('warn', 'strict', 'repair')
+# Which robot descriptions may replace the running model.
+DESCRIPTION_UPDATES = ('same_robot', 'any', 'none')
 
-# kinds: 'bool', 'double', 'string', 'double_array', 'string_array'
+# kinds: 'bool', 'integer', 'double', 'string', 'double_array', 'string_array'
 
 
 @dataclass(frozen=True)
@@ -25,7 +28,7 @@ class ParamSpec:
     default: object          # None for arrays that default to "empty / from the URDF"
     description: str
     live: bool               # False: read-only after start-up
-    range: Optional[Tuple[float, float]] = None   # inclusive, doubles only
+    range: Optional[Tuple[float, float]] = None   # inclusive, integers and doubles
     constraints: str = ''
 
 
@@ -92,6 +95,31 @@ PARAMS = (
               'written, one log line per link and a WARN in the diagnostics. strict: reject the description '
               '(the previous model keeps running). repair: replace them by consistent ones, log before/after. '
               'Setting it reloads the current description.', True, constraints=' or '.join(INERTIA_POLICIES)),
+    ParamSpec('description_update', 'string', 'same_robot',
+              'Which robot descriptions may replace the running model (topic, parameters, ~/reload_model). '
+              'same_robot: the same robot name and controlled joints; any: any description with the controlled '
+              'joints; none: the first model stays, updates are refused. What changed (masses, limits) is logged.',
+              True, constraints=' or '.join(DESCRIPTION_UPDATES)),
+    ParamSpec('max_description_bytes', 'integer', 2_000_000,
+              'Largest robot description accepted (UTF-8 bytes, or file size); larger ones are refused unread.',
+              True, (1_000, 1_000_000_000)),
+    ParamSpec('max_description_links', 'integer', 256,
+              'Most <link> elements a robot description may have; more are refused before parsing (model build '
+              'time and memory grow quickly with the link count).', True, (1, 1_000_000)),
+    ParamSpec('max_trajectory_points', 'integer', 10_000,
+              'Most points of a ~/trajectory_in message; longer trajectories are refused unprocessed.', True,
+              (1, 100_000_000)),
+    ParamSpec('position_margin', 'double', 0.5,
+              'joint_states positions beyond a URDF joint limit by more than this (rad or m) are rejected '
+              'like non-finite ones (nothing published).', True, (0.0, 1000.0)),
+    ParamSpec('continuous_position_bound', 'double', 1e4,
+              'Plausibility bound |q| (rad or m) for joints without URDF limits (continuous ones) and for '
+              'locked joints: beyond it a joint_states message is rejected.', True, (1.0, 1e12)),
+    ParamSpec('ramp_time', 'double', 0.2,
+              'Seconds of the safe transitions (0: off): on enable the command ramps up from zero, on disable '
+              'down to zero before going silent; a mode, payload, gravity or model change, and the return of '
+              'joint_states after stale input, blend from the previous command to the new law. The stale action '
+              'and the effort clamp apply during a ramp.', True, (0.0, 10.0)),
     ParamSpec('payload.link', 'string', '', 'Link the payload is rigidly attached to (empty: none).', True),
     ParamSpec('payload.mass', 'double', 0.0, 'Payload mass, kg (0: no payload).', True, (0.0, 1000.0)),
     ParamSpec('payload.com', 'double_array', [0.0, 0.0, 0.0],
@@ -105,13 +133,18 @@ PARAMS = (
 SPECS = {p.name: p for p in PARAMS}
 
 
+def _shown(value):
+    """A value as a rejection reason quotes it: bounded (the reason goes back to the caller and the log)."""
+    return clip(repr(value), 120)
+
+
 def _finite_list(value, name):
     try:
         vals = [float(v) for v in value]
     except (TypeError, ValueError):
         raise ValueError(f'{name} must be a list of doubles') from None
     if not all(math.isfinite(v) for v in vals):
-        raise ValueError(f'{name} must contain finite values, got {vals}')
+        raise ValueError(f'{name} must contain finite values, got {_shown(vals)}')
     return vals
 
 
@@ -122,7 +155,7 @@ def check_value(name, value):
     """
     spec = SPECS.get(name)
     if spec is None:
-        raise ValueError(f'unknown parameter {name!r}')
+        raise ValueError(f'unknown parameter {_shown(name)}')
     if spec.kind == 'bool':
         if not isinstance(value, bool):
             raise ValueError(f'{name} must be a bool')
@@ -131,13 +164,21 @@ def check_value(name, value):
         if not isinstance(value, str):
             raise ValueError(f'{name} must be a string')
         if name == 'stale_action' and value not in STALE_ACTIONS:
-            raise ValueError(f'stale_action must be one of {list(STALE_ACTIONS)}, got {value!r}')
+            raise ValueError(f'stale_action must be one of {list(STALE_ACTIONS)}, got {_shown(value)}')
         if name == 'mode' and value not in MODES:
-            raise ValueError(f'mode must be one of {list(MODES)}, got {value!r}')
+            raise ValueError(f'mode must be one of {list(MODES)}, got {_shown(value)}')
         if name == 'inertia_policy' and value not in INERTIA_POLICIES:
-            raise ValueError(f'inertia_policy must be one of {list(INERTIA_POLICIES)}, got {value!r}')
+            raise ValueError(f'inertia_policy must be one of {list(INERTIA_POLICIES)}, got {_shown(value)}')
+        if name == 'description_update' and value not in DESCRIPTION_UPDATES:
+            raise ValueError(f'description_update must be one of {list(DESCRIPTION_UPDATES)}, got {_shown(value)}')
         if name in ('command_topic', 'desired_topic') and not value.strip():
             raise ValueError(f'{name} must not be empty')
+        return value
+    if spec.kind == 'integer':
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f'{name} must be an integer')
+        if spec.range and not spec.range[0] <= value <= spec.range[1]:
+            raise ValueError(f'{name} must be in [{spec.range[0]}, {spec.range[1]}], got {value}')
         return value
     if spec.kind == 'double':
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -155,14 +196,14 @@ def check_value(name, value):
         if not all(isinstance(v, str) and v for v in vals):
             raise ValueError(f'{name} must be a list of non-empty strings')
         if len(set(vals)) != len(vals):
-            raise ValueError(f'{name} lists a name twice: {vals}')
+            raise ValueError(f'{name} lists a name twice: {_shown(vals)}')
         return vals
     vals = _finite_list(value, name)
     if name == 'gravity':
         if len(vals) != 3:
             raise ValueError(f'gravity must have 3 values, got {len(vals)}')
         if math.sqrt(sum(v * v for v in vals)) > 100.0:
-            raise ValueError(f'gravity norm must be <= 100 m/s^2 (units?), got {vals}')
+            raise ValueError(f'gravity norm must be <= 100 m/s^2 (units?), got {_shown(vals)}')
     elif name == 'payload.com':
         if len(vals) != 3:
             raise ValueError(f'payload.com must have 3 values, got {len(vals)}')
@@ -171,7 +212,7 @@ def check_value(name, value):
             raise ValueError(f'payload.inertia must be empty or have 6 values, got {len(vals)}')
     elif name.startswith('friction.') or name in ('kp', 'kd'):
         if any(v < 0 for v in vals):
-            raise ValueError(f'{name} must be >= 0, got {vals}')
+            raise ValueError(f'{name} must be >= 0, got {_shown(vals)}')
     return vals
 
 

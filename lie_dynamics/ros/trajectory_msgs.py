@@ -14,9 +14,9 @@ def _seconds(duration):
     return duration.sec + duration.nanosec * 1e-9
 
 
-def _block(points, field, k, required):
-    """(N, k) array of one per-point field, or None when every point leaves it empty."""
-    rows = [getattr(p, field) for p in points]
+def block(rows, field, k, required):
+    """(N, k) array of one per-point field given as its N rows (sequences of floats), or None
+    when every row is empty and the field is not required. Raises ValueError naming the point."""
     lengths = {len(r) for r in rows}
     if lengths == {0} and not required:
         return None
@@ -46,9 +46,9 @@ def trajectory_arrays(joint_names, points):
     return {
         'joint_names': names,
         'time_from_start': np.array([_seconds(p.time_from_start) for p in points], dtype=float),
-        'positions': _block(points, 'positions', k, True),
-        'velocities': _block(points, 'velocities', k, False),
-        'accelerations': _block(points, 'accelerations', k, False),
+        'positions': block([p.positions for p in points], 'positions', k, True),
+        'velocities': block([p.velocities for p in points], 'velocities', k, False),
+        'accelerations': block([p.accelerations for p in points], 'accelerations', k, False),
     }
 
 

@@ -1,0 +1,174 @@
+"""The dynamics node's heavy work off the control path, in plain Python (no rclpy import).
+
+Reading a robot description, building its model and generating its code (a warm-up call),
+and filling a trajectory with efforts run in one worker thread (worker.py). The control path
+(the executor thread: joint_states callbacks and the timer) calls `collect()`, a plain
+attribute test while nothing has finished, and swaps a finished model in there, between two
+commands: until then the previous model answers every joint_states message. A description
+arriving while another one loads replaces the one waiting, so loads never pile up; the newest
+always loads last. The same holds for trajectories.
+
+Cheap refusals happen at once, on the control path: description_update 'none' with a model
+running, a description over max_description_bytes or max_description_links, text that is not
+XML, a file that does not exist; a trajectory with more points than max_trajectory_points,
+without a model or while disabled.
+
+Python threads share one interpreter lock: a long call into C that keeps it (parsing XML,
+converting a message) delays the control path by its length. Trajectories are therefore read
+and written in their serialized form (trajectory_cdr.py: milliseconds for 100,000 points,
+where rclpy's conversion takes seconds under the lock), and the caps bound the rest.
+"""
+import os
+
+from .messages import Rejected
+from .models import warm_up
+from .sources import open_source, resolve_path, source_label
+from .trajectory_cdr import Unsupported, arrays, head, read, write
+from .trajectory_msgs import set_point_efforts, trajectory_arrays
+from .worker import Worker
+
+
+class Background:
+    """Loads and trajectory fills for a Compensator `core`, whose running model's source `sources`
+    (sources.Sources) tracks. publish(bytes or message) sends a filled trajectory; deserialize(bytes)
+    -> JointTrajectory reads one in an encoding trajectory_cdr does not (rclpy's, in the node)."""
+
+    def __init__(self, core, sources, publish=None, deserialize=None):
+        self.core = core
+        self.sources = sources
+        self.publish = publish
+        self.deserialize = deserialize
+        self.worker = Worker('lie_dynamics_loader')
+
+    # ------------------------------------------------------------------ robot descriptions
+    def precheck(self, kind, text, settings=None):
+        """Why the description (kind, text) is refused before it is read, or None."""
+        s = self.core.settings if settings is None else settings
+        if self.core.model is not None and s['description_update'] == 'none':
+            return "description_update is 'none': the running model stays"
+        cap = s['max_description_bytes']
+        if kind == 'file':
+            path = resolve_path(text)
+            if not os.path.isfile(path):
+                return f'URDF file not found: {path!r}'
+            size = os.path.getsize(path)
+        else:
+            if not text.lstrip().startswith('<'):
+                return 'not URDF XML'
+            size = len(text) if len(text) > cap or text.isascii() else len(text.encode('utf-8', 'replace'))
+        if size > cap:
+            return f'{size} bytes, more than max_description_bytes ({cap})'
+        return None
+
+    def _links(self, xml, settings):
+        cap = settings['max_description_links']
+        links = xml.count('<link')   # an upper bound (comments count too), found before parsing
+        if links > cap:
+            raise ValueError(f'{links} <link> elements, more than max_description_links ({cap})')
+
+    def _build(self, kind, text, inertia):
+        """The Plan of a new model (worker thread): read, parse, build, configure, warm up."""
+        core = self.core
+        s = core.settings
+        source, label = open_source(kind, text)
+        if kind == 'file':
+            with open(source, encoding='utf-8') as fh:
+                source = fh.read(s['max_description_bytes'] + 1)
+        self._links(source, s)
+        model = core.build_model(source, inertia)
+        plan = core.plan(None, model, label)
+        warm_up(model)
+        return plan
+
+    def request(self, kind, text, inertia=None, settings=None):
+        """Load a description in the background (it replaces a load still waiting). Returns
+        None, or the reason it is refused at once (also logged and kept for the diagnostics)."""
+        label = source_label(kind, text)
+        try:
+            err = self.precheck(kind, text, settings)
+        except ValueError as exc:
+            err = str(exc)
+        if err:
+            return self.core.note_description_error(f'{label}: {err}')
+        self.worker.submit('model', (kind, text, label), lambda: self._build(kind, text, inertia))
+        self.core.loading = label
+        return None
+
+    def load_now(self, kind, text, inertia=None):
+        """Load a description in this thread (start-up). Returns None or the error text."""
+        label = source_label(kind, text)
+        try:
+            err = self.precheck(kind, text)
+            if err is None:
+                return self._install((kind, text, label), self._build(kind, text, inertia), None)
+        except Exception as exc:  # noqa: BLE001 - any bad input: log, keep the previous model, never die
+            err = str(exc) or type(exc).__name__
+        return self.core.note_description_error(f'{label}: {err}')
+
+    def _install(self, tag, plan, error):
+        kind, text, label = tag
+        if error is None:
+            try:
+                self.core.apply(plan)
+                self.sources.current = (kind, text)
+                return None
+            except ValueError as exc:  # the state moved while it loaded and the model no longer fits
+                error = exc
+        return self.core.note_description_error(f'{label}: {str(error) or type(error).__name__}')
+
+    # ------------------------------------------------------------------ trajectories
+    def fill(self, data):
+        """Fill a serialized JointTrajectory (bytes) in the background and publish it; refusals
+        are counted and logged by the core at once."""
+        core = self.core
+        try:
+            points = head(data)[1]
+        except Unsupported:
+            points = 0   # counted once deserialized, in the worker
+        except ValueError as exc:
+            return core.trajectory_done(str(exc))
+        job = core.trajectory_fill(points)
+        if isinstance(job, Rejected):
+            return core.trajectory_done(job.text, kind=job.kind)
+        cap = core.settings['max_trajectory_points']
+        if self.worker.submit('trajectory', 'trajectory', lambda: self._fill(job, data, cap)) is not None:
+            # the one still waiting is dropped: only the newest trajectory matters
+            core.trajectory_done('a newer trajectory arrived before it was filled', kind='replaced')
+        return None
+
+    def _fill(self, job, data, cap):
+        """(worker thread) -> clamp note; raises ValueError for a rejected trajectory."""
+        try:
+            traj = read(data)
+        except Unsupported:
+            msg = self.deserialize(data)
+            if len(msg.points) > cap:
+                raise ValueError(f'{len(msg.points)} points, more than max_trajectory_points ({cap})') from None
+            efforts, note = job.fill(msg.joint_names, trajectory_arrays(msg.joint_names, msg.points))
+            set_point_efforts(msg.points, efforts)
+            self.publish(msg)
+            return note
+        efforts, note = job.fill(traj['joint_names'], arrays(traj))
+        self.publish(write(traj, efforts))
+        return note
+
+    # ------------------------------------------------------------------ control path
+    def collect(self):
+        """Swap in finished models and account for finished fills (control path, cheap)."""
+        worker = self.worker
+        if worker.has_outcomes:
+            for out in worker.outcomes():
+                if out.slot == 'model':
+                    self._install(out.tag, out.value, out.error)
+                elif out.error is None:
+                    self.core.trajectory_done(None, out.value)
+                else:
+                    err = out.error
+                    self.core.trajectory_done(str(err) if isinstance(err, ValueError) else
+                                              f'{type(err).__name__}: {err}')
+        busy = worker.busy('model')
+        self.core.loading = busy[2] if busy is not None else ''
+
+    def stop(self, timeout=2.0):
+        self.worker.stop(timeout)
+

@@ -1,0 +1,216 @@
+"""The dynamics node under heavy and hostile input, with real rclpy and DDS (harness of
+test_node.py): model swaps without a gap in the replies, loads that do not pile up, large
+trajectories off the control path, bounded logs and diagnostics under spam, the service queue,
+shutdown during a load."""
+import os
+import re
+import threading
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy')
+
+from rcl_interfaces.msg import Log  # noqa: E402
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+from rclpy.serialization import serialize_message  # noqa: E402
+from std_msgs.msg import String  # noqa: E402
+from std_srvs.srv import SetBool, Trigger  # noqa: E402
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
+
+from lie_dynamics import load_urdf  # noqa: E402
+from lie_dynamics.ros import trajectory_cdr as cdr  # noqa: E402
+from lie_dynamics.ros.diagnostics import DIAG_TEXT_MAX, LOG_TEXT_MAX  # noqa: E402
+from lie_dynamics.ros.node import LOG_THROTTLE_S, SERVICE_QUEUE  # noqa: E402
+from test_node import TIMEOUT, Harness, wait_until  # noqa: E402
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ARM = open(os.path.join(ROOT, 'config', 'arm7.urdf')).read()
+JOINTS = [f'joint{i}' for i in range(1, 8)]
+Q = np.array([0.1, 0.5, -0.2, 1.2, 0.3, 0.8, 0.1])   # within the arm's joint limits
+DEEP = QoSProfile(depth=10_000, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def heavier(xml, factor):
+    return re.sub(r'<mass value="([^"]*)"', lambda m: f'<mass value="{factor * float(m.group(1))!r}"', xml)
+
+
+@pytest.fixture
+def ros():
+    h = Harness()
+    yield h
+    h.close()
+
+
+def slow_builds(node, gate=None, burn=0.0):
+    """Make the node's model builds slow: wait for `gate`, or burn `burn` s of CPU in Python
+    (the interpreter lock is then shared with the control path, as in a real parse).
+    Returns the list of builds started."""
+    build, started = node.core.build_model, []
+
+    def slow(*args, **kwargs):
+        started.append(time.monotonic())
+        if gate is not None:
+            gate.wait(TIMEOUT)
+        end = time.monotonic() + burn
+        while time.monotonic() < end:
+            sum(range(1000))
+        return build(*args, **kwargs)
+    node.core.build_model = slow
+    return started
+
+
+def test_model_swap_without_a_gap_in_replies(ros):
+    node = ros.start(robot_description=ARM, diagnostics_period=0.1)
+    started = slow_builds(node, burn=1.5)
+    old = node.core.model
+    g_old = old.gravity(Q)
+    ros.desc_pub.publish(String(data=heavier(ARM, 2.0)))
+    wait_until(lambda: started, what='load started')
+    during, rtts = [], []
+    while node.core.model is old:  # the old model answers every state until the swap
+        t0 = time.monotonic()
+        tau = ros.send(JOINTS, Q)
+        rtts.append(time.monotonic() - t0)
+        if node.core.model is old:
+            during.append(tau)
+    assert len(during) >= 5, len(during)
+    for tau in during:
+        np.testing.assert_allclose(tau, g_old, atol=1e-9)
+    assert max(rtts) < 1.0, max(rtts)   # the load took 1.5 s or more
+    g_new = load_urdf(heavier(ARM, 2.0)).gravity(Q)
+    np.testing.assert_allclose(ros.send(JOINTS, Q), g_new, atol=1e-9)
+    assert node.core.count.rejected == 0 and node.core.count.accepted == len(ros.cmds)
+    wait_until(lambda: any('loading topic robot_description' in m for m in ros.diag_messages), what='loading diag')
+    wait_until(lambda: ros.diag_values().get('model_state') == 'ready', what='ready diag')
+
+
+def test_loads_do_not_pile_up_and_services_answer_during_a_load(ros):
+    node = ros.start(robot_description=ARM)
+    gate = threading.Event()
+    started = slow_builds(node, gate=gate)
+    for k in range(20):  # each answered at once, while the first load waits
+        res = ros.call(Trigger, '/dynamics_node/reload_model', Trigger.Request())
+        assert res.success and 'loading' in res.message, res.message
+        if k == 0:
+            wait_until(lambda: started, what='first load running')
+    ros.desc_pub.publish(String(data=heavier(ARM, 3.0)))   # the newest: loads last
+    wait_until(lambda: node._bg.worker.waiting('model') is not None and
+               node._bg.worker.waiting('model')[0] == 'topic', what='topic load waiting')
+    np.testing.assert_allclose(ros.send(JOINTS, Q), load_urdf(ARM).gravity(Q), atol=1e-9)
+    gate.set()
+    wait_until(lambda: node.core.loading == '' and not node._bg.worker.has_outcomes and len(started) == 2,
+               what='loads done')
+    assert len(started) == 2 and node._bg.worker.replaced['model'] == 19
+    np.testing.assert_allclose(ros.send(JOINTS, Q), load_urdf(heavier(ARM, 3.0)).gravity(Q), atol=1e-9)
+
+
+def test_large_trajectory_is_filled_off_the_control_path(ros):
+    node = ros.start(robot_description=ARM, max_trajectory_points=200_000)
+    out = []
+    ros.t.create_subscription(JointTrajectory, '/dynamics_node/trajectory_out', out.append, 10, raw=True)
+    pub = ros.t.create_publisher(JointTrajectory, '/dynamics_node/trajectory_in', 10)
+    wait_until(lambda: pub.get_subscription_count() >= 1 and
+               ros.t.count_publishers('/dynamics_node/trajectory_out') >= 1, what='discovery')
+    data = serialized(100_000)
+    t0 = time.monotonic()
+    pub.publish(data)   # serialized: the tester's own conversion would stall this process
+    rtts = []
+    while not out and time.monotonic() - t0 < 60:
+        t1 = time.monotonic()
+        ros.send(JOINTS, Q)
+        rtts.append(time.monotonic() - t1)
+    fill = time.monotonic() - t0
+    assert out, 'no filled trajectory'
+    assert len(rtts) >= 5 and max(rtts) < max(0.5, fill / 3), (len(rtts), max(rtts), fill)
+    assert node.core.count.trajectories_filled == 1 and len(out[0]) == len(data) and out[0] != data
+    # over the cap: refused at once, nothing published
+    assert all(r.successful for r in ros.set_params(max_trajectory_points=1000))
+    pub.publish(serialized(1001))
+    wait_until(lambda: node.core.count.trajectories_rejected == 1, what='refused trajectory')
+    assert 'max_trajectory_points' in node.core.last_error and len(out) == 1
+
+
+def serialized(n):
+    """A serialized n-point trajectory at 1 kHz, written directly (building n Python points and
+    converting them would take seconds of this process's interpreter lock)."""
+    head = bytes(serialize_message(JointTrajectory(joint_names=JOINTS)))
+    prefix = head[:-4] + n.to_bytes(4, 'little')   # the point count ends the prefix (little-endian CDR)
+    k = np.arange(n)
+    traj = dict(prefix=prefix, joint_names=JOINTS, sec=k // 1000, nanosec=(k % 1000) * 1_000_000,
+                positions=np.tile(Q, (n, 1)), velocities=np.zeros((n, 7)), accelerations=None)
+    return cdr.write(traj, np.zeros((n, 7)))
+
+
+def test_logs_and_diagnostics_stay_bounded_under_spam(ros):
+    lines = []
+    ros.t.create_subscription(Log, '/rosout', lambda m: m.name == 'dynamics_node' and lines.append(m.msg), DEEP)
+    node = ros.start(robot_description=ARM, diagnostics_period=0.2)
+    pub = ros.t.create_publisher(JointTrajectory, '/dynamics_node/trajectory_in', 10)
+    desired = ros.t.create_publisher(JointTrajectory, '/dynamics_node/desired', 10)
+    cli = ros.t.create_client(SetBool, '/dynamics_node/set_enabled', qos_profile=DEEP)
+    assert cli.wait_for_service(timeout_sec=TIMEOUT)
+    wait_until(lambda: pub.get_subscription_count() >= 1 and desired.get_subscription_count() >= 1, what='discovery')
+    ros.send(JOINTS, Q)
+    time.sleep(2 * LOG_THROTTLE_S)   # start-up lines are out of the way
+    lines.clear()
+    many = [f'n{i}' for i in range(10_000)]
+    bad_traj = bytes(serialize_message(JointTrajectory(joint_names=JOINTS, points=[
+        JointTrajectoryPoint(positions=[0.0] * 6)])))
+    t0 = time.monotonic()
+    futures = []
+    k = 0
+    while time.monotonic() - t0 < 2.5 * LOG_THROTTLE_S:   # long enough for held-back lines to be counted
+        k += 1
+        futures.append(cli.call_async(SetBool.Request(data=bool(k % 2))))   # 645 lines/s before
+        if k % 3 == 0:
+            ros.desc_pub.publish(String(data=f'<robot name="x{k}"><link name="a"></robot'))   # 184 lines/s
+            pub.publish(bad_traj)                                                         # 173 lines/s
+            desired.publish(JointTrajectory(joint_names=many, points=[]))
+        if k % 10 == 0:
+            ros.publish(many, [0.0] * len(many))                  # 100-700 kB into last_error before
+            ros.publish(['x' * 100_000], [0.0])
+            ros.publish(JOINTS, [1e308] * 7)
+            ros.publish(JOINTS + [JOINTS[0]], [0.0] * 8)
+        time.sleep(0.005)
+    wait_until(lambda: all(f.done() for f in futures), what='service answers')
+    time.sleep(0.5)
+    elapsed = time.monotonic() - t0
+    classes = 12   # problem classes the spam touches (enable, description, trajectory, desired, joint_states...)
+    assert len(lines) <= classes * (elapsed / LOG_THROTTLE_S + 1), (len(lines), elapsed, lines)
+    assert all(len(line) <= LOG_TEXT_MAX + 80 for line in lines)
+    assert any("more like this" in line for line in lines)   # what was held back is counted
+    assert node.core.count.rejected > 0 and len(node.core.last_error) <= DIAG_TEXT_MAX
+    wait_until(lambda: ros.diag is not None and len(ros.diag_values().get('last_error', '')) > 0, what='diagnostics')
+    assert all(len(kv.value) <= DIAG_TEXT_MAX for kv in ros.diag.values) and len(ros.diag.message) <= DIAG_TEXT_MAX
+    assert ros.call(SetBool, '/dynamics_node/set_enabled', SetBool.Request(data=True)).success
+    np.testing.assert_allclose(ros.send(JOINTS, Q), load_urdf(ARM).gravity(Q), atol=1e-9)
+
+
+def test_every_concurrent_service_call_is_answered(ros):
+    ros.start(robot_description=ARM)
+    n = SERVICE_QUEUE
+    qos = QoSProfile(depth=n, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
+    cli = ros.t.create_client(SetBool, '/dynamics_node/set_enabled', qos_profile=qos)
+    assert cli.wait_for_service(timeout_sec=TIMEOUT)
+    futures = [cli.call_async(SetBool.Request(data=bool(k % 2))) for k in range(n)]
+    wait_until(lambda: all(f.done() for f in futures), timeout=60.0, what=f'{n} answers')
+    assert all(f.result().success for f in futures)
+
+
+def test_shutdown_during_a_load(ros):
+    node = ros.start(robot_description=ARM)
+    gate = threading.Event()
+    started = slow_builds(node, gate=gate)
+    assert ros.call(Trigger, '/dynamics_node/reload_model', Trigger.Request()).success
+    wait_until(lambda: started, what='load running')
+    ros.ex.remove_node(node)
+    t0 = time.monotonic()
+    node.destroy_node()   # waits for the load a bounded time, then leaves the daemon thread
+    assert time.monotonic() - t0 < 5.0
+    ros.node = None
+    gate.set()
+    thread = node._bg.worker._thread
+    thread.join(TIMEOUT)
+    assert not thread.is_alive()
