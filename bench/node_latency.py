@@ -52,19 +52,19 @@ def echo_main():
 
     from lie_dynamics.ros.node import JOINT_STATES_QOS
     from lie_dynamics.ros.run import make_executor
-    from lie_dynamics.ros.node import NO_PUB_EVENTS as _NO_PUB_EVENTS, NO_SUB_EVENTS as _NO_SUB_EVENTS
+    from lie_dynamics.ros.node import NO_PUB_EVENTS, NO_SUB_EVENTS
 
     rclpy.init()
     node = rclpy.create_node('echo_node')
     # same transport settings as the dynamics node, so the comparison isolates the node's own work
-    pub = node.create_publisher(Float64MultiArray, CMD, 10, event_callbacks=_NO_PUB_EVENTS)
+    pub = node.create_publisher(Float64MultiArray, CMD, 10, event_callbacks=NO_PUB_EVENTS)
 
     def on_js(msg):
         out = Float64MultiArray()
         out.data = msg.position
         pub.publish(out)
 
-    node.create_subscription(JointState, 'joint_states', on_js, JOINT_STATES_QOS, event_callbacks=_NO_SUB_EVENTS)
+    node.create_subscription(JointState, 'joint_states', on_js, JOINT_STATES_QOS, event_callbacks=NO_SUB_EVENTS)
     ex, _ = make_executor()
     ex.add_node(node)
     try:

@@ -6,7 +6,7 @@ import pytest
 
 from lie_dynamics import default_urdf_path, load_urdf
 from lie_dynamics.algorithms.identification import excitation_trajectory
-from lie_dynamics.algorithms.payload import _link_to_body_map, identify_payload
+from lie_dynamics.algorithms.payload import link_to_body_map, identify_payload
 from lie_dynamics.model.inertia import inertia_to_parameters, link_inertia
 from robots import named_urdf
 
@@ -72,7 +72,7 @@ def test_link_to_body_map_moves_a_rigid_body():
     mic = (2.0, np.array([0.1, 0.2, -0.3]), np.diag([0.1, 0.2, 0.25]))
     about_link = inertia_to_parameters(link_inertia(np.eye(4), mic))
     about_body = inertia_to_parameters(link_inertia(T, mic))
-    assert np.allclose(_link_to_body_map(T) @ about_link, about_body, atol=1e-12)
+    assert np.allclose(link_to_body_map(T) @ about_link, about_body, atol=1e-12)
 
 
 @pytest.mark.parametrize('link, mutate, msg', [

@@ -45,7 +45,7 @@ class PayloadResult:
     summary: str = ''
 
 
-def _link_to_body_map(T):
+def link_to_body_map(T):
     """A (10, 10): parameters about the body frame = A @ parameters about a link frame at pose T."""
     Ad = Ad_inv(T)  # a body-frame twist in the link frame: J_body = Ad^T J_link Ad
     J = parameters_to_inertia(np.eye(10))  # linear in the parameters: map each basis vector
@@ -64,7 +64,7 @@ def identify_payload(model, link, q, qd, qdd, tau_measured, rcond=1e-8):
     q, qd, qdd, tau = model.check_states(q=q, qd=qd, qdd=qdd, tau_measured=tau_measured)
     N, n = q.shape
     bare = model.with_body_inertias(model.J_links)  # the model without payloads
-    Y = model.regressor(q, qd, qdd)[:, :, 10 * b:10 * b + 10] @ _link_to_body_map(T)
+    Y = model.regressor(q, qd, qdd)[:, :, 10 * b:10 * b + 10] @ link_to_body_map(T)
     y = tau - bare.inverse_dynamics(q, qd, qdd)
     fit = least_squares(Y.reshape(N * n, 10), y.reshape(N * n), np.zeros(10), rcond)
     if fit['rank'] == 0 or not fit['determined'][0]:
