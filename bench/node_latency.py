@@ -156,7 +156,7 @@ def match(sent, replies, keys):
     lat = np.full(len(sent), np.nan)
     for t, data in replies:
         k = keys.get(reply_key(np.frombuffer(data, dtype=float)))
-        if k is not None and np.isnan(lat[k]):
+        if k is not None and k < len(sent) and np.isnan(lat[k]):  # (a late warm-up reply is no match)
             lat[k] = t - sent[k]
     return lat, int(np.isnan(lat).sum())
 
