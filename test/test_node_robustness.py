@@ -124,7 +124,9 @@ def test_large_trajectory_is_filled_off_the_control_path(ros):
     fill = time.monotonic() - t0
     assert out, 'no filled trajectory'
     assert len(rtts) >= 5 and max(rtts) < max(0.5, fill / 3), (len(rtts), max(rtts), fill)
-    assert node.core.count.trajectories_filled == 1 and len(out[0]) == len(data) and out[0] != data
+    assert len(out[0]) == len(data) and out[0] != data
+    # counted when the control path collects the outcome (next joint_states or timer tick)
+    wait_until(lambda: node.core.count.trajectories_filled == 1, what='fill counted')
     # over the cap: refused at once, nothing published
     assert all(r.successful for r in ros.set_params(max_trajectory_points=1000))
     pub.publish(serialized(1001))

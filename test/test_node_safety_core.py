@@ -186,6 +186,17 @@ def test_disable_without_input_ramps_the_held_command_down_on_the_timer(arm):
     clock.t += 0.3
     np.testing.assert_array_equal(c.tick(), np.zeros(len(ctrl)))
     assert c.silent and c.tick() is None and c.final_command() is None
+    # shutdown during a disable ramp: the stale action at the ramp's level, once
+    c.set_enabled(True)
+    c.on_joint_state(ctrl, q)
+    clock.t += 2.0
+    np.testing.assert_allclose(c.on_joint_state(ctrl, q), c.model.gravity(q), atol=1e-9)
+    c.set_enabled(False)
+    c.on_joint_state(ctrl, q)
+    clock.t += 0.05
+    c.on_joint_state(ctrl, q)
+    clock.t += 0.05
+    np.testing.assert_allclose(c.final_command(), 0.9 * c.model.gravity(q), atol=1e-9)
 
 
 def test_nothing_is_published_before_the_first_valid_state(arm):

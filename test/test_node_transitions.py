@@ -41,6 +41,8 @@ def test_watchdog_runs_on_the_steady_clock_under_sim_time(ros):
     wait_until(lambda: len(ros.cmds) == 2, what='stale action without /clock')
     np.testing.assert_allclose(ros.cmds[1], g, atol=1e-9)
     wait_until(lambda: ros.diag_values().get('stale') == 'True', what='diagnostics without /clock')
+    node.note_executor('events')   # run.py says which executor spins the node
+    wait_until(lambda: ros.diag_values().get('executor') == 'events', what='executor in the diagnostics')
     clock = ros.t.create_publisher(ClockMsg, '/clock', 10)
     wait_until(lambda: clock.get_subscription_count() >= 1, what='/clock discovery')
     msg = ClockMsg()

@@ -77,6 +77,7 @@ class Compensator(TrajectoryInput):
         self.model = None
         self.model_info = ''          # where the current model came from
         self.loading = ''             # what is being loaded in the background (the node sets it)
+        self.executor = ''            # which executor spins the node (the node sets it)
         self.inertia_report = []      # physical_consistency() of the current model
         self.inertia_repaired = 0     # entries of it with repaired=True
         self.events = []

@@ -181,6 +181,7 @@ def report(core, window, now):
         ('trajectories_filled_total', str(c.trajectories_filled)),
         ('trajectories_rejected_total', str(c.trajectories_rejected)),
         ('input_rate_hz', f'{accepted / dt:.1f}'),
+        ('executor', core.executor),
         ('compute_time_mean_ms', f'{1e3 * window.sum_time / n_times:.4f}' if n_times else 'nan'),
         ('compute_time_max_ms', f'{1e3 * window.max_time:.4f}' if n_times else 'nan'),
         ('received_total', str(c.received)),

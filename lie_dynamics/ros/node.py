@@ -14,10 +14,11 @@ Subscribes  robot_description (std_msgs/String, reliable, transient local, depth
                               state matters, an old one queued behind it is never answered)
             <desired_topic>   (trajectory_msgs/JointTrajectory, one point; best effort, depth 1),
                               default ~/desired
-            ~/trajectory_in   (trajectory_msgs/JointTrajectory from a planner; reliable, depth 10;
-                              taken serialized and read off the control path)
+            ~/trajectory_in   (trajectory_msgs/JointTrajectory from a planner; reliable, depth 1:
+                              only the newest matters; taken serialized, read off the control path)
 Publishes   <command_topic>   (std_msgs/Float64MultiArray, `joints` order), one per valid joint_states
-            ~/trajectory_out  (~/trajectory_in with `effort` filled; remap it to the controller)
+            ~/trajectory_out  (~/trajectory_in with `effort` filled, reliable, depth 1; remap it to
+                              the controller)
             ~/commanded_efforts (sensor_msgs/JointState, if publish_joint_state; input stamp)
             /diagnostics      (diagnostic_msgs/DiagnosticArray, every diagnostics_period)
 Services    ~/set_enabled (std_srvs/SetBool), ~/reload_model (std_srvs/Trigger); reliable,
@@ -63,6 +64,10 @@ JOINT_STATES_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                               reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
 DESIRED_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                          reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
+# Trajectories: reliable, one kept each way. Only the newest one matters (a newer one replaces a
+# waiting fill anyway), and DDS keeps a kept sample's memory (a 100,000-point trajectory: 20 MB).
+TRAJECTORY_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                            durability=DurabilityPolicy.VOLATILE)
 # Requests kept per service: rclpy's default (10) dropped 975 of 1,000 concurrent calls, whose
 # clients then waited forever. A kept request costs its message only (a SetBool or Trigger
 # request is a few bytes), and each is answered in microseconds.
@@ -135,7 +140,7 @@ class DynamicsNode(Node):
                                               event_callbacks=NO_PUB_EVENTS)
         self._js_pub = None
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10, event_callbacks=NO_PUB_EVENTS)
-        self._traj_pub = self.create_publisher(JointTrajectory, '~/trajectory_out', 10,
+        self._traj_pub = self.create_publisher(JointTrajectory, '~/trajectory_out', TRAJECTORY_QOS,
                                                event_callbacks=NO_PUB_EVENTS)
         self._bg = Background(self.core, self._sources, publish=self._traj_pub.publish,
                               deserialize=lambda data: deserialize_message(data, JointTrajectory))
@@ -149,7 +154,7 @@ class DynamicsNode(Node):
         desired = self.create_subscription(JointTrajectory, values['desired_topic'], self._on_desired,
                                            DESIRED_QOS, event_callbacks=NO_SUB_EVENTS)
         self.core.desired_topic = desired.topic_name
-        self.create_subscription(JointTrajectory, '~/trajectory_in', self._on_trajectory, 10, raw=True,
+        self.create_subscription(JointTrajectory, '~/trajectory_in', self._on_trajectory, TRAJECTORY_QOS, raw=True,
                                  event_callbacks=NO_SUB_EVENTS)
         self.create_service(SetBool, '~/set_enabled', self._srv_set_enabled, qos_profile=SERVICE_QOS)
         self.create_service(Trigger, '~/reload_model', self._srv_reload, qos_profile=SERVICE_QOS)
@@ -170,6 +175,10 @@ class DynamicsNode(Node):
         if self.core.model is None:
             self._log('info', None, f"no robot model yet: waiting for '{self.resolve_topic_name('robot_description')}' "
                                     '(publishing nothing until a model is loaded)')
+
+    def note_executor(self, kind):
+        """The executor that spins the node (run.py), shown in the diagnostics."""
+        self.core.executor = kind
 
     def destroy_node(self):
         self._bg.stop()  # before the publishers go: a fill in progress may still publish
