@@ -24,7 +24,7 @@ trees: block (i, j) of G is Ad_{f_{j,i}^-1} when j <= i, else 0)
     M = S^T G^T J G S                                                           (eq 39)
 
 where J_i = [[I_c - m[r]^2, m[r]], [-m[r], m 1]] is the spatial inertia of body i about
-its own frame (the notes garble this block; CONVENTIONS.md has the right one). Column
+its own frame (the notes garble this block; docs/architecture.md has the right one). Column
 j of the i-th block row of G S is the body Jacobian of body i, Ad_{T_i^-1} A_j, so
 M = sum_i (G S)_i^T J_i (G S)_i. Equation 34, M = A^T L^T D L A, is the same product
 written with the home-pose adjoints Q of eq 38 (A = Q S, L = Q G Q^-1, D = Q^-T J Q^-1).

@@ -1,7 +1,7 @@
 """Inertial-parameter regressor: tau = Y(q, qd, qdd) pi, linear in the inertial parameters.
 
 The paper notes (after eq 32) that each link's inertia has exactly 10 independent
-parameters. Per body, about its own frame and in Pinocchio's order (CONVENTIONS.md),
+parameters. Per body, about its own frame and in Pinocchio's order (docs/architecture.md),
 
     pi_i = (m, m c_x, m c_y, m c_z, I_xx, I_xy, I_yy, I_xz, I_yz, I_zz),
     J_i  = [[I, [h]], [-[h], m 1]],  h = m c,  I = I_c - m [c]^2 (inertia about the frame origin).

@@ -1,7 +1,7 @@
 """Algebra on tuples, for tracing: entries are floats or tracer symbols alike.
 
 3-vectors are tuples, 3x3 matrices tuples of rows. Spatial quantities follow the paper's
-conventions (CONVENTIONS.md): twists V = (w, v) and wrenches F = (n, f) as pairs of
+conventions (docs/architecture.md): twists V = (w, v) and wrenches F = (n, f) as pairs of
 3-vectors, angular first; a rigid-body inertia as (m, h, I) with h = m c the first moment
 and I = (xx, xy, xz, yy, yz, zz) about the frame origin, so that
 J = [[I, [h]], [-[h], m 1]] (the 6x6 form of lie_dynamics.spatial.spatial_inertia).
