@@ -299,13 +299,19 @@ class Model:
         return out
 
     def massless_joints(self):
-        """Controlled joints that move no inertia at all: their diagonal entry of M at q = 0 is
-        zero up to round-off (1e-12 of the model's inertia scale; a small but real wrist inertia
-        is not one). Their row of M is zero, so forward dynamics is undefined."""
+        """Controlled joints that move no mass and no inertia at all: every body the joint drives
+        carries, with its whole subtree, a zero spatial inertia (up to 1e-12 of the model's
+        inertia scale). Their row of M is zero, so forward dynamics is undefined. O(nb): a
+        subtree sum over the parent array, so it stays cheap for models of thousands of bodies."""
         if not self.n:
             return []
-        d = np.diagonal(lagrangian.mass_matrix(self, np.zeros(self.n)))
-        return [name for name, v in zip(self.joint_names, d) if v <= 1e-12 * self.inertia_scale]
+        sub = np.abs(self.J).sum(axis=(1, 2))
+        for i in range(self.nb - 1, -1, -1):  # parents come before children
+            if self.parent[i] >= 0:
+                sub[self.parent[i]] += sub[i]
+        tol = 1e-12 * self.inertia_scale
+        return [name for k, name in enumerate(self.joint_names)
+                if np.all(sub[np.flatnonzero(self.E[:, k])] <= tol)]
 
     # ------------------------------------------------------------------ input checks
     def check_batch(self, name, x, N=None):
