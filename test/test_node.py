@@ -131,8 +131,15 @@ class Harness:
         """Publish one joint_states message and wait until the node has taken it (joint_states
         keeps only the newest message: a second one sent at once could replace it)."""
         r0 = self.node.core.count.received
-        self.publish(names, position, velocity, effort)
-        wait_until(lambda: self.node.core.count.received > r0, what='joint_states processed')
+        # joint_states is best effort: right after start-up, while the reader's side of discovery
+        # completes (seconds on a loaded machine), a message can be lost. Send it again then.
+        for _ in range(15):
+            self.publish(names, position, velocity, effort)
+            try:
+                return wait_until(lambda: self.node.core.count.received > r0, timeout=2.0)
+            except AssertionError:
+                continue
+        raise AssertionError('timed out waiting for joint_states processed')
 
     def send_rejected(self, good, names, position, velocity=(), effort=()):
         """Publish a bad message, then a good one: exactly one command (the good one's) must come."""
