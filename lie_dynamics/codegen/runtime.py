@@ -384,19 +384,8 @@ def fast_states(n, *xs):
 
 def is_fast_single(x, n):
     """fast_states for one argument: its float list, or None."""
-    if type(x) is _ND:
-        if x.shape != (n,) or x.dtype != _F64:
-            return None
-        x = x.tolist()
-    elif type(x) in (list, tuple) and len(x) == n:
-        try:
-            x = [float(v) for v in x]
-        except (TypeError, ValueError):
-            return None
-    else:
-        return None
-    s = sum(x)
-    return x if s - s == 0.0 else None
+    lists = fast_states(n, x)
+    return lists[0] if lists else None
 
 
 _LOOPS = {}
