@@ -1,16 +1,21 @@
 """Compare two benchmark output folders row by row: time / Pinocchio before and after a change.
 
-    python -m bench.compare BEFORE_DIR AFTER_DIR [--threshold 5]
+    python -m bench.compare BEFORE_DIR AFTER_DIR [BEFORE_DIR AFTER_DIR ...] [--threshold 5]
 
 Reads the core, lagrangian and robots sections (core.json, lagrangian.json, robots.json) that
 `python -m bench --only core,lagrangian,robots --out DIR` writes, pairs the rows by name, and
 prints each ratio to Pinocchio before and after with the change in percent. Both ratios are
 measured against Pinocchio in their own run, so machine load mostly cancels; rows slower by more
 than --threshold percent are marked.
+
+Several pairs (each run back to back, before then after) give each row's median over the
+pairs of its ratios and of its change: one pair on a shared machine moves single-state rows by
+10-20 %, and the median of three or more pairs separates a real regression from a busy minute.
 """
 import argparse
 import json
 import os
+import statistics
 import sys
 
 
@@ -40,22 +45,28 @@ def rows(folder):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='python -m bench.compare', description=__doc__.split('\n')[0])
-    ap.add_argument('before')
-    ap.add_argument('after')
+    ap.add_argument('folders', nargs='+', metavar='BEFORE AFTER', help='pairs of output folders')
     ap.add_argument('--threshold', type=float, default=5.0, help='mark rows slower by more than this, %%')
     args = ap.parse_args(argv)
-    before, after = rows(args.before), rows(args.after)
-    common = [k for k in before if k in after]
+    if len(args.folders) % 2:
+        ap.error('give the folders in pairs: BEFORE AFTER [BEFORE AFTER ...]')
+    runs = [rows(f) for f in args.folders]
+    befores, afters = runs[0::2], runs[1::2]
+    common = [k for k in befores[0] if all(k in r for r in runs)]
     if not common:
         ap.error('no benchmark rows in common (run python -m bench --only core,lagrangian,robots --out DIR)')
-    print('| row | before (× Pinocchio) | after (× Pinocchio) | change |')
+    pairs = len(befores)
+    what = 'median of %d pairs, ' % pairs if pairs > 1 else ''
+    print(f'| row | before (× Pinocchio) | after (× Pinocchio) | change ({what}%) |')
     print('|---|---:|---:|---:|')
     slower = 0
     for k in common:
-        change = 100.0 * (after[k] / before[k] - 1.0)
+        b = statistics.median(r[k] for r in befores)
+        a = statistics.median(r[k] for r in afters)
+        change = statistics.median(100.0 * (ra[k] / rb[k] - 1.0) for rb, ra in zip(befores, afters, strict=True))
         mark = ' **slower**' if change > args.threshold else ''
         slower += bool(mark)
-        print(f'| {k} | {before[k]:.3g} | {after[k]:.3g} | {change:+.1f} %{mark} |')
+        print(f'| {k} | {b:.3g} | {a:.3g} | {change:+.1f} %{mark} |')
     print(f'\n{len(common)} rows, {slower} slower by more than {args.threshold:g} %')
     return 0
 

@@ -81,3 +81,26 @@ def test_core_benchmark_still_runs(tmp_path):
     assert {r['impl'] for r in res['rows']} == set(core.IMPLS)
     with open(tmp_path / 'core.png', 'rb') as fh:
         assert fh.read(8) == PNG_MAGIC
+
+
+def test_compare_takes_the_median_over_pairs(tmp_path, capsys):
+    import json
+
+    from bench import compare
+
+    def run(name, ratio):
+        d = tmp_path / name
+        d.mkdir()
+        rows = [{'impl': 'lie_dynamics', 'op': 'gravity', 'N': 1, 'ratio_to_pinocchio': ratio}]
+        (d / 'core.json').write_text(json.dumps({'rows': rows}))
+        return str(d)
+    # one busy pair (+50 %) among three: the median change is +10 %, still a regression
+    folders = [run('b1', 1.0), run('a1', 1.5), run('b2', 1.0), run('a2', 1.1), run('b3', 2.0), run('a3', 2.2)]
+    assert compare.main(folders) == 0
+    out = capsys.readouterr().out
+    assert '| core: gravity, N = 1 | 1 | 1.5 | +10.0 % **slower** |' in out
+    # one busy pair among quiet ones: median(+50, 0, 0) = 0, no regression
+    assert compare.main(folders[:2] + [run('b4', 1.0), run('a4', 1.0), run('b5', 3.0), run('a5', 3.0)]) == 0
+    assert '1 rows, 0 slower' in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        compare.main(folders[:3])

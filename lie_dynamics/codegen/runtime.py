@@ -261,16 +261,19 @@ class Spec:
     (model, kernel) -> tuple), `limits` (its THRESHOLDS entry), `supports` (an extra
     condition on the model, or None), `rows_arrays` (parameters of the rows form as 0-d
     arrays, see as_rows) and `checked` (callers check the outputs: the rows form runs
-    without floating-point warnings)."""
-    __slots__ = ('name', 'build', 'params', 'limits', 'supports', 'rows_arrays', 'checked')
+    without floating-point warnings) and `pooled` (the batch runner keeps its register blocks
+    between calls: run_rows)."""
+    __slots__ = ('name', 'build', 'params', 'limits', 'supports', 'rows_arrays', 'checked', 'pooled')
 
-    def __init__(self, name, build, params, limits, supports=None, rows_arrays=False, checked=False):
+    def __init__(self, name, build, params, limits, supports=None, rows_arrays=False, checked=False,
+                 pooled=False):
         self.name, self.build, self.params, self.limits = name, build, tuple(params), limits
-        self.supports, self.rows_arrays, self.checked = supports, rows_arrays, checked
+        self.supports, self.rows_arrays, self.checked, self.pooled = supports, rows_arrays, checked, pooled
 
     def variant(self, params):
         """The same kernel with other parameter lists (e.g. gravity switched off)."""
-        return Spec(self.name, self.build, params, self.limits, self.supports, self.rows_arrays, self.checked)
+        return Spec(self.name, self.build, params, self.limits, self.supports, self.rows_arrays, self.checked,
+                    self.pooled)
 
 
 def kernel(model, spec):
@@ -335,7 +338,8 @@ def evaluate(model, spec, arrays, mode, out=None):
     try:
         if mode == 'loop':
             return np.array(run_loop(fn, arrays, b[1]), dtype=float).reshape(len(arrays[0]), fn.n_out)
-        return run_rows(fn, list(arrays) + list(b[2]), fn.n_out, out=out, quiet=spec.checked)
+        return run_rows(fn, list(arrays) + list(b[2]), fn.n_out, out=out, quiet=spec.checked,
+                        pooled=spec.pooled)
     except (ValueError, ZeroDivisionError, OverflowError):   # also from parameters alone, as floats
         return None
 
@@ -408,7 +412,7 @@ def run_loop(fn, arrays, params):
     return loop(fn, [x.tolist() for x in arrays], params)
 
 
-def run_rows(fn, args, n_out, chunk=None, out=None, quiet=True):
+def run_rows(fn, args, n_out, chunk=None, out=None, quiet=True, pooled=False):
     """Run a kernel's rows form on a batch: args in the kernel's order, (N, k) arrays for the
     per-state lists and parameter sequences otherwise. Returns (N, n_out): `out` when given
     (written column by column), else the transpose of a state-last array. quiet: no
@@ -416,9 +420,12 @@ def run_rows(fn, args, n_out, chunk=None, out=None, quiet=True):
 
     States go in chunks (THRESHOLDS rows_chunk / rows_bytes), copied transposed into input
     rows of one register block; every operation writes into the block (render.emit_rows), so
-    a chunk allocates nothing but its outputs. Blocks are reused across chunks and calls from
-    a pool per kernel, so concurrent callers never share one and later calls touch no fresh
-    pages.
+    a chunk allocates nothing but its outputs. When `pooled`, blocks are reused across calls
+    from a pool per kernel (concurrent callers never share one; later calls touch no fresh
+    pages): worth it for the cheap per-call kernels (inverse dynamics, gravity). The others
+    allocate per call: a block held in a pool is never freed, so glibc never raises its mmap
+    threshold above it, and every large temporary of such a call (e.g. the regressor's
+    output) stays a fresh mmap with its page faults.
     """
     rows_fn = rows_function(fn)
     lay = fn.layout
@@ -431,12 +438,9 @@ def run_rows(fn, args, n_out, chunk=None, out=None, quiet=True):
     size = chunk or size
     regs = fn.nreg + 1
     N = args[idx[0]].shape[0]
-    try:
-        buf = fn.pool.pop()
-    except IndexError:
-        buf = None
-    if buf is None or buf.size < height * size:
-        buf = np.empty(height * size)
+    buf = fn.pool.pop() if pooled and fn.pool else None
+    if buf is None or buf.size < height * min(size, N):
+        buf = np.empty(height * (size if pooled else min(size, N)))
     res = np.empty((n_out, N)) if out is None else None
     call = list(args)
     errs = np.errstate(all='ignore') if quiet else _NO_ERRSTATE
@@ -459,5 +463,6 @@ def run_rows(fn, args, n_out, chunk=None, out=None, quiet=True):
                     for k, v in enumerate(vals):
                         out[start:stop, k] = v
     finally:
-        fn.pool.append(buf)
+        if pooled:
+            fn.pool.append(buf)
     return res.T if out is None else out

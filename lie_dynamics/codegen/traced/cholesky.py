@@ -10,7 +10,7 @@ from ..render import kernel
 from ..runtime import Spec
 from ..tracer import Graph
 from .crba import trace_mass_matrix
-from .rnea import trace_rnea
+from .rnea import trace_inverse_dynamics, trig
 
 
 def trace_inputs(fr, g):
@@ -32,7 +32,7 @@ def trace_forward_dynamics(fr, g, x, xd, params, a0, taus):
     n = fr.n
     X = [fr.joint_transform(g, b, x[b]) for b in range(fr.nb)]
     M = trace_mass_matrix(fr, g, params, X)
-    tau_b = trace_rnea(fr, g, x, xd, [0.0] * fr.nb, params, a0, X)
+    tau_b = trace_inverse_dynamics(fr, trig(fr, g, x), x, xd, [0.0] * fr.nb, params, a0)
     h = [sum((float(fr.E[b, j]) * tau_b[b] for b in range(fr.nb) if fr.E[b, j] != 0), 0.0) for j in range(n)]
     L, inv_d, pivots = trace_cholesky(g, M)
     return trace_cho_solve(L, inv_d, [taus[j] - h[j] for j in range(n)]), M, L, inv_d, pivots

@@ -54,10 +54,15 @@ def _home_adjoints(fr):
     return out
 
 
+def trig(fr, g, x):
+    """(cos x_b, sin x_b) of each revolute body coordinate (None for prismatic), traced; the
+    graph shares them with any other use of the same angles (e.g. fr.joint_transform)."""
+    return [(g.cos(xb), g.sin(xb)) if rev else None for xb, rev in zip(x, fr.revolute, strict=True)]
+
+
 def _coordinates(fr, g, rates):
     co = fr.trace_coordinates(g, rates=rates)
-    cs = [(g.cos(x), g.sin(x)) if rev else None for x, rev in zip(co['x'], fr.revolute, strict=True)]
-    return co, cs
+    return co, trig(fr, g, co['x'])
 
 
 def _torques(fr, tau_b):
@@ -65,22 +70,15 @@ def _torques(fr, tau_b):
             for j in range(fr.n)]
 
 
-def build_inverse_dynamics(fr, wrench):
-    """k(Q, QD, QDD[, FX], P, A0, E0) -> tau tuple: eqs 18-21 in primed frames, as render.kernel
-    (the float function, with the rows form as its attribute)."""
-    g = Graph()
-    co, cs = _coordinates(fr, g, 2)
-    x, xd, xdd = co['x'], co['xd'], co['xdd']
+def trace_inverse_dynamics(fr, cs, x, xd, xdd, params, ga, fx=None):
+    """Body torques tau_b of the RNEA, eqs 18-21 in the primed frames, traced: THE traced
+    RNEA (the inverse-dynamics kernels, and the bias h = C qd + g of the Cholesky forward
+    dynamics with xdd = 0). cs: trig(fr, g, x); params: per body (m, h, I) (fr.trace_params);
+    ga: the base acceleration -g (3 values); fx: optional external wrenches (6 per body, in
+    the primed body frames), subtracted from the body wrenches."""
     nb = fr.nb
     Ks = _home_adjoints(fr)
-    parg, params = fr.trace_params(g)
-    ga = tuple(g.input(f'g{k}') for k in range(3))
-    args = list(co['args'])
-    if wrench:   # per-state arguments first, then the parameters
-        names = [f'f{b}_{k}' for b in range(nb) for k in range(6)]
-        args.append(('FX', names))
-        fx = [g.input(nm) for nm in names]
-    args += [parg, ('A0', ['g0', 'g1', 'g2']), co['offset_args']]
+    ga = tuple(ga)
     V, Vd, F = [None] * nb, [None] * nb, [None] * nb
     zero = (0.0, 0.0, 0.0)
     for b in range(nb):
@@ -119,7 +117,7 @@ def build_inverse_dynamics(fr, wrench):
         Fn = la.vadd(la.vadd(tuple(Io[r][0] * wd[0] + Io[r][1] * wd[1] + Io[r][2] * wd[2] for r in range(3)),
                              la.cross(w, Iw)), la.cross(h, acc))
         Ff = la.vadd(la.vadd(la.vscale(m, acc), la.cross(wd, h)), la.cross(w, wh))
-        if wrench:
+        if fx is not None:
             Fn = la.vsub(Fn, fx[6 * b:6 * b + 3])
             Ff = la.vsub(Ff, fx[6 * b + 3:6 * b + 6])
         F[b] = list(Fn) + list(Ff)
@@ -137,6 +135,23 @@ def build_inverse_dynamics(fr, wrench):
             xb = x[b]
             G = (Fb[0] - xb * Fb[4], Fb[1] + xb * Fb[3], Fb[2]) + tuple(Fb[3:])
         F[p] = list(_lin(Ks[b].T, G, add=F[p]))       # Ad*_{M'^-1} = K^T
+    return tau_b
+
+
+def build_inverse_dynamics(fr, wrench):
+    """k(Q, QD, QDD[, FX], P, A0, E0) -> tau tuple: eqs 18-21 in primed frames, as render.kernel
+    (the float function, with the rows form as its attribute)."""
+    g = Graph()
+    co, cs = _coordinates(fr, g, 2)
+    parg, params = fr.trace_params(g)
+    ga = [g.input(f'g{k}') for k in range(3)]
+    args, fx = list(co['args']), None
+    if wrench:   # per-state arguments first, then the parameters
+        names = [f'f{b}_{k}' for b in range(fr.nb) for k in range(6)]
+        args.append(('FX', names))
+        fx = [g.input(nm) for nm in names]
+    args += [parg, ('A0', ['g0', 'g1', 'g2']), co['offset_args']]
+    tau_b = trace_inverse_dynamics(fr, cs, co['x'], co['xd'], co['xdd'], params, ga, fx)
     return kernel(g, 'inverse_dynamics_kernel', args, _torques(fr, tau_b))
 
 
@@ -179,38 +194,10 @@ def build_gravity(fr):
     return kernel(g, 'gravity_kernel', args, _torques(fr, tau_b))
 
 
-def trace_rnea(fr, g, x, xd, xdd, params, a0, X=None):
-    """Body-torques of the RNEA (eqs 16-21) in the primed frames, traced.
-
-    x, xd, xdd: body coordinates and rates; params: per body (m, h, I); a0: base linear
-    acceleration -g (3 values); X: optional precomputed joint transforms.
-    """
-    nb = fr.nb
-    zero3 = (0.0, 0.0, 0.0)
-    X = X or [fr.joint_transform(g, b, x[b]) for b in range(nb)]
-    V, A, F = [None] * nb, [None] * nb, [None] * nb
-    for b in range(nb):
-        p = fr.parent[b]
-        Vp, Ap = (V[p], A[p]) if p >= 0 else ((zero3, zero3), (zero3, tuple(a0)))
-        R, t = X[b]
-        S = ((0.0, 0.0, 1.0), zero3) if fr.revolute[b] else (zero3, (0.0, 0.0, 1.0))
-        Sxd = la.twist_scale(xd[b], S)
-        V[b] = la.twist_add(la.twist_to_child(Vp, R, t), Sxd)                       # eq 18
-        A[b] = la.twist_add(la.twist_add(la.twist_to_child(Ap, R, t), la.twist_scale(xdd[b], S)),
-                            la.bracket(V[b], Sxd))                                   # eq 19
-        H = la.inertia_times(params[b], V[b])
-        F[b] = la.twist_add(la.inertia_times(params[b], A[b]), la.twist_scale(-1.0, la.ad_t(V[b], H)))
-    tau = [None] * nb
-    for b in reversed(range(nb)):
-        tau[b] = F[b][0][2] if fr.revolute[b] else F[b][1][2]                       # eq 21
-        p = fr.parent[b]
-        if p >= 0:
-            F[p] = la.twist_add(F[p], la.wrench_to_parent(F[b], *X[b]))
-    return tau
-
-
 INVERSE_DYNAMICS = Spec('inverse_dynamics', lambda fr: build_inverse_dynamics(fr, False),
-                        ('inertia', 'gravity', 'offsets'), 'inverse_dynamics', rows_arrays=True)
+                        ('inertia', 'gravity', 'offsets'), 'inverse_dynamics', rows_arrays=True,
+                        pooled=True)
 INVERSE_DYNAMICS_WRENCH = Spec('inverse_dynamics_wrench', lambda fr: build_inverse_dynamics(fr, True),
-                               ('inertia', 'gravity', 'offsets'), 'inverse_dynamics', rows_arrays=True)
-GRAVITY = Spec('gravity', build_gravity, ('subtree', 'gravity', 'offsets'), 'gravity', rows_arrays=True)
+                               ('inertia', 'gravity', 'offsets'), 'inverse_dynamics', rows_arrays=True,
+                               pooled=True)
+GRAVITY = Spec('gravity', build_gravity, ('subtree', 'gravity', 'offsets'), 'gravity', rows_arrays=True, pooled=True)
