@@ -20,6 +20,8 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
+from lie_dynamics.spatial import cross, hat3
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 LD = np.longdouble
@@ -217,18 +219,6 @@ def modern_robotics_lists(model):
 
 
 # ------------------------------------------------------------------ dtype-generic dynamics
-def _cross(a, b):
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-
-
-def _hat(w):
-    z = np.zeros_like(w[..., 0])
-    return np.stack([np.stack([z, -w[..., 2], w[..., 1]], -1), np.stack([w[..., 2], z, -w[..., 0]], -1),
-                     np.stack([-w[..., 1], w[..., 0], z], -1)], -2)
-
-
 def _mv(R, v):
     return np.einsum('...ij,...j->...i', R, v)
 
@@ -255,7 +245,7 @@ class Generic:
         self.g = model.gravity_vector.astype(real)
         w = self.S[:, :3]
         self.theta = np.sqrt(np.sum(w * w, axis=1))           # |w| in working precision (1 for URDF joints)
-        self.K = _hat(w)
+        self.K = hat3(w)
         self.K2 = self.K @ self.K
         self.Kv = _mv(self.K, self.S[:, 3:])
         self.K2v = _mv(self.K2, self.S[:, 3:])
@@ -307,10 +297,10 @@ class Generic:
             Ri, pi = R[:, i], p[:, i]
             sw, sv = self.S[i, :3] * xd[:, i, None], self.S[i, 3:] * xd[:, i, None]      # S_i xd_i
             w = _mtv(Ri, wp) + sw                                                       # eq 18
-            v = _mtv(Ri, vp - _cross(pi, wp)) + sv
-            aw = _mtv(Ri, awp) + self.S[i, :3] * xdd[:, i, None] + _cross(w, sw)         # eq 19
-            av = _mtv(Ri, avp - _cross(pi, awp)) + self.S[i, 3:] * xdd[:, i, None] \
-                + _cross(w, sv) + _cross(v, sw)
+            v = _mtv(Ri, vp - cross(pi, wp)) + sv
+            aw = _mtv(Ri, awp) + self.S[i, :3] * xdd[:, i, None] + cross(w, sw)         # eq 19
+            av = _mtv(Ri, avp - cross(pi, awp)) + self.S[i, 3:] * xdd[:, i, None] \
+                + cross(w, sv) + cross(v, sw)
             W[:, i], Vv[:, i], Aw[:, i], Av[:, i] = w, v, aw, av
         Fm = np.zeros((N, self.nb, 3), self.dtype)
         Ff = np.zeros_like(Fm)
@@ -319,13 +309,13 @@ class Generic:
             J = self.J[i]
             w, v = W[:, i], Vv[:, i]
             hm, hf = _mv(J[:3, :3], w) + _mv(J[:3, 3:], v), _mv(J[3:, :3], w) + _mv(J[3:, 3:], v)
-            m = Fm[:, i] + _mv(J[:3, :3], Aw[:, i]) + _mv(J[:3, 3:], Av[:, i]) + _cross(w, hm) + _cross(v, hf)
-            f = Ff[:, i] + _mv(J[3:, :3], Aw[:, i]) + _mv(J[3:, 3:], Av[:, i]) + _cross(w, hf)   # eq 20
+            m = Fm[:, i] + _mv(J[:3, :3], Aw[:, i]) + _mv(J[:3, 3:], Av[:, i]) + cross(w, hm) + cross(v, hf)
+            f = Ff[:, i] + _mv(J[3:, :3], Aw[:, i]) + _mv(J[3:, 3:], Av[:, i]) + cross(w, hf)   # body wrench
             tau[:, i] = m @ self.S[i, :3] + f @ self.S[i, 3:]                                       # eq 21
             par = self.parent[i]
             if par >= 0:   # Ad*_{f^-1} F: the wrench in the parent frame
                 Rf = _mv(R[:, i], f)
-                Fm[:, par] += _mv(R[:, i], m) + _cross(p[:, i], Rf)
+                Fm[:, par] += _mv(R[:, i], m) + cross(p[:, i], Rf)
                 Ff[:, par] += Rf
         return tau @ self.E
 
@@ -357,7 +347,7 @@ class Generic:
         Rt = np.swapaxes(R, -1, -2)
         X[..., :3, :3] = Rt
         X[..., 3:, 3:] = Rt
-        X[..., 3:, :3] = -Rt @ _hat(p)
+        X[..., 3:, :3] = -Rt @ hat3(p)
         S = self.S.astype(dt)
         V = np.zeros((N, nb, 6), dt)
         c = np.zeros_like(V)
@@ -369,11 +359,11 @@ class Generic:
             Sx = S[i] * qd[:, i, None]
             Vi = _mv(X[:, i], Vp) + Sx
             V[:, i] = Vi
-            c[:, i] = np.concatenate([_cross(Vi[:, :3], Sx[:, :3]),
-                                      _cross(Vi[:, :3], Sx[:, 3:]) + _cross(Vi[:, 3:], Sx[:, :3])], -1)
+            c[:, i] = np.concatenate([cross(Vi[:, :3], Sx[:, :3]),
+                                      cross(Vi[:, :3], Sx[:, 3:]) + cross(Vi[:, 3:], Sx[:, :3])], -1)
             h = _mv(self.J[i].astype(dt), Vi)
-            pA[:, i] = -np.concatenate([-_cross(Vi[:, :3], h[:, :3]) - _cross(Vi[:, 3:], h[:, 3:]),
-                                        -_cross(Vi[:, :3], h[:, 3:])], -1)          # -ad_V^T (J V)
+            pA[:, i] = -np.concatenate([-cross(Vi[:, :3], h[:, :3]) - cross(Vi[:, 3:], h[:, 3:]),
+                                        -cross(Vi[:, :3], h[:, 3:])], -1)          # -ad_V^T (J V)
         U = np.zeros((N, nb, 6), dt)
         D = np.zeros((N, nb), dt)
         u = np.zeros((N, nb), dt)
@@ -453,7 +443,7 @@ def exp6_ld(w, v=None):
     w = np.asarray(w, LD)
     v = np.zeros_like(w) if v is None else np.asarray(v, LD)
     a, b, d = _exp_coeffs_ld(np.sqrt(np.sum(w * w, axis=-1)))
-    K = _hat(w)
+    K = hat3(w)
     K2 = K @ K
     eye = np.eye(3, dtype=LD)
     T = np.zeros(w.shape[:-1] + (4, 4), LD)

@@ -20,8 +20,10 @@ _NEAR_PI = 0.5
 
 
 def hat3(w):
-    """[w]: the so(3) matrix of a 3-vector (cross-product matrix)."""
-    w = np.asarray(w, dtype=float)
+    """[w]: the so(3) matrix of a 3-vector (cross-product matrix), in w's float type (so the
+    extended-precision references use it too)."""
+    w = np.asarray(w)
+    w = w if w.dtype.kind == 'f' else w.astype(float)
     out = np.zeros(w.shape[:-1] + (3, 3), dtype=w.dtype)
     out[..., 0, 1] = -w[..., 2]
     out[..., 0, 2] = w[..., 1]
