@@ -188,15 +188,22 @@ def Ad_star(T):
     return np.swapaxes(Ad(T), -1, -2)
 
 
+# ad_V as a gather from (w, v, 0): entry k of the 6x6 matrix is sign[k] * (w, v, 0)[index[k]].
+_AD_INDEX = np.full(36, 6)
+_AD_SIGN = np.zeros(36)
+for _r0, _c0, _off in ((0, 0, 0), (3, 3, 0), (3, 0, 3)):      # blocks [w], [w] and [v]
+    for _r, _c, _k, _s in ((0, 1, 2, -1), (0, 2, 1, 1), (1, 0, 2, 1), (1, 2, 0, -1), (2, 0, 1, -1), (2, 1, 0, 1)):
+        _AD_INDEX[(_r0 + _r) * 6 + _c0 + _c] = _off + _k
+        _AD_SIGN[(_r0 + _r) * 6 + _c0 + _c] = _s
+
+
 def ad(V):
-    """ad_V = [[[w], 0], [[v], [w]]]: the Lie bracket ad_V W = [V, W] on se(3)."""
+    """ad_V = [[[w], 0], [[v], [w]]]: the Lie bracket ad_V W = [V, W] on se(3), for twists
+    (..., 6), built by one gather (no per-block assembly: the vectorised algorithms call it
+    on every body of every state)."""
     V = np.asarray(V, dtype=float)
-    out = np.zeros(V.shape[:-1] + (6, 6))
-    W = hat3(V[..., :3])
-    out[..., :3, :3] = W
-    out[..., 3:, 3:] = W
-    out[..., 3:, :3] = hat3(V[..., 3:])
-    return out
+    Vp = np.concatenate([V, np.zeros(V.shape[:-1] + (1,))], axis=-1)
+    return (Vp[..., _AD_INDEX] * _AD_SIGN).reshape(V.shape[:-1] + (6, 6))
 
 
 def ad_star(V):

@@ -34,10 +34,9 @@ from .cholesky import PD_RTOL, cho_solve, cholesky, kernel_accepts
 from ..codegen import runtime
 from ..codegen.traced import aba as traced_aba
 from ..codegen.traced import cholesky as traced_cholesky
-from .kinematics import ad_matrices
 from .lagrangian import chunks, kinematic_state
 from .rnea import external_body_wrenches
-from ..spatial import transpose
+from ..spatial import ad, transpose
 
 METHODS = ('cholesky', 'aba')
 _MIMIC = "method='aba' does not support mimic joints (they couple bodies); use method='cholesky'"
@@ -200,7 +199,7 @@ def _aba(model, st, x, xd, tau, fext):
     Vs = anc @ Axd
     Vb = (Adinv @ Vs[..., None])[..., 0]
     Sxd = S * xd[..., None]
-    c = (ad_matrices(Vb) @ Sxd[..., None])[..., 0]
+    c = (ad(Vb) @ Sxd[..., None])[..., 0]
     # X_i = Ad_{T_i^-1} Ad_{T_parent}
     X = Adinv.copy()
     has_par = model.parent >= 0
@@ -208,7 +207,7 @@ def _aba(model, st, x, xd, tau, fext):
     XT = transpose(X)
     IA = np.broadcast_to(J, (N, nb, 6, 6)).copy()
     JV = (J @ Vb[..., None])[..., 0]
-    pA = -(transpose(ad_matrices(Vb)) @ JV[..., None])[..., 0]
+    pA = -(transpose(ad(Vb)) @ JV[..., None])[..., 0]
     if fext is not None:
         pA -= fext
     free = st['free']

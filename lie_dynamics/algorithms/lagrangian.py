@@ -69,8 +69,8 @@ Every function takes a single state (n,) or a batch (N, n) and returns matching 
 import numpy as np
 
 from ..codegen.runtime import THRESHOLDS, derived, structural
-from ..spatial import cross, transpose
-from .kinematics import ad_matrices, adjoints, spatial_screws, world_poses
+from ..spatial import ad, cross, transpose
+from .kinematics import adjoints, spatial_screws, world_poses
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -217,7 +217,7 @@ def _dM_body(model, c, x):
     Js = world_inertias(model, AdinvT)
     Jc = subtree_sum(model, Js)
     At = transpose(A)[:, None]                           # (N, 1, 6, nb)
-    Br = ad_matrices(A) @ At                         # Br[n, i, :, k] = [A_i, A_k]
+    Br = ad(A) @ At                         # Br[n, i, :, k] = [A_i, A_k]
     F = Jc @ At                                      # F[n, c, :, j] = Jc_c A_j
     Fd = np.einsum('njaj->nja', F)                   # Jc_j A_j, (N, nb, 6)
     BrT = transpose(Br)                                  # (N, i, k, 6)

@@ -28,9 +28,8 @@ import numpy as np
 
 from ..codegen import runtime
 from ..codegen.traced import regressor as traced
-from .kinematics import ad_matrices
 from ..model.inertia import PARAMETER_NAMES, inertia_to_parameters, parameter_consistency, parameters_to_inertia  # noqa: F401
-from ..spatial import cross, hat3, transpose
+from ..spatial import ad, cross, hat3, transpose
 from .lagrangian import body_constants, chunks, kinematic_state
 
 # L(u): I u = L(u) iota, iota = (xx, xy, yy, xz, yz, zz); entry (row, col) <- u[idx]
@@ -101,7 +100,7 @@ def _regressor(model, x, xd, xdd, a0):
     N, nb = x.shape
     Axd = A * xd[..., None]
     V = anc @ Axd
-    acc = anc @ (A * xdd[..., None] + (ad_matrices(V) @ Axd[..., None])[..., 0]) + a0
+    acc = anc @ (A * xdd[..., None] + (ad(V) @ Axd[..., None])[..., 0]) + a0
     VV = Adinv @ np.stack([V, acc], axis=-1)                 # to body frames
     K = _K(VV[..., 0], VV[..., 1])                           # (N, nb, 6, 10)
     GS = (Adinv @ transpose(A)[:, None]) * anc[None, :, None, :]  # (N, i, 6, k)

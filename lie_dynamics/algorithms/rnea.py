@@ -20,9 +20,9 @@ import numpy as np
 
 from ..codegen import runtime
 from ..codegen.traced import rnea as traced
-from .kinematics import ad_matrices, adjoints, spatial_screws, world_poses
+from .kinematics import adjoints, spatial_screws, world_poses
 from .lagrangian import chunks
-from ..spatial import Ad_inv
+from ..spatial import ad, Ad_inv
 
 # Vectorised path: floats of work per state, so that chunks of 512 states keep the
 # (chunk, nb, 6, 6) arrays in cache.
@@ -154,14 +154,14 @@ def _rnea(model, x, xd, xdd, a0, fext):
     A = spatial_screws(model, Ad)
     Axd = A * xd[..., None]
     V = model.ancestors @ Axd                                  # eq 18, summed over ancestors
-    acc = A * xdd[..., None] + (ad_matrices(V) @ Axd[..., None])[..., 0]
+    acc = A * xdd[..., None] + (ad(V) @ Axd[..., None])[..., 0]
     Vd = model.ancestors @ acc + a0                             # eq 19
     # to body frames (Ad_{T^-1} = AdinvT^T), where J_i is constant
     VV = np.stack([V, Vd], axis=-1)
     VVb = np.swapaxes(AdinvT, -1, -2) @ VV
     JVV = model.J @ VVb
     Vb = VVb[..., 0]
-    Fb = JVV[..., 1] - (np.swapaxes(ad_matrices(Vb), -1, -2) @ JVV[..., 0:1])[..., 0]   # J Vd - ad*_V J V
+    Fb = JVV[..., 1] - (np.swapaxes(ad(Vb), -1, -2) @ JVV[..., 0:1])[..., 0]   # J Vd - ad*_V J V
     if fext is not None:
         Fb = Fb - fext
     Fs = (AdinvT @ Fb[..., None])[..., 0]

@@ -35,8 +35,7 @@ import numpy as np
 
 from ..codegen import runtime
 from ..codegen.traced import derivatives as traced
-from .kinematics import ad_matrices
-from ..spatial import transpose
+from ..spatial import ad, transpose
 from .rnea import external_body_wrenches
 from .lagrangian import body_constants, chunks, kinematic_state, subtree_sum, to_joints_mat, world_inertias
 
@@ -51,7 +50,7 @@ def _derivatives(model, x, xd, xdd, a0, fext):
     Js = world_inertias(model, AdinvT)
     Axd = A * xd[..., None]
     V = anc @ Axd
-    adV = ad_matrices(V)
+    adV = ad(V)
     a = anc @ (A * xdd[..., None] + _mv(adV, Axd)) + a0
     H = _mv(Js, V)
     F = _mv(Js, a) - _mv(transpose(adV), H)
@@ -60,7 +59,7 @@ def _derivatives(model, x, xd, xdd, a0, fext):
     X = Js @ adV
     pack = subtree_sum(model, np.concatenate([Js, X + transpose(X), H[..., None], F[..., None]], axis=-1))
     Jc, Bc, Hc, Fc = pack[..., :6], pack[..., 6:12], pack[..., 12], pack[..., 13]
-    adA = ad_matrices(A)
+    adA = ad(A)
     Z = _mv(adA, V)
     Y = _mv(adA, a) + _mv(adV, Z)
     adAT = transpose(adA)
@@ -72,7 +71,7 @@ def _derivatives(model, x, xd, xdd, a0, fext):
     le = anc.T
     lt = anc - np.eye(model.nb)
     # dtau/dx
-    P = -JcY + BcAZ[..., 1] + _mv(transpose(ad_matrices(Z)), Hc) - _mv(adAT, Fc)
+    P = -JcY + BcAZ[..., 1] + _mv(transpose(ad(Z)), Hc) - _mv(adAT, Fc)
     R = np.concatenate([-JcA, BcTA - adATH], axis=-1)
     Q = np.concatenate([Y, Z], axis=-1)
     dq = (A @ transpose(P)) * le + (R @ transpose(Q)) * lt
