@@ -5,8 +5,10 @@ import pinocchio as pin
 import pytest
 
 from lie_dynamics import default_urdf_path, load_urdf
-from lie_dynamics.algorithms.observer import MomentumObserver, estimate_external_torques
+from lie_dynamics.algorithms.observer import MomentumObserver, estimate_external_torques, generalized_momentum
+from lie_dynamics.codegen import runtime
 from lie_dynamics.laws import make_friction
+from oracle import Oracle
 from robots import named_urdf
 
 DT = 1e-3
@@ -94,6 +96,36 @@ def test_momentum_terms_match_pinocchio():
         scale = max(1.0, np.abs(tau).max(), np.abs(g).max())
         assert np.allclose(p, M @ qd, rtol=1e-9, atol=1e-9 * scale)
         assert np.allclose(beta, tau + C.T @ qd - g, rtol=1e-9, atol=1e-9 * scale)
+
+
+@pytest.mark.parametrize('name', ['arm', 'tree20_mimic', 'mixed_types', 'prismatic_only', 'chain30'])
+def test_generalized_momentum_matches_pinocchio_on_every_path(name, monkeypatch):
+    """p = M qd and C^T qd of the O(n) kernel (one state, rows batch) and of the reference
+    (M and C) against Pinocchio's crba and computeCoriolisMatrix, to 1e-10 relative."""
+    xml = open(default_urdf_path()).read() if name == 'arm' else named_urdf(name)
+    model, oracle = load_urdf(xml), Oracle(xml)
+    rng = np.random.default_rng(7)
+    q, qd = rng.uniform(-2, 2, size=(2, 40, model.n))
+    M = np.array([oracle.crba(x) for x in q])
+    C = np.array([oracle.coriolis_matrix(x, v) for x, v in zip(q, qd, strict=True)])
+    p_ref, c_ref = np.einsum('nij,nj->ni', M, qd), np.einsum('nji,nj->ni', C, qd)
+
+    def check(p, c):
+        assert np.abs(p - p_ref).max() <= 1e-10 * np.abs(p_ref).max()
+        assert np.abs(c - c_ref).max() <= 1e-10 * np.abs(c_ref).max()
+    check(*np.array([generalized_momentum(model, x, v) for x, v in zip(q, qd, strict=True)]).transpose(1, 0, 2))
+    assert runtime.route(model, 'inverse_dynamics', len(q)) == 'rows'
+    check(*generalized_momentum(model, q, qd))          # the kernel's rows form
+    monkeypatch.setitem(runtime.THRESHOLDS, 'inverse_dynamics',
+                        runtime.THRESHOLDS['inverse_dynamics']._replace(loop_below=1000))
+    runtime.forget(model)
+    check(*generalized_momentum(model, q, qd))          # the float kernel, state by state
+    monkeypatch.setitem(runtime.THRESHOLDS, 'inverse_dynamics',
+                        runtime.THRESHOLDS['inverse_dynamics']._replace(compile_max=0))
+    runtime.forget(model)
+    check(*generalized_momentum(model, q, qd))          # the reference: M and C
+    with pytest.raises(ValueError, match='qd'):
+        generalized_momentum(model, q[0], np.full(model.n, np.nan))
 
 
 @pytest.mark.parametrize('kwargs, msg', [

@@ -22,12 +22,37 @@ a wrench F on a link gives tau_ext = J^T F.
 Discretisation: the integral is a trapezoid over the samples, the r inside it taken at both
 ends (implicit in the newest r, solved per joint), so a constant tau_ext is followed with the
 trapezoid's response r_k = a r_{k-1} + (1 - a) tau_ext, a = (1 - K dt / 2) / (1 + K dt / 2).
-C^T qd comes from `coriolis_matrix(method='recursive')`: the same matrix as the Christoffel form
-(eqs 40-42), from the differentiated RNEA, several times faster.
+p and C^T qd come from `generalized_momentum`: one O(n) recursive pass (a generated kernel,
+codegen/traced/rnea.py: trace_momentum) for the C of the Christoffel form (eqs 40-42), the one
+with Mdot - 2C skew; its reference is M(q) qd and C^T qd from those matrices.
 """
 import numpy as np
 
+from ..codegen import runtime
+from ..codegen.traced import rnea as traced
 from ..laws import friction_torque
+
+
+def generalized_momentum(model, q, qd):
+    """(p, C^T qd) with p = M(q) qd and C the Christoffel-form Coriolis matrix (eqs 40-42), for
+    one state (n,) or a batch (N, n): the generated kernel (trace_momentum) where the model
+    has one, else the matrices. Raises ValueError naming a bad argument."""
+    n = model.n
+    lists = runtime.fast_states(n, q, qd)
+    if lists is not None:
+        b = runtime.single(model, traced.MOMENTUM)
+        if b:
+            out = b[0](*lists, *b[1])
+            return np.array(out[:n]), np.array(out[n:])
+    single = np.ndim(q) == 1
+    q, qd = model.check_states(q=q, qd=qd)
+    out = runtime.dispatch(model, traced.MOMENTUM, [q, qd])
+    if out is None:
+        p = np.einsum('...ij,...j->...i', model.mass_matrix(q), qd)
+        c = np.einsum('...ji,...j->...i', model.coriolis_matrix(q, qd, method='recursive'), qd)
+    else:
+        p, c = out[:, :n], out[:, n:]
+    return (p[0], c[0]) if single else (p, c)
 
 
 def _gains(gain, n):
@@ -61,13 +86,13 @@ class MomentumObserver:
         """(p, beta) with p = M(q) qd and beta = tau + C^T qd - g, for one state (n,) or a batch."""
         m = self.model
         q, qd, tau = (np.asarray(x, dtype=float) for x in (q, qd, tau_measured))
-        batch = m.check_states(q=q, qd=qd, tau_measured=tau)  # shapes and finiteness, named
-        if q.ndim != 1:
-            q, qd, tau = batch
-        M = m.mass_matrix(q)
-        C = m.coriolis_matrix(q, qd, method='recursive')
-        p = np.einsum('...ij,...j->...i', M, qd)
-        beta = tau + np.einsum('...ji,...j->...i', C, qd) - m.gravity(q)
+        one = q.shape == qd.shape == tau.shape == (m.n,) and np.count_nonzero(np.isfinite(tau)) == m.n
+        if not one:   # (a node's hot path is one state: the kernels check q and qd themselves)
+            batch = m.check_states(q=q, qd=qd, tau_measured=tau)  # shapes and finiteness, named
+            if q.ndim != 1:
+                q, qd, tau = batch
+        p, ctqd = generalized_momentum(m, q, qd)
+        beta = tau + ctqd - m.gravity(q)
         if self.friction is not None:
             beta = beta - friction_torque(qd, *self.friction)
         return p, beta

@@ -70,6 +70,29 @@ def _torques(fr, tau_b):
             for j in range(fr.n)]
 
 
+def _to_child(fr, Ks, cs, x, b, U):
+    """Ad_{f^-1} U: a twist U (6 values) of body b's parent, in b' (the first term of eqs 18-19).
+    f = M'_b Rz(x) (revolute) or M'_b Trans(z x) (prismatic), so Ad_{f^-1} = Rz^T Ad_{M'^-1}
+    or, for the shift, v += x (w_y, -w_x, 0)."""
+    U = _lin(Ks[b], U)
+    if fr.revolute[b]:
+        c, s = cs[b]
+        return _rz(c, s, U[:3], True) + _rz(c, s, U[3:], True)
+    xb = x[b]
+    return U[:3] + (U[3] + xb * U[1], U[4] - xb * U[0], U[5])
+
+
+def _to_parent(fr, Ks, cs, x, b, F, Fp):
+    """Fp + Ad*_{f^-1} F: body b's wrench F added to its parent's Fp (the first term of eq 20)."""
+    if fr.revolute[b]:
+        c, s = cs[b]
+        G = _rz(c, s, F[:3], False) + _rz(c, s, F[3:], False)
+    else:  # Ad*_{Trans(z x)}: n += (z x) x f
+        xb = x[b]
+        G = (F[0] - xb * F[4], F[1] + xb * F[3], F[2]) + tuple(F[3:])
+    return list(_lin(Ks[b].T, G, add=Fp))       # Ad*_{M'^-1} = K^T
+
+
 def trace_inverse_dynamics(fr, cs, x, xd, xdd, params, ga, fx=None):
     """Body torques tau_b of the RNEA, eqs 18-21 in the primed frames, traced: THE traced
     RNEA (the inverse-dynamics kernels, and the bias h = C qd + g of the Cholesky forward
@@ -85,26 +108,17 @@ def trace_inverse_dynamics(fr, cs, x, xd, xdd, params, ga, fx=None):
         p = fr.parent[b]
         Vp = V[p] if p >= 0 else zero + zero
         Vdp = Vd[p] if p >= 0 else zero + ga
-        K = Ks[b]
-        U, Ud = _lin(K, Vp), _lin(K, Vdp)              # Ad_{M'^-1} V_{i-1}
+        U, Ud = _to_child(fr, Ks, cs, x, b, Vp), _to_child(fr, Ks, cs, x, b, Vdp)
+        w, v, wd, vd = U[:3], U[3:], Ud[:3], Ud[3:]
         if fr.revolute[b]:
-            c, s = cs[b]
-            w = _rz(c, s, U[:3], True)
-            w = (w[0], w[1], w[2] + xd[b])                                     # eq 18
-            v = _rz(c, s, U[3:], True)
-            wd = _rz(c, s, Ud[:3], True)
-            vd = _rz(c, s, Ud[3:], True)
+            w = (w[0], w[1], w[2] + xd[b])                                     # eq 18: + S xd
             # eq 19: + S xdd + ad_{V_i}(S xd); ad_V(e_z xd, 0) = (w x e_z xd, v x e_z xd)
             wd = (wd[0] + w[1] * xd[b], wd[1] - w[0] * xd[b], wd[2] + xdd[b])
             vd = (vd[0] + v[1] * xd[b], vd[1] - v[0] * xd[b], vd[2])
         else:
-            xb = x[b]
-            # Ad_{Trans(z x)^-1}: v += x (w_y, -w_x, 0); then S xd = (0, e_z xd)
-            w = U[:3]
-            v = (U[3] + xb * w[1], U[4] - xb * w[0], U[5] + xd[b])
-            wd = Ud[:3]
-            # eq 19: ad_V(0, e_z xd) = (0, w x e_z xd)
-            vd = (Ud[3] + xb * wd[1] + w[1] * xd[b], Ud[4] - xb * wd[0] - w[0] * xd[b], Ud[5] + xdd[b])
+            v = (v[0], v[1], v[2] + xd[b])                                     # eq 18: + S xd
+            # eq 19: + S xdd + ad_V(0, e_z xd) = (0, w x e_z xd)
+            vd = (vd[0] + w[1] * xd[b], vd[1] - w[0] * xd[b], vd[2] + xdd[b])
         V[b], Vd[b] = w + v, wd + vd
         # eq 20, body term J Vd - ad*_V (J V) with J = [[I_o, [h]], [-[h], m]], rewritten with
         # the Jacobi identity (fewer products, same value): with a = vd + w x v,
@@ -126,16 +140,54 @@ def trace_inverse_dynamics(fr, cs, x, xd, xdd, params, ga, fx=None):
         Fb = F[b]
         tau_b[b] = Fb[2] if fr.revolute[b] else Fb[5]
         p = fr.parent[b]
-        if p < 0:
-            continue
-        if fr.revolute[b]:
-            c, s = cs[b]
-            G = _rz(c, s, Fb[:3], False) + _rz(c, s, Fb[3:], False)
-        else:  # Ad*_{Trans(z x)}: n += (z x) x f
-            xb = x[b]
-            G = (Fb[0] - xb * Fb[4], Fb[1] + xb * Fb[3], Fb[2]) + tuple(Fb[3:])
-        F[p] = list(_lin(Ks[b].T, G, add=F[p]))       # Ad*_{M'^-1} = K^T
+        if p >= 0:
+            F[p] = _to_parent(fr, Ks, cs, x, b, Fb, F[p])
     return tau_b
+
+
+def trace_momentum(fr, cs, x, xd, params):
+    """Body components of the generalized momentum p = M qd and of C^T qd, traced.
+
+    The velocities of eq 18, the body momenta J_i V_i, summed over each subtree by the
+    transport of eq 20: H_i = J_i V_i + sum_children Ad*_{f^-1} H_child. Then p_i = S_i^T H_i
+    and (C^T qd)_i = S_i^T ad*_{V_i} H_i: eq 20 for the subtree reads F_i = dH_i/dt - ad*_{V_i}
+    H_i (dH_i/dt taken in frame i, where S_i is constant), so pdot_i = tau_i(+gravity) +
+    S_i^T ad*_{V_i} H_i, which is the C^T qd of pdot = tau + C^T qd - g (observer.py). One
+    O(n) pass, instead of M and C (O(n^2) each)."""
+    nb = fr.nb
+    Ks = _home_adjoints(fr)
+    V, H = [None] * nb, [None] * nb
+    for b in range(nb):
+        p = fr.parent[b]
+        U = _to_child(fr, Ks, cs, x, b, V[p] if p >= 0 else (0.0,) * 6)
+        k = 2 if fr.revolute[b] else 5
+        V[b] = U[:k] + (U[k] + xd[b],) + U[k + 1:]                           # eq 18
+        n_, f_ = la.inertia_times(params[b], (V[b][:3], V[b][3:]))
+        H[b] = list(n_) + list(f_)
+    p_b, c_b = [None] * nb, [None] * nb
+    for b in range(nb - 1, -1, -1):
+        (w0, w1, _), (v0, v1, _) = V[b][:3], V[b][3:]
+        n_, f_ = H[b][:3], H[b][3:]
+        if fr.revolute[b]:    # S^T ad*_V H = e_z . (-(w x n) - v x f)
+            p_b[b] = n_[2]
+            c_b[b] = -(w0 * n_[1] - w1 * n_[0]) - (v0 * f_[1] - v1 * f_[0])
+        else:                 # e_z . (-(w x f))
+            p_b[b] = f_[2]
+            c_b[b] = -(w0 * f_[1] - w1 * f_[0])
+        p = fr.parent[b]
+        if p >= 0:
+            H[p] = _to_parent(fr, Ks, cs, x, b, H[b], H[p])
+    return p_b, c_b
+
+
+def build_momentum(fr):
+    """k(Q, QD, P, E0) -> (p = M qd, then C^T qd) tuple (trace_momentum)."""
+    g = Graph()
+    co, cs = _coordinates(fr, g, 1)
+    parg, params = fr.trace_params(g)
+    p_b, c_b = trace_momentum(fr, cs, co['x'], co['xd'], params)
+    return kernel(g, 'momentum_kernel', co['args'] + [parg, co['offset_args']],
+                  _torques(fr, p_b) + _torques(fr, c_b))
 
 
 def build_inverse_dynamics(fr, wrench):
@@ -200,4 +252,6 @@ INVERSE_DYNAMICS = Spec('inverse_dynamics', lambda fr: build_inverse_dynamics(fr
 INVERSE_DYNAMICS_WRENCH = Spec('inverse_dynamics_wrench', lambda fr: build_inverse_dynamics(fr, True),
                                ('inertia', 'gravity', 'offsets'), 'inverse_dynamics', rows_arrays=True,
                                pooled=True)
+MOMENTUM = Spec('momentum', build_momentum, ('inertia', 'offsets'), 'inverse_dynamics', rows_arrays=True,
+                pooled=True)
 GRAVITY = Spec('gravity', build_gravity, ('subtree', 'gravity', 'offsets'), 'gravity', rows_arrays=True, pooled=True)
