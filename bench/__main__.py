@@ -1,7 +1,7 @@
 """All benchmarks in one command: tables (Markdown + CSV/JSON) and PNG charts in one folder.
 
-    python -m bench [--quick] [--out DIR] [--only core,lagrangian,accuracy,scaling,stability,robots,node]
-                    [--docs-img DIR]
+    python -m bench [--quick] [--out DIR] [--only core,lagrangian,accuracy,scaling,stability,robots,node,payload,
+                     observer] [--docs-img DIR]
     make bench ARGS="--quick"
 
 Sections (each writes its own files into DIR, default bench/out/):
@@ -16,6 +16,11 @@ Sections (each writes its own files into DIR, default bench/out/):
   node        the ROS node: trajectory effort fill against a Pinocchio loop, and joint_states ->
               effort latency in gravity and feedforward modes beside a bare echo node (real
               processes over DDS; bench/feedforward.py, bench/node_latency.py)
+  payload     payload identification error against torque noise and recording length, through
+              the node's recording and fit (bench/payload.py)
+  observer    external-torque observer: estimate error against gain, detection delay against
+              threshold, the node's cost per message with the observer beside without it
+              (bench/observer.py)
 --quick shortens everything (a smoke test runs it); the full run takes a few minutes.
 --docs-img copies the PNG charts, palette-compressed, to DIR (docs/img: the copies docs/benchmarks.md shows).
 A failing section is reported and the others still run; the exit status is then 1.
@@ -29,7 +34,7 @@ import time
 import traceback
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-SECTIONS = ('core', 'lagrangian', 'accuracy', 'scaling', 'stability', 'robots', 'node')
+SECTIONS = ('core', 'lagrangian', 'accuracy', 'scaling', 'stability', 'robots', 'node', 'payload', 'observer')
 
 
 def _core(quick, out):
@@ -73,6 +78,16 @@ def _node(quick, out):
     node_latency.run(quick=quick, out=out)
 
 
+def _payload(quick, out):
+    from bench import payload
+    payload.run(quick=quick, out=out)
+
+
+def _observer(quick, out):
+    from bench import observer
+    observer.run(quick=quick, out=out)
+
+
 def _small_copy(src, dst):
     """Copy a chart for committing: a 128-colour palette PNG is ~3x smaller and looks the same."""
     try:
@@ -86,7 +101,8 @@ def _small_copy(src, dst):
 
 
 RUNNERS = {'core': _core, 'lagrangian': _lagrangian, 'accuracy': _accuracy, 'scaling': _scaling,
-           'stability': _stability, 'robots': _robots, 'node': _node}
+           'stability': _stability, 'robots': _robots, 'node': _node, 'payload': _payload,
+           'observer': _observer}
 
 
 def main(argv=None):

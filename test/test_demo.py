@@ -74,6 +74,15 @@ def test_feedforward_tracks_clearly_better_than_pd(runs):
     assert ff['max_error'] < pd['max_error']
 
 
+def test_payload_identification_removes_the_tracking_error(runs):
+    """The simulated arm carries 2 kg the node does not know; ~/identify_payload finds it from the
+    tracking motion and the error drops."""
+    rec, m = runs['payload']
+    assert m['identified'] and 'rms_after' in m, (m, rec['logs'])
+    assert m['identified_mass'] == pytest.approx(m['true_mass'], rel=0.05) and m['com_error'] < 0.01, m
+    assert m['rms_before'] > 0.02 and m['rms_after'] * 3 < m['rms_before'], m
+
+
 def test_recorded_torques_respect_limits(runs):
     from lie_dynamics import default_urdf_path, load_urdf
     limits = load_urdf(default_urdf_path()).effort_limits
@@ -82,6 +91,18 @@ def test_recorded_torques_respect_limits(runs):
         # the recorded effort is the motor torque: the command after the node's clamp (and the
         # simulated drive's, which must then have had nothing to do)
         assert np.all(np.abs(rec['tau']) <= limits)
+
+
+def test_contact_is_estimated_and_flagged_without_false_alarms(runs):
+    """The push on the flange: the node's estimate follows J^T F, ~/collision rises within a few
+    time constants of the push and never during free motion."""
+    m = runs['contact'][1]
+    info = dict(m)
+    assert m['true_max'] > 5.0, info                                   # the push did reach the joints
+    assert m['rms_estimate_error'] < 0.02 * m['true_max'], info
+    assert m['free_max_estimate'] < 0.2 * min(demo.contact_demo.THRESHOLD), info
+    assert 0 < m['detection_delay'] < 0.1, info
+    assert m['false_alarms'] == 0, info
 
 
 def test_no_shared_memory_left_behind(runs, shm_before):

@@ -39,6 +39,7 @@ from .. import InertiaWarning, load_urdf
 from ..laws import LAWS, clamp, gravity_law, uses_velocity
 from .diagnostics import (DIAG_TEXT_MAX, ERROR, INERTIA_LOG_LINES, INERTIA_TEXT_MAX, OK, WARN, Counters, Throttle,
                           Window, clip, names_text, report)
+from .gravity_source import without_gravity
 from .messages import JointStateReader, NameMap, Rejected, read_desired
 from .models import model_changes, update_refusal
 from .params import check_value, defaults
@@ -334,6 +335,8 @@ class Compensator(TrajectoryInput):
                 count.velocity_unavailable += 1
         tau = LAWS[law](self.model, q, qd, self.desired, self.kp, self.kd, self.friction,
                         s['include_velocity_terms'])
+        if s['robot_compensates_gravity']:  # the robot adds g itself (gravity_source.py)
+            tau = without_gravity(tau, law, self.model, q, self.desired)
         ramp = self.ramp
         if ramp.idle:
             ramp.last = tau
@@ -439,7 +442,8 @@ class Compensator(TrajectoryInput):
         model = self.model
         if self.silent or model is None:
             return None
-        if action == 'zero' or self.last_q is None or len(self.last_q) != model.n:
+        if (action == 'zero' or self.settings['robot_compensates_gravity'] or self.last_q is None
+                or len(self.last_q) != model.n):
             cmd = np.zeros(model.n)
         else:
             cmd = self._limit(gravity_law(model, self.last_q))

@@ -20,10 +20,12 @@ Publishes   <command_topic>   (std_msgs/Float64MultiArray, `joints` order), one 
             ~/trajectory_out  (~/trajectory_in with `effort` filled, reliable, depth 1; remap it to
                               the controller)
             ~/commanded_efforts (sensor_msgs/JointState, if publish_joint_state; input stamp)
+            ~/external_torques, ~/collision: the momentum observer on the efforts (contact_topics.py)
             /diagnostics      (diagnostic_msgs/DiagnosticArray, every diagnostics_period)
 Services    ~/set_enabled (std_srvs/SetBool), ~/reload_model (std_srvs/Trigger); reliable,
             keep-last SERVICE_QUEUE requests each (beyond that the oldest unanswered ones are
             dropped and their clients wait: call with a timeout)
+            ~/set_payload, ~/identify_payload and <gravity_topic>: gravity_payload.py
 
 Timing: the watchdog and diagnostics timer runs on the steady clock (with use_sim_time a
 stopped /clock must not stop the safety timer); stamps of published messages are ROS time.
@@ -52,6 +54,9 @@ from trajectory_msgs.msg import JointTrajectory
 
 from .background import Background
 from .compensator import Compensator, Throttle
+from .contact import check_settings
+from .contact_topics import ContactTopics
+from .gravity_payload import GravityPayload
 from .diagnostics import DIAG_TEXT_MAX, LOG_TEXT_MAX, clip
 from .params import PARAMS, SPECS, check_value
 from .run import run
@@ -158,11 +163,13 @@ class DynamicsNode(Node):
                                  event_callbacks=NO_SUB_EVENTS)
         self.create_service(SetBool, '~/set_enabled', self._srv_set_enabled, qos_profile=SERVICE_QOS)
         self.create_service(Trigger, '~/reload_model', self._srv_reload, qos_profile=SERVICE_QOS)
+        self._gp = GravityPayload(self, values, SERVICE_QOS, NO_SUB_EVENTS)  # gravity topic, payload services
         self._diag_period = values['diagnostics_period']
         self._next_diag = time.monotonic() + self._diag_period
         self._timer = self.create_timer(_tick_period(values['stale_timeout'], self._diag_period), self._on_timer,
                                         clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._set_js_publisher(values['publish_joint_state'])
+        self._contact = ContactTopics(self, NO_PUB_EVENTS)  # external torques, collisions
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -171,6 +178,7 @@ class DynamicsNode(Node):
             if text and self._bg.load_now(kind, text) is None:
                 break
         self._adopt_layout()
+        check_settings(self.core.settings, len(self.core.layout) if self.core.layout else None)  # exit 2
         self._drain_events()
         if self.core.model is None:
             self._log('info', None, f"no robot model yet: waiting for '{self.resolve_topic_name('robot_description')}' "
@@ -182,6 +190,7 @@ class DynamicsNode(Node):
 
     def destroy_node(self):
         self._bg.stop()  # before the publishers go: a fill in progress may still publish
+        self._gp.stop()
         return super().destroy_node()
 
     # ------------------------------------------------------------------ model
@@ -210,11 +219,15 @@ class DynamicsNode(Node):
             if self._bg.worker.has_outcomes:
                 self._collect()
             stamp = msg.header.stamp
+            self._gp.before_command(core)
             tau = core.on_joint_state(msg.name, msg.position, msg.velocity, msg.effort, None,
                                       stamp.sec * 1_000_000_000 + stamp.nanosec)
             if tau is not None:
                 self._publish(tau, stamp)
-            if core.events:
+            self._contact.observe(core, msg, self._out_names)  # after the command: never delays it
+            if self._gp.ident.recording is not None:  # ~/identify_payload records (after the command)
+                self._gp.ident.add(core, msg.velocity, msg.effort, stamp.sec * 1_000_000_000 + stamp.nanosec)
+            if core.events or self._contact.monitor.events:
                 self._drain_events()
             core.record_compute_time(time.perf_counter() - t0)
 
@@ -267,7 +280,8 @@ class DynamicsNode(Node):
             log.error(text)
 
     def _drain_events(self):
-        events, self.core.events = self.core.events, []
+        events, self.core.events = self.core.events + self._contact.monitor.events, []
+        self._contact.monitor.events = []
         for severity, key, text in events:
             self._log(severity, key, text)
 
@@ -276,6 +290,7 @@ class DynamicsNode(Node):
     def _on_timer(self):
         with self._lock:
             self._collect()
+            self._gp.before_command(self.core)
             self._publish_optional(self.core.tick())
             if self.core.events:
                 self._drain_events()
@@ -302,7 +317,7 @@ class DynamicsNode(Node):
 
     def _publish_diagnostics(self):
         with self._lock:
-            level, message, values = self.core.diagnostics()
+            level, message, values = self._gp.report(*self._contact.monitor.report(*self.core.diagnostics()))
             m = self.core.model
         st = DiagnosticStatus(level=bytes([level]), name=f'{self.get_name()}: gravity compensation',
                               message=message, hardware_id=m.name if m is not None else '')
@@ -347,6 +362,8 @@ class DynamicsNode(Node):
         Raises ValueError with the reason."""
         rest = {k: v for k, v in changes.items() if k not in dict(SOURCES)}
         plan = self.core.plan(rest)
+        check_settings(plan.settings, len(self.core.layout) if self.core.layout else None)
+        self._gp.check(plan.settings)
         s, core = plan.settings, self.core
         load = None
         for key, kind in SOURCES:

@@ -15,6 +15,10 @@ from .diagnostics import clip
 STALE_ACTIONS = ('hold_gravity_at_last_state', 'zero')
 # load_urdf's policy for physically inconsistent link inertias.
 INERTIA_POLICIES = ('warn', 'strict', 'repair')
+# What joint_states effort holds (contact.py: motor_torque).
+EFFORT_CONVENTIONS = ('total', 'gravity_removed', 'none')
+# How ~/identify_payload gets the accelerations (payload_service.py).
+IDENTIFY_MODES = ('dynamic', 'static')
 # Which robot descriptions may replace the running model.
 DESCRIPTION_UPDATES = ('same_robot', 'any', 'none')
 
@@ -127,7 +131,45 @@ PARAMS = (
     ParamSpec('payload.inertia', 'double_array', None,
               'Payload inertia about its CoM in link axes: ixx, ixy, ixz, iyy, iyz, izz (kg m^2). '
               'Empty: point mass.', True, constraints='empty or 6 finite doubles'),
+    # gravity from a topic, robots that compensate gravity, payload identification (gravity_source.py,
+    # payload_service.py)
+    ParamSpec('gravity_topic', 'string', '',
+              'geometry_msgs/Vector3Stamped gravity in the URDF root frame (a tilting or mobile base), m/s^2; '
+              'followed while fresh, else the gravity parameter. Empty: off.', False),
+    ParamSpec('gravity_timeout', 'double', 0.5,
+              'Seconds after the last valid gravity_topic message before the gravity parameter is used again.',
+              True, (0.001, 60.0)),
+    ParamSpec('robot_compensates_gravity', 'bool', False,
+              'The robot adds g(q) to the command itself (libfranka torque control, KUKA FRI torque mode, ...): '
+              'every law leaves its gravity term out, the hold_gravity stale action is zero.', True),
+    ParamSpec('identify.duration', 'double', 5.0,
+              'Seconds of joint_states (stamp time) ~/identify_payload records.', True, (0.1, 600.0)),
+    ParamSpec('identify.link', 'string', '', 'Link ~/identify_payload fits a payload on (empty: payload.link).',
+              True),
+    ParamSpec('identify.mode', 'string', 'dynamic',
+              'dynamic: the arm moves, qdd is a smoothing derivative of the recorded qd (mass, CoM and inertia as '
+              'far as the motion excites them); static: only samples at rest (mass and CoM).', True,
+              constraints=' or '.join(IDENTIFY_MODES)),
+    ParamSpec('identify.max_residual_ratio', 'double', 0.3,
+              'An identification whose residual RMS exceeds this fraction of the payload torque RMS is refused.',
+              True, (0.0, 1.0)),
     ParamSpec('diagnostics_period', 'double', 1.0, 'Period of /diagnostics, s.', False, (0.05, 60.0)),
+    # external joint torques and collision detection (contact.py)
+    ParamSpec('observer.enabled', 'bool', True,
+              'Estimate external joint torques (~/external_torques, ~/collision) from the measured efforts with a '
+              'generalized-momentum observer, whenever joint_states carries them.', True),
+    ParamSpec('observer.gain', 'double', 50.0,
+              'Observer gain K, 1/s: the estimate follows tau_ext as a first-order filter of time constant 1/K '
+              '(higher: faster, noisier).', True, (0.1, 1000.0)),
+    ParamSpec('measured_effort', 'string', 'total',
+              'What joint_states effort holds. total: the motor torque, gravity included (ros2_control effort '
+              'interfaces, most drives); gravity_removed: motor torque minus the gravity torques (g(q) is added '
+              'back); none: no usable effort, the observer is off.', True, constraints=' or '.join(EFFORT_CONVENTIONS)),
+    ParamSpec('collision.threshold', 'double_array', [10.0],
+              'Collision when |external torque| exceeds this, N m (or N): one value for every joint, or one per '
+              'controlled joint.', True, constraints='1 or n finite doubles > 0'),
+    ParamSpec('collision.hold_time', 'double', 0.01,
+              'Seconds a threshold crossing (and its end) must last before ~/collision changes.', True, (0.0, 10.0)),
 )
 
 SPECS = {p.name: p for p in PARAMS}
@@ -165,6 +207,10 @@ def check_value(name, value):
             raise ValueError(f'{name} must be a string')
         if name == 'stale_action' and value not in STALE_ACTIONS:
             raise ValueError(f'stale_action must be one of {list(STALE_ACTIONS)}, got {_shown(value)}')
+        if name == 'measured_effort' and value not in EFFORT_CONVENTIONS:
+            raise ValueError(f'measured_effort must be one of {list(EFFORT_CONVENTIONS)}, got {_shown(value)}')
+        if name == 'identify.mode' and value not in IDENTIFY_MODES:
+            raise ValueError(f'identify.mode must be one of {list(IDENTIFY_MODES)}, got {_shown(value)}')
         if name == 'mode' and value not in MODES:
             raise ValueError(f'mode must be one of {list(MODES)}, got {_shown(value)}')
         if name == 'inertia_policy' and value not in INERTIA_POLICIES:
@@ -210,6 +256,9 @@ def check_value(name, value):
     elif name == 'payload.inertia':
         if len(vals) not in (0, 6):
             raise ValueError(f'payload.inertia must be empty or have 6 values, got {len(vals)}')
+    elif name == 'collision.threshold':
+        if not vals or any(v <= 0 for v in vals):
+            raise ValueError(f'collision.threshold must be one or more values > 0, got {_shown(vals)}')
     elif name.startswith('friction.') or name in ('kp', 'kd'):
         if any(v < 0 for v in vals):
             raise ValueError(f'{name} must be >= 0, got {_shown(vals)}')

@@ -11,7 +11,7 @@ from .diagnostics import clip
 
 PAYLOAD_KEYS = ('payload.link', 'payload.mass', 'payload.com', 'payload.inertia')
 # Settings whose change steps the command: with ramp_time > 0 the node blends across them.
-BLEND_KEYS = ('mode', 'gravity', 'gravity_scale') + PAYLOAD_KEYS
+BLEND_KEYS = ('mode', 'gravity', 'gravity_scale', 'robot_compensates_gravity') + PAYLOAD_KEYS
 
 
 def per_joint(values, urdf_values, n, name):

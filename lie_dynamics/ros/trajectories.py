@@ -6,7 +6,8 @@
 the control path; its `fill` may then run in another thread. Effort of a controlled joint:
 inverse dynamics at the point (missing velocities / accelerations derived, see
 lie_dynamics.trajectory) + friction compensation at the point's velocity, clamped like
-commands (laws.clamp); joints that are not controlled get 0.
+commands (laws.clamp); joints that are not controlled get 0. With robot_compensates_gravity
+the gravity torque at the point is left out, as in every command.
 """
 from typing import NamedTuple, Optional
 
@@ -24,6 +25,7 @@ class TrajectoryFill(NamedTuple):
     friction: Optional[object]     # laws.Friction or None
     limits: object                 # laws.EffortLimits
     scale: float                   # effort_limit_scale (for the clamp note)
+    gravity_free: bool = False     # robot_compensates_gravity: efforts without g(q)
 
     def fill(self, names, arrays):
         """(efforts (N, len(names)) in the message's joint order, clamp note or None) for a
@@ -40,7 +42,8 @@ class TrajectoryFill(NamedTuple):
         if missing:
             raise ValueError(f'trajectory lacks controlled joints {names_text(missing)}')
         res = fill_trajectory_efforts(model, arrays)
-        tau, over = clamp(add_friction(res['efforts'], res['velocities'], self.friction), self.limits)
+        tau = res['efforts'] - model.gravity(res['positions']) if self.gravity_free else res['efforts']
+        tau, over = clamp(add_friction(tau, res['velocities'], self.friction), self.limits)
         note = None
         if over is not None:
             joints = [model.joint_names[k] for k in np.flatnonzero(over.any(axis=0))]
@@ -67,7 +70,8 @@ class TrajectoryInput:
         cap = self.settings['max_trajectory_points']
         if points > cap:
             return Rejected('points', f'{points} points, more than max_trajectory_points ({cap})')
-        return TrajectoryFill(self.model, self.friction, self.limits, self.settings['effort_limit_scale'])
+        return TrajectoryFill(self.model, self.friction, self.limits, self.settings['effort_limit_scale'],
+                              self.settings['robot_compensates_gravity'])
 
     def trajectory_done(self, error=None, note=None, kind='malformed'):
         """Count a trajectory fill and queue its log lines: error is why it was rejected

@@ -10,6 +10,11 @@ and stops everything (SIGINT, then SIGKILL after a grace period; also on Ctrl-C)
   1. no compensation        the arm falls            max drift (rad)
   2. gravity compensation   the arm holds its pose   max drift (rad), target < 1e-3
   3. tracking               PD only vs PD + model feedforward: RMS tracking error (rad)
+  4. contact                feedforward tracking, a push on the flange: the node's external-torque
+                            estimate against J^T F, detection delay, false alarms (contact_demo.py)
+  5. payload                feedforward tracking with a load the node does not know, then
+                            ~/identify_payload: RMS error before and after, identified vs true
+                            mass and CoM (payload_demo.py)
 Prints a table and writes a PNG (joint angles and torques over time) and a CSV of the metrics.
 The simulator runs in lockstep with the controller (each step waits for the command answering
 the last state, and in the tracking scenarios for the desired state of the next step), so the
@@ -28,6 +33,7 @@ import numpy as np
 
 from .. import default_urdf_path
 from ..ros.domains import reserve_domains
+from . import contact_demo, payload_demo
 from .trajectory_source import desired_state
 from ..model.urdf import load_urdf
 
@@ -65,6 +71,9 @@ def scenarios():
         'gravity compensation': (dict(common, mode='gravity'), False),
         'PD only': (dict(common, mode='pd', kp=_arr(KP), kd=_arr(KD)), True),
         'PD + feedforward': (dict(common, mode='feedforward', kp=_arr(KP), kd=_arr(KD)), True),
+        contact_demo.NAME: (dict(common, mode='feedforward', kp=_arr(KP), kd=_arr(KD), **contact_demo.node_params()),
+                            True),
+        payload_demo.NAME: (dict(common, mode='feedforward', kp=_arr(KP), kd=_arr(KD)), True),
     }
 
 
@@ -130,6 +139,9 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
     from sensor_msgs.msg import JointState
 
     node_params, with_traj = scenarios()[name]
+    payload = name == payload_demo.NAME
+    if payload:  # identify.duration follows the scenario's duration
+        node_params = dict(node_params, **payload_demo.node_params(duration))
     env = dict(os.environ)
     env['ROS_DOMAIN_ID'] = str(domain if domain is not None else reserve_domains(1)[0])
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -145,7 +157,9 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
     else:
         os.environ['ROS_DOMAIN_ID'] = old_domain
     keep = None if steps else max(1, int(HISTORY_S * rate))
-    rec = {k: collections.deque(maxlen=keep) for k in ('t', 'q', 'qd', 'tau')}
+    contact = name == contact_demo.NAME
+    rec = {k: collections.deque(maxlen=keep) for k in ('t', 'q', 'qd', 'tau') + (contact_demo.KEYS if contact else ())
+           + (payload_demo.KEYS if payload else ())}
     interrupted = False
     stack = node = ex = None
     try:
@@ -163,6 +177,9 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
             rec['tau'].append(list(msg.effort))
         # deep enough for a whole default run: a reader that falls behind must not drop the oldest states
         node.create_subscription(JointState, 'joint_states', on_state, 20000)
+        if contact:
+            contact_demo.record(node, rec, 20000)
+        caller = payload_demo.Caller(node, rec, duration) if payload else None
         stack = Stack(env, log_dir)
         with stack:
             if node_params is not None:
@@ -184,7 +201,8 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
                          'lockstep': 'true' if node_params is not None else 'false',
                          'lockstep_timeout': f'{LOCKSTEP_TIMEOUT:.1f}',
                          'min_subscribers': str(1 + (node_params is not None) + with_traj),
-                         'max_steps': str(steps),
+                         'max_steps': str(steps), **(contact_demo.sim_params(duration) if contact else {}),
+                         **(payload_demo.sim_params() if payload else {}),
                          # the tracking scenarios also wait for the desired state of the next step
                          **({'lockstep_stamped_topic': DESIRED_TOPIC} if with_traj and node_params else {})},
                         ends_by_itself=steps > 0)
@@ -193,6 +211,8 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
             try:
                 while True:
                     ex.spin_once(timeout_sec=0.05)  # one callback: keep this loop lean, it must not lag
+                    if caller is not None:
+                        caller.tick()
                     if steps and rec['t'] and rec['t'][-1] >= duration - 0.5 / rate:
                         break
                     now = time.monotonic()
@@ -248,6 +268,11 @@ def metrics(name, rec):
         err = q - qd_des
         out['rms_error'] = float(np.sqrt(np.mean(err ** 2)))
         out['max_error'] = float(np.max(np.abs(err)))
+    if name == contact_demo.NAME:
+        out.update(contact_demo.metrics(rec))
+    if name == payload_demo.NAME:
+        out.update(payload_demo.metrics(rec, lambda t: desired_state(t[:, None], np.asarray(HOME),
+                                                                   np.asarray(AMPLITUDE), np.asarray(FREQUENCY))[0]))
     return out
 
 
@@ -266,10 +291,16 @@ def plot(records, path):
                 ax_q.set_prop_cycle(None)
                 ax_q.plot(t, desired_state(t[:, None], np.asarray(HOME), np.asarray(AMPLITUDE),
                                            np.asarray(FREQUENCY))[0], lw=0.8, ls='--')
-            ax_tau.plot(t, rec['tau'], lw=1)
+            if name == contact_demo.NAME:
+                contact_demo.plot_panel(ax_tau, rec)
+            else:
+                ax_tau.plot(t, rec['tau'], lw=1)
+        if name == payload_demo.NAME:
+            payload_demo.mark(ax_q, rec)
         ax_q.set_title(name)
         ax_q.set_ylabel('q - q_home (rad)' if 'compensation' in name else 'q (solid), q_d (dashed) (rad)')
-        ax_tau.set_ylabel('motor torque: clipped command (Nm)')
+        if name != contact_demo.NAME:
+            ax_tau.set_ylabel('motor torque: clipped command (Nm)')
         ax_tau.set_xlabel('simulated time (s)')
         ax_q.grid(alpha=0.3)
         ax_tau.grid(alpha=0.3)
@@ -285,7 +316,9 @@ EPILOG = """\
   (PD + feedforward) until Ctrl-C with a live status line. Negative values are refused.
 scenarios: {names}
 output (in --out): demo_metrics.csv (scenario, samples, drift, rms_error, max_error; rad)
-  and demo.png (joint angles and torques over simulated time).
+  and demo.png (joint angles and torques over simulated time); with the contact scenario also
+  demo_contact.csv (estimate error, largest free-motion estimate and J^T F in N m, detection
+  delay in s, false alarms).
 examples:
   python -m lie_dynamics.demo                          # every scenario, 10 s each
   python -m lie_dynamics.demo --duration 3 --scenarios 'gravity compensation'
@@ -353,6 +386,16 @@ def _run(args):
         for r in rows:
             fh.write(f"{r['scenario']},{r['samples']},{r.get('drift', '')},{r.get('rms_error', '')},"
                      f"{r.get('max_error', '')}\n")
+    contact = contact_demo.table(rows)
+    if contact:
+        print('\n'.join(contact))
+        with open(os.path.join(args.out, 'demo_contact.csv'), 'w') as fh:
+            fh.write('\n'.join(contact_demo.csv_lines(rows)) + '\n')
+    payload = payload_demo.table(rows)
+    if payload:
+        print('\n'.join(payload))
+        with open(os.path.join(args.out, 'demo_payload.csv'), 'w') as fh:
+            fh.write('\n'.join(payload_demo.csv_lines(rows)) + '\n')
     if records:
         png = os.path.abspath(os.path.join(args.out, 'demo.png'))
         plot(records, png)

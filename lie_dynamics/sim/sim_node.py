@@ -12,6 +12,9 @@ Subscribes  <command_topic> (std_msgs/Float64MultiArray, ordered as `joints`), h
             next one like JointGroupEffortController; a message of the wrong length or with a
             non-finite value is dropped with a log line (recent controllers drop them too).
 
+payload.*: a load the simulated arm carries that its robot_description does not show (what
+~/identify_payload of the dynamics node has to find).
+
 Parameters: see PARAMETERS below, or `python -m lie_dynamics.sim.sim_node --help`. With lockstep
 the simulator holds the initial state until the first command arrives, then steps as soon as the
 command answering each published state has arrived (not on a timer: as fast as the round trip
@@ -59,6 +62,12 @@ PARAMETERS = (
     ('external.duration', 0.0, 'how long it acts, s (0: never)'),
     ('lockstep_stamped_topic', '',
      'lockstep: also wait for a trajectory_msgs/JointTrajectory stamped with the last state (empty: none)'),
+    # a load the simulated arm carries but its published robot_description does not show
+    ('payload.link', '', 'link carrying a payload unknown to the controller (empty: none)'),
+    ('payload.mass', 0.0, 'its mass, kg, >= 0'),
+    ('payload.com', [0.0, 0.0, 0.0], 'its centre of mass in the link frame, m'),
+    ('payload.inertia', [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+     'its inertia about the CoM in link axes: ixx ixy ixz iyy iyz izz (zeros: a point mass)'),
 )
 EXAMPLE = """
 ros2 run lie_dynamics sim_node --ros-args -p rate:=500.0 -p "initial_positions:=[0.0,-0.6,0.0,2.0,0.0,1.6,0.8]"
@@ -104,6 +113,8 @@ class SimNode(Node):
             q0 = q0 * model.n
         if len(q0) != model.n:
             raise ValueError(f'initial_positions needs {model.n} values, got {len(q0)}')
+        if v['payload.link'] and v['payload.mass'] > 0:  # simulated, never published: the controller must find it
+            model.set_payload(v['payload.link'], v['payload.mass'], list(v['payload.com']), list(v['payload.inertia']))
         self.sim = ArmSim(model, dt=1.0 / rate, q0=q0, damping=damping)
         self.names = model.joint_names
         self.truth_pub = None
