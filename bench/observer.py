@@ -12,7 +12,7 @@ with the node's friction model (the URDF damping, as the simulator applies it).
     push (5 time constants after its start), the largest |estimate| in free motion (noise);
   * threshold sweep (gain GAIN, hold HOLD): detection delay (first flag after the push starts)
     and false alarms (flags rising in free motion);
-  * cost: `DynamicsNode._on_joint_state` in-process (real rclpy publishers, no DDS transport)
+  * cost: `DynamicsNode.on_joint_state` in-process (real rclpy publishers, no DDS transport)
     for the same messages, interleaved rounds: observer off (the peer), on with `total` and with
     `gravity_removed` efforts; per-message medians and percentiles, and per-round ratios of the
     medians to the peer. Also the observer update alone against gravity(q) (the node's default law).
@@ -156,10 +156,10 @@ def node_cost(rec, rounds, per_round):
                 out = []
                 for m in batch:
                     t0 = time.perf_counter()
-                    node._on_joint_state(m)
+                    node.on_joint_state(m)
                     out.append(time.perf_counter() - t0)
                 times[name].append(np.array(out[10:]) * 1e6)   # the first ones of a round warm caches
-        published = {name: node._contact.monitor.samples for name, node in nodes.items()}
+        published = {name: node.contact_monitor.samples for name, node in nodes.items()}
     finally:
         for node in nodes.values():
             node.destroy_node()

@@ -171,7 +171,7 @@ def test_parameters_are_validated_and_the_observer_can_be_switched_off(ros, orac
     assert all(r.successful for r in ros.set_params(**{'observer.enabled': False}))
     for k in range(3, 6):
         send(ros, state(k, efforts(oracle, k)))
-    assert len(ros.ext) == 3 and node._contact.monitor.state == 'off'
+    assert len(ros.ext) == 3 and node.contact_monitor.state == 'off'
 
 
 def test_start_up_refuses_thresholds_that_do_not_fit_the_model():

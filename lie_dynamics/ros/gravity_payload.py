@@ -42,7 +42,7 @@ def _parameter(name, value):
 
 
 class GravityPayload:
-    """Attached to a DynamicsNode `node` (uses its core, _lock and _log); `values`: its start-up
+    """Attached to a DynamicsNode `node` (uses its public core, lock and log_event); `values`: its start-up
     parameters; service_qos: the QoS of its services."""
 
     def __init__(self, node, values, service_qos, sub_events=None):
@@ -88,7 +88,7 @@ class GravityPayload:
     def _drain(self):
         events, self.gravity.events = self.gravity.events, []
         for severity, key, text in events:
-            self.node._log(severity, key, text)
+            self.node.log_event(severity, key, text)
 
     def report(self, level, message, values):
         level, message, extra = self.gravity.report(level, message)
@@ -102,21 +102,22 @@ class GravityPayload:
     def _on_gravity(self, msg):
         node = self.node
         try:
-            with node._lock:
+            with node.lock:
                 v = msg.vector
                 self.gravity.offer((v.x, v.y, v.z), msg.header.frame_id, node.core.model)
                 self.gravity.sync(node.core)
                 if self.gravity.events:
                     self._drain()
         except Exception as exc:  # noqa: BLE001 - the node never dies on input
-            node._log('error', 'internal:gravity', clip(f'gravity message: {type(exc).__name__}: {exc}', DIAG_TEXT_MAX))
+            node.log_event('error', 'internal:gravity',
+                           clip(f'gravity message: {type(exc).__name__}: {exc}', DIAG_TEXT_MAX))
 
     # ------------------------------------------------------------------ services
     def _srv_set_payload(self, request, response):
         node = self.node
         try:
             values = {p.name: Parameter.from_parameter_msg(p).value for p in request.parameters}
-            with node._lock:
+            with node.lock:
                 changes = check_payload_request(values, node.core.model)
             response.result = node.set_parameters_atomically([_parameter(k, v) for k, v in changes.items()])
         except Exception as exc:  # noqa: BLE001 - refused with the reason, never raised into the executor
@@ -128,7 +129,7 @@ class GravityPayload:
         """(helper thread) Record, fit, set payload.*; refused at once when busy or impossible."""
         node, ident = self.node, self.ident
         try:
-            with node._lock:
+            with node.lock:
                 ident.begin(node.core)
         except ValueError as exc:
             response.success, response.message = False, clip(f'refused: {exc}', DIAG_TEXT_MAX)
@@ -136,7 +137,7 @@ class GravityPayload:
         ok, text = False, 'interrupted'
         try:
             ident.wait()
-            with node._lock:
+            with node.lock:
                 rec, model, link, mode, convention, max_ratio, friction = ident.take(node.core)
             _, changes, text = fit(model, link, *rec.arrays(), mode, convention, max_ratio, friction)
             result = node.set_parameters_atomically([_parameter(k, v) for k, v in changes.items()])
@@ -149,7 +150,7 @@ class GravityPayload:
             text = f'refused, payload unchanged: {type(exc).__name__}: {exc}'
         finally:
             ident.finish(ok, text)
-        with node._lock:
-            node._log('info' if ok else 'warn', 'identify', f'~/identify_payload: {text}')
+        with node.lock:
+            node.log_event('info' if ok else 'warn', 'identify', f'~/identify_payload: {text}')
         response.success, response.message = ok, clip(text, DIAG_TEXT_MAX)
         return response

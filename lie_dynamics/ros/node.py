@@ -97,7 +97,7 @@ def _guarded(callback):
         except Exception as exc:  # noqa: BLE001 - last line of defence
             text = clip(f'{callback.__name__}: {type(exc).__name__}: {exc}', DIAG_TEXT_MAX)
             self.core.last_error = text
-            self._log('error', 'internal:' + callback.__name__, f'internal error in {text}')
+            self.log_event('error', 'internal:' + callback.__name__, f'internal error in {text}')
             return args[-1] if callback.__name__.startswith('_srv') else None
     wrapper.__name__ = callback.__name__
     return wrapper
@@ -130,7 +130,7 @@ class DynamicsNode(Node):
             values[spec.name] = self.declare_parameter(spec.name, default, _descriptor(spec)).value
         self.core = Compensator(values)  # ValueError on an invalid configuration
         self._throttle = Throttle(LOG_THROTTLE_S)
-        self._lock = threading.RLock()  # services/parameters vs. callbacks when spun by several threads
+        self.lock = threading.RLock()  # services/parameters vs. callbacks when spun by several threads
         self._sources = Sources()      # the running model's source, the last topic message
         self._pending = None           # (changes, plan, load): validated by on_set, applied by post_set
         self._out_names = []
@@ -154,7 +154,7 @@ class DynamicsNode(Node):
         self.create_subscription(String, 'robot_description', self._on_description, DESCRIPTION_QOS,
                                  event_callbacks=NO_SUB_EVENTS)
         self._warned_publishers = set()
-        self.create_subscription(JointState, 'joint_states', self._on_joint_state, JOINT_STATES_QOS,
+        self.create_subscription(JointState, 'joint_states', self.on_joint_state, JOINT_STATES_QOS,
                                  event_callbacks=NO_SUB_EVENTS)
         desired = self.create_subscription(JointTrajectory, values['desired_topic'], self._on_desired,
                                            DESIRED_QOS, event_callbacks=NO_SUB_EVENTS)
@@ -181,8 +181,9 @@ class DynamicsNode(Node):
         check_settings(self.core.settings, len(self.core.layout) if self.core.layout else None)  # exit 2
         self._drain_events()
         if self.core.model is None:
-            self._log('info', None, f"no robot model yet: waiting for '{self.resolve_topic_name('robot_description')}' "
-                                    '(publishing nothing until a model is loaded)')
+            topic = self.resolve_topic_name('robot_description')
+            self.log_event('info', None, f"no robot model yet: waiting for '{topic}' "
+                           '(publishing nothing until a model is loaded)')
 
     def note_executor(self, kind):
         """The executor that spins the node (run.py), shown in the diagnostics."""
@@ -205,16 +206,17 @@ class DynamicsNode(Node):
 
     @_guarded
     def _on_description(self, msg):
-        with self._lock:
+        with self.lock:
             self._sources.topic_xml = msg.data
             self._bg.request('topic', msg.data)
             self._drain_events()
 
     # ------------------------------------------------------------------ hot path
     @_guarded
-    def _on_joint_state(self, msg):
+    def on_joint_state(self, msg):
+        """The joint_states callback (public: benchmarks drive it in-process)."""
         t0 = time.perf_counter()
-        with self._lock:
+        with self.lock:
             core = self.core
             if self._bg.worker.has_outcomes:
                 self._collect()
@@ -233,14 +235,14 @@ class DynamicsNode(Node):
 
     @_guarded
     def _on_desired(self, msg):
-        with self._lock:
+        with self.lock:
             self.core.on_desired(msg.joint_names, msg.points)
             if self.core.events:
                 self._drain_events()
 
     @_guarded
     def _on_trajectory(self, data):
-        with self._lock:
+        with self.lock:
             self._bg.fill(data)
             self._drain_events()
 
@@ -261,7 +263,12 @@ class DynamicsNode(Node):
         if cmd is not None:
             self._publish(cmd)
 
-    def _log(self, severity, key, text):
+    @property
+    def contact_monitor(self):
+        """The external-torque observer and collision flag (contact.ContactMonitor)."""
+        return self._contact.monitor
+
+    def log_event(self, severity, key, text):
         """One log line, at most one per `key` (the problem class) every LOG_THROTTLE_S s."""
         if key is not None:
             held = self._throttle.check(key)
@@ -283,12 +290,12 @@ class DynamicsNode(Node):
         events, self.core.events = self.core.events + self._contact.monitor.events, []
         self._contact.monitor.events = []
         for severity, key, text in events:
-            self._log(severity, key, text)
+            self.log_event(severity, key, text)
 
     # ------------------------------------------------------------------ timers
     @_guarded
     def _on_timer(self):
-        with self._lock:
+        with self.lock:
             self._collect()
             self._gp.before_command(self.core)
             self._publish_optional(self.core.tick())
@@ -316,7 +323,7 @@ class DynamicsNode(Node):
                     'subscribers) needs reliable + transient local, so it will not receive that description')
 
     def _publish_diagnostics(self):
-        with self._lock:
+        with self.lock:
             level, message, values = self._gp.report(*self._contact.monitor.report(*self.core.diagnostics()))
             m = self.core.model
         st = DiagnosticStatus(level=bytes([level]), name=f'{self.get_name()}: gravity compensation',
@@ -346,7 +353,7 @@ class DynamicsNode(Node):
     # is reported in the log and diagnostics, and the previous one keeps running.
     def _validate_parameters(self, params):
         changes = {p.name: p.value for p in params if p.name in SPECS}
-        with self._lock:
+        with self.lock:
             self._pending = None
             if not changes:
                 return SetParametersResult(successful=True)
@@ -390,7 +397,7 @@ class DynamicsNode(Node):
         changes = {p.name: p.value for p in params if p.name in SPECS}
         if not changes:
             return
-        with self._lock:
+        with self.lock:
             pending, self._pending = self._pending, None
             try:
                 if pending is None or pending[0] != changes:  # not the change validated last: check again
@@ -398,7 +405,7 @@ class DynamicsNode(Node):
                 _, plan, load = pending
                 cmd = self.core.apply(plan)
             except ValueError as exc:  # only if the state moved between validation and now
-                self._log('error', 'parameters', f'parameter change {sorted(changes)} not applied: {exc}')
+                self.log_event('error', 'parameters', f'parameter change {sorted(changes)} not applied: {exc}')
                 self._drain_events()
                 return
             self._publish_optional(cmd)
@@ -427,7 +434,7 @@ class DynamicsNode(Node):
     def _srv_reload(self, request, response):
         """Starts the reload (answered at once): the running model answers until the new one is
         ready; the result is in the log and the diagnostics (model_state, description_error)."""
-        with self._lock:
+        with self.lock:
             kind, text = self._current_source()
             if kind is None:
                 response.success, response.message = False, 'no robot description to reload'
@@ -442,7 +449,7 @@ class DynamicsNode(Node):
 
     def shutdown_command(self):
         """Publish the stale_action command once (the effort controller holds the last command)."""
-        with self._lock:
+        with self.lock:
             cmd = self.core.final_command()
             self.core.events.clear()
             if cmd is None:
