@@ -104,3 +104,34 @@ def test_compare_takes_the_median_over_pairs(tmp_path, capsys):
     assert '1 rows, 0 slower' in capsys.readouterr().out
     with pytest.raises(SystemExit):
         compare.main(folders[:3])
+
+
+def test_ab_times_two_package_copies_in_one_process(tmp_path):
+    """bench.ab against this very tree: the copy is imported as a second package, agrees with
+    the original on every row, and every row gets a positive ratio (no timing threshold)."""
+    import json
+    import sys
+
+    import lie_dynamics
+    from bench import ab
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(ab.__file__)))
+    try:
+        assert ab.main([root, '--quick', '--out', str(tmp_path)]) == 0
+        before = sys.modules[ab.BEFORE_NAME]
+        assert before is not lie_dynamics and before.Model is not lie_dynamics.Model
+    finally:
+        for key in [k for k in sys.modules if k == ab.BEFORE_NAME or k.startswith(ab.BEFORE_NAME + '.')]:
+            del sys.modules[key]
+    with open(tmp_path / 'ab.md', encoding='utf-8') as fh:
+        assert fh.read().startswith('# ')
+    with open(tmp_path / 'ab.png', 'rb') as fh:
+        assert fh.read(8) == PNG_MAGIC
+    with open(tmp_path / 'ab.json', encoding='utf-8') as fh:
+        result = json.load(fh)
+    rows = result['rows']
+    assert len(rows) >= 4 and result['meta']['before_modules'] > 1
+    for r in rows:
+        assert r['status'] == 'ok', r
+        assert r['max_rel_diff'] <= ab.AGREE_RTOL
+        assert r['ratio'] > 0 and r['before_us'] > 0 and r['after_us'] > 0 and r['pin_us'] > 0
