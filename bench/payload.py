@@ -36,7 +36,6 @@ MAX_RATIO = 0.3
 def one(model, mode, sigma, duration, seed):
     """Errors of one identification (None where refused) and what the fit said."""
     from lie_dynamics.algorithms.identification import excitation_trajectory
-    from lie_dynamics.ros.contact import motor_torque
     from lie_dynamics.ros.payload_service import Recording, fit
     t, q, qd, qdd = excitation_trajectory(model, duration=duration, rate=RATE, seed=seed)
     if mode == 'static':
@@ -49,7 +48,7 @@ def one(model, mode, sigma, duration, seed):
         rec.add(t[k], q[k], qd[k], tau[k])
     t0 = time.perf_counter()
     try:
-        res, _, _ = fit(model, LINK, *rec.arrays(), mode, 'total', MAX_RATIO, motor_torque=motor_torque)
+        res, _, _ = fit(model, LINK, *rec.arrays(), mode, 'total', MAX_RATIO)
     except ValueError as exc:
         return dict(refused=str(exc)[:120], seconds=time.perf_counter() - t0, samples=rec.size)
     out = dict(refused='', seconds=time.perf_counter() - t0, samples=rec.size,

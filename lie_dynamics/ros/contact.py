@@ -31,13 +31,23 @@ from ..algorithms.observer import MomentumObserver
 from .diagnostics import OK, WARN, clip, names_text
 from .params import EFFORT_CONVENTIONS
 
-__all__ = ['EFFORT_CONVENTIONS', 'ContactMonitor', 'Debounce', 'check_settings', 'motor_torque', 'thresholds']
+__all__ = ['EFFORT_CONVENTIONS', 'ContactMonitor', 'Debounce', 'check_settings', 'effort_convention', 'motor_torque',
+           'thresholds']
 # A longer gap between two samples is not integrated (the trapezoid would spread garbage over it).
 MAX_GAP_S = 0.5
 # Settings whose change starts a new integral: the model's dynamics or the observer itself.
 REINIT_KEYS = ('observer.enabled', 'observer.gain', 'measured_effort', 'gravity', 'gravity_scale',
                'payload.link', 'payload.mass', 'payload.com', 'payload.inertia', 'friction.viscous',
                'friction.coulomb', 'friction.coulomb_velocity_epsilon')
+
+
+def effort_convention(settings):
+    """What a joint_states effort holds (`measured_effort`: total | gravity_removed | none), the
+    one rule for the observer and the payload identification. robot_compensates_gravity does not
+    change it: it says what the robot adds to the command, not what its sensors report (a drive
+    that echoes the command while the robot adds gravity reports gravity_removed; a torque
+    sensor, as Franka's tau_J or KUKA's measured torque, reports total)."""
+    return settings.get('measured_effort', 'total')
 
 
 def motor_torque(model, q, effort, convention):
@@ -140,7 +150,7 @@ class ContactMonitor:
             self.threshold = thresholds(settings['collision.threshold'], model.n)
             return
         self.observer, self.error = None, ''
-        self.convention = settings['measured_effort']
+        self.convention = effort_convention(settings)
         if model is None or not settings['observer.enabled'] or self.convention == 'none':
             self._restart('off')
             return

@@ -12,9 +12,9 @@ its fast path is two comparisons.
 
 `gravity_term` is the one rule of `robot_compensates_gravity`: a robot that adds g(q) itself
 (libfranka torque control, KUKA FRI torque mode, ...) gets every law's torque without its gravity
-term, i.e. the law evaluated as if gravity were zero. `effort_convention` is the one rule for
-reading joint_states efforts: `measured_effort` alone says what they hold (the sensor), whatever
-`robot_compensates_gravity` says (the actuator); contact.motor_torque turns them into motor torques.
+term, i.e. the law evaluated as if gravity were zero. Reading joint_states efforts is
+contact.effort_convention's rule: `measured_effort` alone says what they hold (the sensor),
+whatever `robot_compensates_gravity` says (the actuator).
 """
 import time
 
@@ -63,15 +63,6 @@ def without_gravity(tau, law, model, q, desired):
     """tau of law `law` without its gravity term (robot_compensates_gravity)."""
     g = gravity_term(law, model, q, desired)
     return tau if g is None else tau - g
-
-
-def effort_convention(settings):
-    """What a joint_states effort holds (`measured_effort`: total | gravity_removed | none), the
-    one rule for the observer and the payload identification. robot_compensates_gravity does not
-    change it: it says what the robot adds to the command, not what its sensors report (a drive
-    that echoes the command while the robot adds gravity reports gravity_removed; a torque
-    sensor, as Franka's tau_J or KUKA's measured torque, reports total)."""
-    return settings.get('measured_effort', 'total')
 
 
 class GravitySource:

@@ -4,7 +4,7 @@ lie_dynamics.algorithms.payload.identify_payload.
 
 `~/identify_payload` records `identify.duration` seconds of accepted joint_states with efforts
 (`Identification`: one at a time, a bounded `Recording`), turns the efforts into motor torques by
-the node's effort convention (gravity_source.effort_convention, contact.motor_torque), derives q̈
+the node's effort convention (contact.effort_convention and contact.motor_torque), derives q̈
 (`dynamic` mode: a Savitzky-Golay derivative of the recorded q̇; `static` mode: only the samples at rest,
 q̇ = q̈ = 0, which determine mass and CoM only), fits, and refuses a fit that explains too little of
 the payload's torque (`identify.max_residual_ratio`). What it returns becomes the payload.*
@@ -25,7 +25,7 @@ from ..algorithms.payload import identify_payload
 from ..laws import friction_torque
 from ..model.inertia import RTOL, violations
 from .diagnostics import DIAG_TEXT_MAX, clip
-from .gravity_source import effort_convention
+from .contact import effort_convention, motor_torque
 from .params import IDENTIFY_MODES
 
 __all__ = ['IDENTIFY_MODES', 'Identification', 'Recording', 'check_payload_request', 'fit', 'prepare',
@@ -131,14 +131,12 @@ def _resampled(grid, t, x):
     return np.stack([np.interp(grid, t, x[:, j]) for j in range(x.shape[1])], axis=1)
 
 
-def fit(model, link, t, q, qd, effort, mode, convention, max_ratio, friction=None, motor_torque=None):
+def fit(model, link, t, q, qd, effort, mode, convention, max_ratio, friction=None):
     """(PayloadResult, changes {payload.*: value}, message) from recorded data on `model` (a copy
     taken when the recording ended; its payload, if any, is replaced by the fit). friction: the
     node's friction model (laws.Friction or None), taken out of the motor torque as the observer
     does: what the node compensates as friction is not payload. Raises ValueError with the reason:
     too little data, nothing excited, a non-positive mass, a bad fit."""
-    if motor_torque is None:
-        from .contact import motor_torque   # the observer's effort convention (one implementation)
     if len(t) < MIN_SAMPLES:
         raise ValueError(f'only {len(t)} joint_states with efforts recorded (need {MIN_SAMPLES})')
     q, qd, qdd, effort = prepare(t, q, qd, effort, mode)
