@@ -12,6 +12,7 @@ the RNEA of paper eqs 16-21 (and an articulated-body forward dynamics) written o
 any numpy dtype: longdouble for references, clongdouble for complex-step reference
 derivatives, float32 / complex128 as benchmarked methods of their own.
 """
+import argparse
 import csv
 import json
 import os
@@ -506,3 +507,13 @@ def setup_matplotlib():
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     return plt
+
+
+def section_main(argv, doc, run, markdown):
+    """The command line of a benchmark section: --quick, --out DIR; runs it and prints its tables."""
+    ap = argparse.ArgumentParser(description=doc.split('\n')[0])
+    ap.add_argument('--quick', action='store_true')
+    ap.add_argument('--out', default=os.path.join(HERE, 'out'))
+    args = ap.parse_args(argv)
+    print(markdown(run(args.quick, args.out)))
+    return 0

@@ -13,7 +13,6 @@ entries relative to the largest true entry; median over seeds, with how many fit
 refused (identify.max_residual_ratio 0.3 by default: the residual would be too large a part of
 the payload torque). Writes payload.{md,csv,json,png}.
 """
-import argparse
 import os
 import time
 
@@ -148,12 +147,7 @@ def write(res, out):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    ap.add_argument('--quick', action='store_true')
-    ap.add_argument('--out', default=os.path.join(common.HERE, 'out'))
-    args = ap.parse_args(argv)
-    print(markdown(run(args.quick, args.out)))
-    return 0
+    return common.section_main(argv, __doc__, run, markdown)
 
 
 if __name__ == '__main__':

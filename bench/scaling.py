@@ -10,7 +10,6 @@ implementation with size (generated kernels up to a size, vectorised numpy above
 shows as kinks. Kernel compile times (once per robot structure) are listed, not timed in.
 Writes scaling.{md,csv,json,png}.
 """
-import argparse
 import os
 import time
 
@@ -130,12 +129,7 @@ def write(res, out):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    ap.add_argument('--quick', action='store_true')
-    ap.add_argument('--out', default=os.path.join(common.HERE, 'out'))
-    args = ap.parse_args(argv)
-    print(markdown(run(args.quick, args.out)))
-    return 0
+    return common.section_main(argv, __doc__, run, markdown)
 
 
 if __name__ == '__main__':
