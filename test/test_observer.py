@@ -9,7 +9,7 @@ from lie_dynamics.algorithms.observer import MomentumObserver, estimate_external
 from lie_dynamics.codegen import runtime
 from lie_dynamics.laws import make_friction
 from oracle import Oracle
-from robots import named_urdf
+from robots import named_urdf, with_payload
 
 DT = 1e-3
 GAIN = 40.0
@@ -126,6 +126,27 @@ def test_generalized_momentum_matches_pinocchio_on_every_path(name, monkeypatch)
     check(*generalized_momentum(model, q, qd))          # the reference: M and C
     with pytest.raises(ValueError, match='qd'):
         generalized_momentum(model, q[0], np.full(model.n, np.nan))
+
+
+def test_generalized_momentum_follows_payload_and_locked_joints():
+    """The kernel's parameters follow set_payload and set_locked (no stale values)."""
+    xml = open(default_urdf_path()).read()
+    payload = ('link7', 1.7, (0.05, -0.02, 0.1), (0.01, 0.001, 0.0, 0.02, 0.0, 0.015))
+    names = load_urdf(xml).joint_names
+    rng = np.random.default_rng(11)
+    for ctrl, locked in ((names, {}), (names[1::2], {n: 0.3 * k - 0.5 for k, n in enumerate(names[0::2])})):
+        model = load_urdf(xml, joints=ctrl)
+        generalized_momentum(model, np.zeros(model.n), np.ones(model.n))    # kernel bound before the changes
+        model.set_payload(*payload)
+        if locked:
+            model.set_locked(locked)
+        oracle = Oracle(with_payload(xml, *payload), joints=ctrl, locked=locked)
+        for _ in range(10):
+            q, qd = rng.uniform(-2, 2, size=(2, model.n))
+            p, c = generalized_momentum(model, q, qd)
+            p_ref, c_ref = oracle.crba(q) @ qd, qd @ oracle.coriolis_matrix(q, qd)
+            assert np.abs(p - p_ref).max() <= 1e-10 * np.abs(p_ref).max()
+            assert np.abs(c - c_ref).max() <= 1e-10 * np.abs(c_ref).max()
 
 
 @pytest.mark.parametrize('kwargs, msg', [
