@@ -5,7 +5,7 @@
 For the bundled arm and a random 30-joint chain (12 joints with --quick), on the same random
 states: time per evaluation (median of interleaved rounds; batched methods per state, from
 one call on a batch) and error = max over states of max|out - ref| / max|ref| against the
-same quantity evaluated in numpy.longdouble (bench/common.py: the RNEA of eqs 16-21, M by
+same quantity evaluated in numpy.longdouble (bench/reference.py: the RNEA of eqs 16-21, M by
 columns, forward dynamics by a longdouble ABA, derivatives by a longdouble complex step).
 Pinocchio and Modern Robotics run on the same states; ratios are to the Pinocchio
 counterpart, medians of per-round ratios.
@@ -18,7 +18,8 @@ import os
 import numpy as np
 
 from bench import common
-from bench.common import LD, Generic, rel_err
+from bench.common import rel_err
+from bench.reference import LD, Generic
 
 OPS = ('inverse dynamics', 'gravity', 'mass matrix', 'Coriolis term C(q, qd) qd', 'forward dynamics',
        'derivatives dtau/dq, dtau/dqd')

@@ -2,7 +2,7 @@
 
     python -m bench.stability [--quick] [--out DIR]
 
-Five scans, each against an extended-precision reference (numpy.longdouble, bench/common.py),
+Five scans, each against an extended-precision reference (numpy.longdouble, bench/reference.py),
 each reporting the boundary where a method fails by the stated criterion:
 
 1. exp/log of SO(3) and SE(3) as theta -> 0 and theta -> pi: lie_dynamics.se3 against the
@@ -33,7 +33,8 @@ import time
 import numpy as np
 
 from bench import common
-from bench.common import LD, Generic, rel_err
+from bench.common import rel_err
+from bench.reference import LD, Generic, exp6_ld, ld_cholesky_solve
 from bench.stability_charts import RATIO, TILT, charts
 
 TOL_EXPLOG = 1e-12
@@ -117,7 +118,7 @@ def scan_explog(quick):
         for d in ds:
             theta = LD(d) if where == '0' else PI_LD - LD(d)
             w = theta * u
-            T_ref = common.exp6_ld(w, v)
+            T_ref = exp6_ld(w, v)
             R_ref = T_ref[..., :3, :3]
             Tin = T_ref.astype(float)       # what a caller would hold
             V_true = np.concatenate([w, v], axis=-1)
@@ -205,7 +206,7 @@ def _fd_case(xml, S, x_name, x, rows, meta):
     G = Generic(model, LD)
     with np.errstate(all='ignore'):
         ref = G.forward_dynamics(q, qd, tau)                                    # longdouble ABA
-        ref_chol = common.ld_cholesky_solve(G.mass_matrix(q), tau.astype(LD) - G.coriolis_term(q, qd) - G.gravity(q))
+        ref_chol = ld_cholesky_solve(G.mass_matrix(q), tau.astype(LD) - G.coriolis_term(q, qd) - G.gravity(q))
     M = model.mass_matrix(q)
     ev = np.linalg.eigvalsh(M)
     meta.append(dict(x_name=x_name, x=x, cond=float(np.max(ev[:, -1] / np.maximum(np.abs(ev[:, 0]), 1e-300))),

@@ -1,13 +1,14 @@
 """Stability claims that matter to users, as regression tests (bench/stability.py maps them in full).
 
-References are the same quantities in numpy.longdouble (bench/common.py, 80-bit on x86-64).
+References are the same quantities in numpy.longdouble (bench/reference.py, 80-bit on x86-64).
 Bounds are the measured values times a margin of about 10 (stated per test).
 """
 import numpy as np
 import pytest
 
-from bench import common
-from bench.common import LD, Generic, rel_err
+from bench import common, reference
+from bench.common import rel_err
+from bench.reference import LD, Generic
 from lie_dynamics import load_urdf, spatial as se3
 from lie_dynamics.sim.demo import HOME
 from lie_dynamics.sim.integrators import STEPPERS, lie_midpoint
@@ -34,7 +35,7 @@ def test_exp_log_full_precision_near_singular_angles(theta):
     textbook closed forms give NaN at 1e-12 and 1e-7 relative error at pi - 1e-9)."""
     u, v = _axes()
     w = theta * u
-    T = common.exp6_ld(w, v)
+    T = reference.exp6_ld(w, v)
     Tin = T.astype(float)
     assert np.max(rel_err(se3.exp3(w.astype(float)), T[:, :3, :3], axis=(1, 2))) < 1e-14
     assert np.max(rel_err(se3.exp6(np.concatenate([w, v], 1).astype(float)), T, axis=(1, 2))) < 1e-14
