@@ -149,6 +149,15 @@ class DynamicsNode(Node):
                                                event_callbacks=NO_PUB_EVENTS)
         self._bg = Background(self.core, self._sources, publish=self._traj_pub.publish,
                               deserialize=lambda data: deserialize_message(data, JointTrajectory))
+        self._gp = None
+        try:
+            self._start(values)
+        except BaseException:   # refused at start-up: no worker thread may outlive the node
+            self._stop_workers()
+            raise
+
+    def _start(self, values):
+        """The rest of the start-up, once worker threads exist (__init__ stops them if this raises)."""
         # No QoS-event handlers here either; _check_description_publishers() reports the usual
         # mistake (a volatile or best-effort robot_description publisher) from the timer instead.
         self.create_subscription(String, 'robot_description', self._on_description, DESCRIPTION_QOS,
@@ -189,9 +198,13 @@ class DynamicsNode(Node):
         """The executor that spins the node (run.py), shown in the diagnostics."""
         self.core.executor = kind
 
-    def destroy_node(self):
+    def _stop_workers(self):
         self._bg.stop()  # before the publishers go: a fill in progress may still publish
-        self._gp.stop()
+        if self._gp is not None:
+            self._gp.stop()
+
+    def destroy_node(self):
+        self._stop_workers()
         return super().destroy_node()
 
     # ------------------------------------------------------------------ model

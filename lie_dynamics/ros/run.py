@@ -106,10 +106,13 @@ def run(make_node, name, args=None, done=None, on_stop=None, parser=None):
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    executor = None
     try:
         executor, kind = make_executor()
         node = make_node()
     except Exception as exc:  # noqa: BLE001 - any failure to build the node: refuse to start, say why
+        if executor is not None:   # its threads must not outlive the context (abort at exit)
+            executor.shutdown()
         rclpy.try_shutdown()
         return _refuse(name, 'invalid configuration', exc)
     executor.add_node(node)
