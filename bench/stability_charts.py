@@ -10,6 +10,20 @@ RATIO = 'distal/proximal mass ratio'
 TILT = 'axis tilt (rad)'
 
 
+def _label(ax, xlabel, ylabel, title):
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(True, which='major', alpha=0.3)
+    ax.legend(fontsize=7)
+
+
+def _save(fig, out, name, paths):
+    fig.tight_layout()
+    paths.append(os.path.join(out, name))
+    common.savefig(fig, paths[-1])
+
+
 def charts(res, out):
     plt = common.setup_matplotlib()
     paths = []
@@ -47,14 +61,9 @@ def charts(res, out):
     for dt, v in c['tol'].items():
         ax.axhline(v, color='k', lw=0.7, ls=':')
         ax.text(2, v * 1.3, f'1000 ulps {dt}', fontsize=7)
-    ax.set_xlabel('joints (random serial chain)')
-    ax.set_ylabel('max relative torque error vs longdouble')
-    ax.set_title('RNEA error growth with chain length')
-    ax.grid(True, which='major', alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    paths.append(os.path.join(out, 'stability_chain.png'))
-    common.savefig(fig, paths[-1])
+    _label(ax, 'joints (random serial chain)', 'max relative torque error vs longdouble',
+           'RNEA error growth with chain length')
+    _save(fig, out, 'stability_chain.png', paths)
     # 3. forward dynamics
     f = res['forward_dynamics']
     fig, axes = plt.subplots(1, 2, figsize=(13, 5), sharey=True)
@@ -85,9 +94,7 @@ def charts(res, out):
     axes[0].set_title('scale: bundled arm, masses graded along the chain', fontsize=10)
     axes[1].set_title('geometry: two nearly coaxial joints, massless link between', fontsize=10)
     axes[0].set_ylabel('max relative error in qdd vs longdouble ABA')
-    fig.tight_layout()
-    paths.append(os.path.join(out, 'stability_forward_dynamics.png'))
-    common.savefig(fig, paths[-1])
+    _save(fig, out, 'stability_forward_dynamics.png', paths)
     # 4. FD step
     d = res['fd_step']
     fig, ax = plt.subplots(figsize=(7.5, 5))
@@ -97,14 +104,9 @@ def charts(res, out):
     for k, (m, v) in enumerate(d['flat'].items()):
         ax.axhline(max(v, 1e-19), color=f'C{k + 3}', ls='--', label=f'{m} ({v:.1e})')
     ax.axhline(d['tol'], color='k', lw=0.8)
-    ax.set_xlabel('step h')
-    ax.set_ylabel('max relative error of (dtau/dq, dtau/dqd)')
-    ax.set_title('finite-difference step against error (bundled arm)')
-    ax.grid(True, which='major', alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    paths.append(os.path.join(out, 'stability_fd_step.png'))
-    common.savefig(fig, paths[-1])
+    _label(ax, 'step h', 'max relative error of (dtau/dq, dtau/dqd)',
+           'finite-difference step against error (bundled arm)')
+    _save(fig, out, 'stability_fd_step.png', paths)
     # 5. energy
     en = res['energy']
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(13, 5))
@@ -129,7 +131,5 @@ def charts(res, out):
     a2.set_title('energy drift against step')
     a2.legend(fontsize=7)
     a2.grid(True, which='major', alpha=0.3)
-    fig.tight_layout()
-    paths.append(os.path.join(out, 'stability_energy.png'))
-    common.savefig(fig, paths[-1])
+    _save(fig, out, 'stability_energy.png', paths)
     return paths
