@@ -18,6 +18,11 @@ ROOT = os.path.join(os.path.dirname(__file__), '..')
     (['-p', 'external.link:=nope', '-p', 'external.duration:=0.1'], "unknown link 'nope' for the external wrench"),
     (['-p', 'external.link:=hand', '-p', 'external.duration:=0.1', '-p', 'external.wrench:=[1.0]'],
      'external wrench must be 6 finite numbers'),
+    (['-p', 'payload.link:=nope', '-p', 'payload.mass:=1.0'], "unknown link 'nope' for payload"),
+    (['-p', 'payload.mass:=2.0'], "unknown link '' for payload"),
+    (['-p', 'payload.link:=tool0', '-p', 'payload.mass:=-1.0'], 'payload mass must be finite and >= 0'),
+    (['-p', 'payload.link:=tool0', '-p', 'payload.mass:=1.0', '-p', 'payload.inertia:=[1.0, 0.0, 0.0, 1.0, 0.0, 5.0]'],
+     'payload inertia is not physically valid'),
 ])
 def test_sim_node_refuses_bad_parameters(params, msg):
     r = subprocess.run([sys.executable, '-m', 'lie_dynamics.sim.sim_node', '--ros-args'] + params,

@@ -113,7 +113,7 @@ class SimNode(Node):
             q0 = q0 * model.n
         if len(q0) != model.n:
             raise ValueError(f'initial_positions needs {model.n} values, got {len(q0)}')
-        if v['payload.link'] and v['payload.mass'] > 0:  # simulated, never published: the controller must find it
+        if v['payload.link'] or v['payload.mass']:  # simulated, never published: the controller must find it
             model.set_payload(v['payload.link'], v['payload.mass'], list(v['payload.com']), list(v['payload.inertia']))
         self.sim = ArmSim(model, dt=1.0 / rate, q0=q0, damping=damping)
         self.names = model.joint_names
