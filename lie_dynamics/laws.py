@@ -16,10 +16,12 @@ friction compensation (None = off).
                          = M(q) (qdd_d + Kp e + Kd de) + C(q, qd) qd + g(q) + f(qd)
     pd               tau = Kp e + Kd de
 
-Every law takes (model, q, qd, desired, kp, kd, friction, velocity_terms); a measured velocity
-of None (unavailable) counts as 0. `uses_velocity` says whether a law reads qd at all, so a
-caller can skip reading it. `clamp` limits a torque (or a batch of torques) to the effort limits
-and never lets a non-finite value through.
+Every law takes (model, q, qd, desired, kp, kd, friction, velocity_terms) and the keyword
+gravity: False leaves every g term out (the law at zero gravity: a robot that adds g(q) itself,
+the node's robot_compensates_gravity). A measured velocity of None (unavailable) counts as 0.
+`uses_velocity` says whether a law reads qd at all, so a caller can skip reading it. `clamp`
+limits a torque (or a batch of torques) to the effort limits and never lets a non-finite value
+through.
 """
 from typing import NamedTuple, Optional
 
@@ -88,33 +90,36 @@ def feedback(q, qd, desired, kp=None, kd=None):
     return fb
 
 
-def gravity_law(model, q, qd=None, desired=None, kp=None, kd=None, friction=None, velocity_terms=False):
+def gravity_law(model, q, qd=None, desired=None, kp=None, kd=None, friction=None, velocity_terms=False,
+                gravity=True):
     """g(q) [+ C(q, qd) qd if velocity_terms and qd is known] + f(qd). desired and gains unused."""
     if qd is not None and velocity_terms:
-        tau = model.inverse_dynamics(q, qd, np.zeros(model.n))
+        tau = model.inverse_dynamics(q, qd, np.zeros(model.n), with_gravity=gravity)
     else:
-        tau = model.gravity(q)
+        tau = model.gravity(q) if gravity else np.zeros(model.n)
     return add_friction(tau, qd, friction)
 
 
-def feedforward_law(model, q, qd=None, desired=None, kp=None, kd=None, friction=None, velocity_terms=False):
+def feedforward_law(model, q, qd=None, desired=None, kp=None, kd=None, friction=None, velocity_terms=False,
+                    gravity=True):
     """ID(q_d, qd_d, qdd_d) + f(qd_d) + Kp e + Kd de: the model at the desired state, PD on the error."""
     q_d, qd_d, qdd_d = desired
-    tau = add_friction(model.inverse_dynamics(q_d, qd_d, qdd_d), qd_d, friction)
+    tau = add_friction(model.inverse_dynamics(q_d, qd_d, qdd_d, with_gravity=gravity), qd_d, friction)
     fb = feedback(q, qd, desired, kp, kd)
     return tau if fb is None else tau + fb
 
 
-def computed_torque_law(model, q, qd=None, desired=None, kp=None, kd=None, friction=None, velocity_terms=False):
+def computed_torque_law(model, q, qd=None, desired=None, kp=None, kd=None, friction=None, velocity_terms=False,
+                        gravity=True):
     """ID(q, qd, qdd_d + Kp e + Kd de) + f(qd): always with C(q, qd) qd (velocity_terms unused)."""
     if qd is None:
         qd = np.zeros(model.n)
     fb = feedback(q, qd, desired, kp, kd)
     qdd = desired[2] if fb is None else desired[2] + fb
-    return add_friction(model.inverse_dynamics(q, qd, qdd), qd, friction)
+    return add_friction(model.inverse_dynamics(q, qd, qdd, with_gravity=gravity), qd, friction)
 
 
-def pd_law(model, q, qd=None, desired=None, kp=None, kd=None, friction=None, velocity_terms=False):
+def pd_law(model, q, qd=None, desired=None, kp=None, kd=None, friction=None, velocity_terms=False, gravity=True):
     """Kp e + Kd de only: no model terms, no friction."""
     fb = feedback(q, qd, desired, kp, kd)
     return np.zeros(model.n) if fb is None else fb
@@ -124,9 +129,10 @@ LAWS = {'gravity': gravity_law, 'feedforward': feedforward_law, 'computed_torque
         'pd': pd_law}
 
 
-def torque(mode, model, q, qd=None, desired=None, kp=None, kd=None, friction=None, velocity_terms=False):
+def torque(mode, model, q, qd=None, desired=None, kp=None, kd=None, friction=None, velocity_terms=False,
+           gravity=True):
     """The torque law `mode` (one of MODES); see the module docstring."""
-    return LAWS[mode](model, q, qd, desired, kp, kd, friction, velocity_terms)
+    return LAWS[mode](model, q, qd, desired, kp, kd, friction, velocity_terms, gravity=gravity)
 
 
 def uses_velocity(mode, kd=None, friction=None, velocity_terms=False):

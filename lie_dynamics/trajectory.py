@@ -29,7 +29,7 @@ def _derivative(y, t):
     return np.gradient(y, t, axis=0, edge_order=2 if len(t) > 2 else 1)
 
 
-def fill_trajectory_efforts(model, traj, friction=False, eps=COULOMB_VELOCITY_EPSILON):
+def fill_trajectory_efforts(model, traj, friction=False, eps=COULOMB_VELOCITY_EPSILON, with_gravity=True):
     """Efforts (N, n) in the model's joint order for a trajectory given as arrays.
 
     traj: mapping with 'positions' (N, k) and, optionally, 'time_from_start' (N,)
@@ -42,6 +42,7 @@ def fill_trajectory_efforts(model, traj, friction=False, eps=COULOMB_VELOCITY_EP
     eps: velocity scale of that Coulomb term, rad/s (m/s for prismatic joints), > 0; the
     default 0.05 is the node's friction.coulomb_velocity_epsilon default. Used only with
     friction=True.
+    with_gravity=False leaves g(q) out of the efforts (a robot that adds it itself).
     Returns a dict with 'efforts', 'positions', 'velocities', 'accelerations' (model order).
     Raises ValueError naming the problem for any malformed trajectory.
     """
@@ -95,7 +96,7 @@ def fill_trajectory_efforts(model, traj, friction=False, eps=COULOMB_VELOCITY_EP
         qd = _derivative(q, t) if N > 1 else np.zeros_like(q)
     if qdd is None:
         qdd = _derivative(qd, t) if N > 1 else np.zeros_like(q)
-    tau = model.inverse_dynamics(q, qd, qdd)
+    tau = model.inverse_dynamics(q, qd, qdd, with_gravity=with_gravity)
     if friction:
         tau = tau + friction_torque(qd, model.damping, model.friction, eps)
     return {'efforts': tau, 'positions': q, 'velocities': qd, 'accelerations': qdd}

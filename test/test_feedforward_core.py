@@ -167,7 +167,7 @@ def test_output_is_clamped_in_every_mode(chain):
     c.on_desired(ctrl, [point(np.ones(n), np.zeros(n), np.full(n, 1e4))])
     tau = c.on_joint_state(ctrl, np.zeros(n))
     assert np.all(np.abs(tau) <= 1.0) and c.count.clamp_count == 2
-    c.model.inverse_dynamics = lambda *a: np.full(n, math.nan)
+    c.model.inverse_dynamics = lambda *a, **kw: np.full(n, math.nan)
     assert c.on_joint_state(ctrl, np.zeros(n)) is None and 'non-finite torque' in c.last_error
 
 

@@ -344,13 +344,13 @@ class Model:
 
     # ------------------------------------------------------------------ algorithms
     @_jointless(('q', 'qd', 'qdd'), (0,))
-    def inverse_dynamics(self, q, qd, qdd, wrenches=None):
+    def inverse_dynamics(self, q, qd, qdd, wrenches=None, with_gravity=True):
         """tau = M(q) qdd + C(q, qd) qd + g(q) - J^T F_ext: the Lie-group RNEA (paper eqs 16-21).
 
         wrenches: optional {link: (m, f)} external wrench acting on the link, expressed in
-        the link frame. Single state (n,) or batch (N, n).
+        the link frame. with_gravity=False leaves g(q) out. Single state (n,) or batch (N, n).
         """
-        return rnea.inverse_dynamics(self, q, qd, qdd, wrenches)
+        return rnea.inverse_dynamics(self, q, qd, qdd, wrenches, with_gravity)
 
     @_jointless(('q',), (0,))
     def gravity(self, q):

@@ -39,7 +39,6 @@ from .. import InertiaWarning, load_urdf
 from ..laws import LAWS, clamp, gravity_law, uses_velocity
 from .diagnostics import (DIAG_TEXT_MAX, ERROR, INERTIA_LOG_LINES, INERTIA_TEXT_MAX, OK, WARN, Counters, Throttle,
                           Window, clip, names_text, report)
-from .gravity_source import without_gravity
 from .messages import JointStateReader, NameMap, Rejected, read_desired
 from .models import model_changes, update_refusal
 from .params import check_value, defaults
@@ -334,9 +333,7 @@ class Compensator(TrajectoryInput):
             if not complete:
                 count.velocity_unavailable += 1
         tau = LAWS[law](self.model, q, qd, self.desired, self.kp, self.kd, self.friction,
-                        s['include_velocity_terms'])
-        if s['robot_compensates_gravity']:  # the robot adds g itself (gravity_source.py)
-            tau = without_gravity(tau, law, self.model, q, self.desired)
+                        s['include_velocity_terms'], gravity=not s['robot_compensates_gravity'])
         ramp = self.ramp
         if ramp.idle:
             ramp.last = tau

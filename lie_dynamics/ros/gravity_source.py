@@ -10,9 +10,9 @@ when it returns. Both transitions blend the command (ramp_time), a topic update 
 not (it follows a slowly turning base). `sync` puts the vector on the model before each command;
 its fast path is two comparisons.
 
-`gravity_term` is the one rule of `robot_compensates_gravity`: a robot that adds g(q) itself
-(libfranka torque control, KUKA FRI torque mode, ...) gets every law's torque without its gravity
-term, i.e. the law evaluated as if gravity were zero. Reading joint_states efforts is
+`robot_compensates_gravity`: a robot that adds g(q) itself (libfranka torque control, KUKA FRI
+torque mode, ...) gets every law evaluated without its gravity term (laws.py, gravity=False: the
+law at zero gravity; the trajectory fill likewise). Reading joint_states efforts is
 contact.effort_convention's rule: `measured_effort` alone says what they hold (the sensor),
 whatever `robot_compensates_gravity` says (the actuator).
 """
@@ -48,21 +48,6 @@ def check_vector(vector, frame_id, model):
         raise ValueError(f"gravity frame_id '{clip(frame_id, 80)}' moves with the joints: give the vector in the "
                          'URDF root frame')
     return np.asarray(T)[:3, :3] @ g
-
-
-def gravity_term(law, model, q, desired):
-    """The gravity torque inside law `law`'s torque: g(q) for gravity and computed_torque, g(q_d)
-    for feedforward (its model terms are evaluated at the desired state), none for pd (None).
-    law(...) - gravity_term(...) is the law evaluated with zero gravity."""
-    if law == 'pd':
-        return None
-    return model.gravity(desired[0] if law == 'feedforward' else q)
-
-
-def without_gravity(tau, law, model, q, desired):
-    """tau of law `law` without its gravity term (robot_compensates_gravity)."""
-    g = gravity_term(law, model, q, desired)
-    return tau if g is None else tau - g
 
 
 class GravitySource:

@@ -41,9 +41,8 @@ class TrajectoryFill(NamedTuple):
         missing = [j for j in model.joint_names if j not in column]
         if missing:
             raise ValueError(f'trajectory lacks controlled joints {names_text(missing)}')
-        res = fill_trajectory_efforts(model, arrays)
-        tau = res['efforts'] - model.gravity(res['positions']) if self.gravity_free else res['efforts']
-        tau, over = clamp(add_friction(tau, res['velocities'], self.friction), self.limits)
+        res = fill_trajectory_efforts(model, arrays, with_gravity=not self.gravity_free)
+        tau, over = clamp(add_friction(res['efforts'], res['velocities'], self.friction), self.limits)
         note = None
         if over is not None:
             joints = [model.joint_names[k] for k in np.flatnonzero(over.any(axis=0))]
