@@ -38,7 +38,6 @@ Writes DIR/ab.md, DIR/ab.json and DIR/ab.png (after/before per row with its rang
 DIR bench/out) and prints the table.
 """
 import argparse
-import gc
 import importlib.util
 import os
 import platform
@@ -154,31 +153,6 @@ def _commit(path):
 
 
 # ------------------------------------------------------------------ timing
-def time_rotated(fns, rounds, target):
-    """{key: callable} -> {key: seconds per call, one entry per round}; like
-    common.time_interleaved, with the order rotated every round and the cyclic garbage
-    collector paused during a sample (as timeit does)."""
-    keys = list(fns)
-    numbers = {k: common.calibrate(fns[k], target) for k in keys}
-    out = {k: np.empty(rounds) for k in keys}
-    enabled = gc.isenabled()
-    for r in range(rounds):
-        s = r % len(keys)
-        for k in keys[s:] + keys[:s]:
-            f, n = fns[k], numbers[k]
-            gc.disable()
-            try:
-                t0 = time.perf_counter()
-                for _ in range(n):
-                    f()
-                dt = time.perf_counter() - t0
-            finally:
-                if enabled:
-                    gc.enable()
-            out[k][r] = dt / n
-    return out, numbers
-
-
 def _flat(x):
     """One float vector of a call's output (arrays, or tuples of arrays)."""
     if isinstance(x, (tuple, list)):
@@ -227,7 +201,8 @@ def _row(robot, op, N, models, pin_setup, states, rounds, target, threshold):
     if not err <= AGREE_RTOL:
         row.update(status='disagree', note=f'before and after differ: max relative difference {err:.2e}')
         return row
-    secs, numbers = time_rotated(fns, rounds, target)
+    numbers = {}
+    secs = common.time_interleaved(fns, rounds, target, rotate=True, pause_gc=True, numbers=numbers)
     us = {k: secs[k] / N * 1e6 for k in VERSIONS}
     ratio = secs['after'] / secs['before']
     med = float(np.median(ratio))

@@ -9,6 +9,7 @@ rel_err and boundary here measure against them.
 """
 import argparse
 import csv
+import gc
 import json
 import os
 import time
@@ -34,22 +35,37 @@ def calibrate(fn, target):
     return number
 
 
-def time_interleaved(fns, rounds, target):
+def time_interleaved(fns, rounds, target, rotate=False, pause_gc=False, numbers=None):
     """{key: callable} -> {key: array of seconds per call, one entry per round}.
 
     Every round times every callable once (interleaved), so slow phases of a shared machine
-    hit all candidates alike; report medians and medians of per-round ratios.
+    hit all candidates alike; report medians and medians of per-round ratios. rotate: the
+    order turns by one each round (no candidate always runs first); pause_gc: the cyclic
+    garbage collector is off during a measurement (as timeit does); numbers: a dict that
+    receives the calls per measurement.
     """
-    numbers = {k: calibrate(f, target) for k, f in fns.items()}
-    out = {k: [] for k in fns}
-    for _ in range(rounds):
-        for k, f in fns.items():
-            n = numbers[k]
-            t0 = time.perf_counter()
-            for _ in range(n):
-                f()
-            out[k].append((time.perf_counter() - t0) / n)
-    return {k: np.array(v) for k, v in out.items()}
+    keys = list(fns)
+    calls = {k: calibrate(fns[k], target) for k in keys}
+    if numbers is not None:
+        numbers.update(calls)
+    out = {k: np.empty(rounds) for k in keys}
+    enabled = gc.isenabled()
+    for r in range(rounds):
+        s = r % len(keys) if rotate else 0
+        for k in keys[s:] + keys[:s]:
+            f, n = fns[k], calls[k]
+            if pause_gc:
+                gc.disable()
+            try:
+                t0 = time.perf_counter()
+                for _ in range(n):
+                    f()
+                dt = time.perf_counter() - t0
+            finally:
+                if pause_gc and enabled:
+                    gc.enable()
+            out[k][r] = dt / n
+    return out
 
 
 def slope(ns, ts, fit_from=16):
