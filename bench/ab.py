@@ -269,8 +269,9 @@ def run(before_src, rounds=None, quick=False, threshold=5.0, log=print):
             notes.append(f'{robot}: not loaded by both versions ({type(exc).__name__}: {exc})')
             continue
         model = models['after']
-        pin_setup = common.pinocchio_model(xml, model) if robot == 'arm7' else _pin_model(pin, xml, model)
-        if pin_setup is None:
+        try:
+            pin_setup = common.pinocchio_model(xml, model)
+        except ValueError:   # continuous joints or mimics: Pinocchio's coordinates differ from ours
             notes.append(f'{robot}: Pinocchio coordinates differ from ours, skipped')
             continue
         for op, Ns in plan:
@@ -291,14 +292,6 @@ def run(before_src, rounds=None, quick=False, threshold=5.0, log=print):
                 cpu_count=os.cpu_count(), notes=notes,
                 unit='µs per state, median over rounds; ratios: medians of per-round ratios')
     return dict(meta=meta, rows=rows)
-
-
-def _pin_model(pin, xml, model):
-    pm = pin.buildModelFromXML(xml)
-    if pm.nq != model.n or pm.nv != model.n:   # continuous joints or mimics: other coordinates
-        return None
-    pm.gravity.linear = model.gravity_vector
-    return pin, pm, pm.createData()
 
 
 # ------------------------------------------------------------------ reports
