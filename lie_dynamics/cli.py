@@ -77,3 +77,9 @@ def number(kind=float, low=None, strict=False, what=None):
             raise argparse.ArgumentTypeError(f'must be {what}, got {text!r}')
         return value
     return convert
+
+
+def ros_array(values):
+    """A ROS double-array parameter value for `-p name:=...`: repr keeps a decimal point
+    ("60.0"), which the parameter parser needs to read a double."""
+    return '[' + ','.join(repr(float(v)) for v in values) + ']'

@@ -11,6 +11,8 @@ the simulator's wrench starts at PUSH_START x duration.
 """
 import numpy as np
 
+from ..cli import ros_array
+
 NAME = 'contact'
 LINK = 'flange'
 WRENCH = (0.0, 0.0, 0.0, 0.0, 0.0, -30.0)   # (m, f) in the flange frame: 30 N against the tool axis
@@ -26,17 +28,13 @@ TRUTH_TOPIC = '/sim_node/external_torques_true'
 KEYS = ('ext_t', 'ext', 'flag', 'true_t', 'true')
 
 
-def _arr(x):
-    return '[' + ','.join(repr(float(v)) for v in x) + ']'
-
-
 def node_params():
     """dynamics_node overrides of the scenario (on top of the feedforward scenario's). The node is
     told the simulator's joint damping (its URDF <dynamics damping>; the demo's config turns
     friction off): friction the model does not know is reported as external torque."""
     from .. import default_urdf_path, load_urdf
-    return {'observer.gain': repr(GAIN), 'collision.threshold': _arr(THRESHOLD), 'collision.hold_time': repr(HOLD),
-            'friction.viscous': _arr(load_urdf(default_urdf_path()).damping)}
+    return {'observer.gain': repr(GAIN), 'collision.threshold': ros_array(THRESHOLD), 'collision.hold_time': repr(HOLD),
+            'friction.viscous': ros_array(load_urdf(default_urdf_path()).damping)}
 
 
 def push_window(duration):
@@ -46,7 +44,7 @@ def push_window(duration):
 
 def sim_params(duration):
     start, length = push_window(duration)
-    return {'external.link': LINK, 'external.wrench': _arr(WRENCH), 'external.start': repr(start),
+    return {'external.link': LINK, 'external.wrench': ros_array(WRENCH), 'external.start': repr(start),
             'external.duration': repr(length)}
 
 

@@ -32,6 +32,7 @@ import time
 import numpy as np
 
 from .. import default_urdf_path
+from ..cli import ros_array
 from ..ros.domains import reserve_domains
 from . import contact_demo, payload_demo
 from .trajectory_source import desired_state
@@ -55,25 +56,21 @@ PKG_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # lie_dyn
 CONFIG = os.path.join(os.path.dirname(PKG_DIR), 'config', 'arm7_gravity.yaml')
 
 
-def _arr(x):
-    # a ROS double array: repr keeps a decimal point ("60.0"), which the parameter parser needs
-    return '[' + ','.join(repr(float(v)) for v in x) + ']'
-
-
 def scenarios():
     """name -> (dynamics node overrides or None, with trajectory source?)."""
     # The simulator has no Coulomb friction to cancel. Lockstep runs slower than real time and
     # waits for each command, so the node's wall-clock timeouts (0.1 s, meant for a real robot)
     # are relaxed: a loaded machine must not turn a late message into a fallback command.
     common = {'friction.coulomb': '[0.0]', 'stale_timeout': '1.0', 'desired_timeout': '1.0'}
+    gains = dict(common, kp=ros_array(KP), kd=ros_array(KD))
+    tracking = dict(gains, mode='feedforward')
     return {
         'no compensation': (None, False),
         'gravity compensation': (dict(common, mode='gravity'), False),
-        'PD only': (dict(common, mode='pd', kp=_arr(KP), kd=_arr(KD)), True),
-        'PD + feedforward': (dict(common, mode='feedforward', kp=_arr(KP), kd=_arr(KD)), True),
-        contact_demo.NAME: (dict(common, mode='feedforward', kp=_arr(KP), kd=_arr(KD), **contact_demo.node_params()),
-                            True),
-        payload_demo.NAME: (dict(common, mode='feedforward', kp=_arr(KP), kd=_arr(KD)), True),
+        'PD only': (dict(gains, mode='pd'), True),
+        'PD + feedforward': (tracking, True),
+        contact_demo.NAME: (dict(tracking, **contact_demo.node_params()), True),
+        payload_demo.NAME: (tracking, True),
     }
 
 
@@ -192,12 +189,13 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
                     raise RuntimeError('dynamics_node did not come up')
             if with_traj:
                 stack.start('trajectory_source', 'lie_dynamics.sim.trajectory_source',
-                            {'home': _arr(HOME), 'amplitude': _arr(AMPLITUDE), 'frequency': _arr(FREQUENCY)})
+                            {'home': ros_array(HOME), 'amplitude': ros_array(AMPLITUDE),
+                             'frequency': ros_array(FREQUENCY)})
                 if not _wait(ex, lambda: node.count_subscribers('joint_states') >= 1 + (node_params is not None),
                              20.0, stack):
                     raise RuntimeError('trajectory_source did not come up')
             stack.start('sim_node', 'lie_dynamics.sim.sim_node',
-                        {'rate': f'{rate:.1f}', 'initial_positions': _arr(HOME),
+                        {'rate': f'{rate:.1f}', 'initial_positions': ros_array(HOME),
                          'lockstep': 'true' if node_params is not None else 'false',
                          'lockstep_timeout': f'{LOCKSTEP_TIMEOUT:.1f}',
                          'min_subscribers': str(1 + (node_params is not None) + with_traj),

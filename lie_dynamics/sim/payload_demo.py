@@ -11,6 +11,7 @@ parameters, as `ros2 param get` would), and whether the service succeeded.
 import numpy as np
 
 from .. import default_urdf_path
+from ..cli import ros_array
 from ..model.urdf import load_urdf
 
 NAME = 'payload'
@@ -30,20 +31,16 @@ PARAMS = '/dynamics_node/get_parameters'
 KEYS = ('id_call_t', 'id_done_t', 'id_success', 'id_mass', 'id_com')
 
 
-def _arr(x):
-    return '[' + ','.join(repr(float(v)) for v in x) + ']'
-
-
 def node_params(duration):
     """dynamics_node overrides (on top of the feedforward scenario's). The simulator's joints have
     URDF damping: the node models it as viscous friction, so the fit does not take it for payload."""
     return {'identify.link': LINK, 'identify.duration': repr(RECORD * duration),
-            'friction.viscous': _arr(load_urdf(default_urdf_path()).damping)}
+            'friction.viscous': ros_array(load_urdf(default_urdf_path()).damping)}
 
 
 def sim_params():
-    return {'payload.link': LINK, 'payload.mass': repr(MASS), 'payload.com': _arr(COM),
-            'payload.inertia': _arr(INERTIA)}
+    return {'payload.link': LINK, 'payload.mass': repr(MASS), 'payload.com': ros_array(COM),
+            'payload.inertia': ros_array(INERTIA)}
 
 
 class Caller:
