@@ -133,6 +133,18 @@ def test_sim_node_refuses_bad_arguments(args, fragments):
 
 
 @pytest.mark.parametrize('args, fragments', [
+    (['--bogus'], ['dynamics_node: error: unrecognized arguments: --bogus']),
+    (['urdf_path:=config/arm7.urdf'], ['unrecognized arguments']),  # forgot --ros-args -p
+    (['--ros-args', '--no-such-flag'], ['unknown ROS arguments']),
+    (['--ros-args', '-p', 'kp'], ['dynamics_node: error: Failed to parse ROS arguments']),
+    (['--ros-args', '-p', 'kp:=[1.0,-1.0]'], ['dynamics_node: invalid configuration', 'kp must be >= 0']),
+])
+def test_dynamics_node_refuses_bad_arguments(args, fragments):
+    """Arguments outside --ros-args are the parser's; those after it reach rclpy (a refused -p value)."""
+    _assert_refused(_run('dynamics_node', *args), *fragments)
+
+
+@pytest.mark.parametrize('args, fragments', [
     (['--ros-args', '-p', 'home:=[0.0,1.0]', '-p', 'amplitude:=[0.1,0.2,0.3]'], ['different joint counts']),
     (['--ros-args', '-p', 'lead:=.nan'], ['lead must be finite']),
     (['--ros-args', '--params-file', 'no_such.yaml'], ["Couldn't parse params file"]),
@@ -148,6 +160,8 @@ def test_trajectory_source_refuses_bad_arguments(args, fragments):
                     'python -m lie_dynamics.trajectory config/arm7.urdf traj.csv -o traj_eff.csv']),
     ('identification', ['--noise', '--duration', '--seed', '--quick', 'python -m lie_dynamics.identification']),
     ('demo', ['or 0 to run the tracking scenario', 'Negative values are refused', 'python -m lie_dynamics.demo']),
+    ('dynamics_node', ['--ros-args', 'urdf_path:=', 'mode:=gravity', 'kp:=[0.0]', 'docs/node.md',
+                       'python -m lie_dynamics.dynamics_node --ros-args -p urdf_path:=config/arm7.urdf']),
     ('sim_node', ['--ros-args', 'rate:=1000.0', 'initial_positions:=[0.0]', 'max_steps:=0',
                   'ros2 run lie_dynamics sim_node --ros-args']),
     ('trajectory_source', ['--ros-args', 'home:=[0.0]', 'amplitude:=[0.3]', 'frequency:=[0.25]', 'lead:=0.001',

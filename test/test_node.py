@@ -461,12 +461,16 @@ BAD_INERTIA = (
 
 
 def test_inertia_policy_strict_refuses_then_warn_loads(ros):
-    node = ros.start(wait_model=False, robot_description=BAD_INERTIA, inertia_policy='strict',
-                     diagnostics_period=0.1)
-    assert node.core.model is None and 'tip' in node.core.description_error   # start-up load is synchronous
+    # at start-up a description the policy refuses is a configuration that cannot work: no node
+    with pytest.raises(ValueError, match='tip'):
+        DynamicsNode(context=ros.ctx, parameter_overrides=[Parameter('robot_description', value=BAD_INERTIA),
+                                                           Parameter('inertia_policy', value='strict')])
+    node = ros.start(wait_model=False, inertia_policy='strict', diagnostics_period=0.1)
+    ros.desc_pub.publish(String(data=BAD_INERTIA))   # later, from the topic: refused, the node keeps running
     wait_until(lambda: ros.diag_level() == 2 and 'tip' in ros.diag_values().get('description_error', ''),
                what='strict refusal in the diagnostics')
-    # the policy change reloads the start-up description (in the background)
+    assert node.core.model is None
+    # the policy change reloads the refused description (in the background)
     assert all(r.successful for r in ros.set_params(inertia_policy='warn'))
     wait_until(lambda: node.core.model is not None, what='reload under the new policy')
     assert node.core.model.name == 'bad_inertia'
@@ -497,9 +501,19 @@ def test_shipped_wall_mount_config(ros):
         np.testing.assert_allclose(tau, np.clip(o.rnea(q, qd, np.zeros(7)), -lim, lim), atol=TOL, rtol=0)
 
 
-def test_module_entry_point_rejects_bad_configuration():
-    proc = subprocess.run([sys.executable, '-m', 'lie_dynamics.dynamics_node', '--ros-args',
-                           '-p', 'stale_action:=freeze'], capture_output=True, text=True, timeout=60,
+@pytest.mark.parametrize('params, reason', [
+    (['stale_action:=freeze'], 'stale_action'),
+    (['urdf_path:=/nonexistent.urdf'], 'not found'),                    # a launch-file typo
+    (['robot_description:=<robot name="x"><link'], 'malformed'),
+    (['robot_description:=not xml', 'urdf_path:=config/arm7.urdf'], 'not URDF XML'),  # no silent fallback
+    (['urdf_path:=config/arm7.urdf', 'joints:=[joint1,nope]'], "unknown joint 'nope'"),
+])
+def test_module_entry_point_rejects_bad_configuration(params, reason):
+    """A start-up value that cannot work ends the process: one line on stderr, exit status 2."""
+    args = [a for p in params for a in ('-p', p)]
+    proc = subprocess.run([sys.executable, '-m', 'lie_dynamics.dynamics_node', '--ros-args', *args],
+                          capture_output=True, text=True, timeout=60,
                           cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    assert proc.returncode == 2
-    assert 'stale_action' in proc.stderr
+    assert proc.returncode == 2, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and reason in proc.stderr, proc.stderr
+    assert proc.stderr.startswith('dynamics_node: invalid configuration: ')

@@ -58,8 +58,8 @@ from .contact import check_settings
 from .contact_topics import ContactTopics
 from .gravity_payload import GravityPayload
 from .diagnostics import DIAG_TEXT_MAX, LOG_TEXT_MAX, clip
-from .params import PARAMS, SPECS, check_value
-from .run import run
+from .params import HELP_DESCRIPTION, HELP_EXAMPLE, PARAMS, SPECS, check_value, help_rows
+from .run import node_parser, run
 from .sources import Sources, source_label
 
 # As robot_state_publisher publishes it: a late subscriber must also be transient local.
@@ -183,8 +183,11 @@ class DynamicsNode(Node):
         self.add_post_set_parameters_callback(self._apply_parameters)
 
         for name, kind in SOURCES:  # at start-up in this thread: nothing to keep answering yet
-            text = values[name]
-            if text and self._bg.load_now(kind, text) is None:
+            if values[name]:
+                # a start-up description that cannot load (a typo in a launch file) refuses to start (exit 2)
+                err = self._bg.load_now(kind, values[name])
+                if err is not None:
+                    raise ValueError(err)
                 break
         self._adopt_layout()
         check_settings(self.core.settings, len(self.core.layout) if self.core.layout else None)  # exit 2
@@ -481,8 +484,10 @@ def _last_command(node):
 
 
 def main(args=None):
-    """Entry point of `ros2 run lie_dynamics dynamics_node`."""
-    return run(DynamicsNode, 'dynamics_node', args, on_stop=_last_command)
+    """Entry point of `ros2 run lie_dynamics dynamics_node`: --help prints usage, arguments outside
+    --ros-args and a start-up configuration that cannot work exit with status 2 (run.run)."""
+    parser = node_parser('dynamics_node', HELP_DESCRIPTION, help_rows(), HELP_EXAMPLE)
+    return run(DynamicsNode, 'dynamics_node', args, on_stop=_last_command, parser=parser)
 
 
 if __name__ == '__main__':

@@ -265,6 +265,37 @@ def check_value(name, value):
     return vals
 
 
+# `dynamics_node --help`: what it does, the parameters most set-ups touch, an example.
+HELP_DESCRIPTION = """\
+Gravity compensation / torque feedforward: turns each sensor_msgs/JointState on joint_states into
+a std_msgs/Float64MultiArray effort command (ros2_control JointGroupEffortController), computed
+from the robot model (robot_description topic or parameter, or urdf_path). Also fills the effort
+of trajectories on ~/trajectory_in (-> ~/trajectory_out) and publishes /diagnostics.
+
+Every parameter, topic, service and QoS: docs/node.md in the source repository, or
+`ros2 param describe /dynamics_node <name>` on a running node."""
+HELP_EXAMPLE = """
+python -m lie_dynamics.dynamics_node --ros-args -p urdf_path:=config/arm7.urdf
+dynamics_node --ros-args --params-file config/arm7_gravity.yaml -p mode:=feedforward -p "kp:=[50.0]"
+"""
+HELP_PARAMS = ('robot_description', 'urdf_path', 'joints', 'command_topic', 'mode', 'kp', 'kd', 'gravity',
+               'include_velocity_terms', 'effort_limit_scale', 'stale_timeout', 'stale_action', 'enabled',
+               'inertia_policy', 'payload.link', 'payload.mass')
+
+
+def help_rows(names=HELP_PARAMS):
+    """(name, default, meaning) rows for --help: the first sentence of each description, and
+    the accepted values of a choice."""
+    rows = []
+    for name in names:
+        spec = SPECS[name]
+        meaning = spec.description.split('. ')[0].rstrip('.')
+        if spec.kind == 'string' and spec.constraints and spec.constraints.split(' or ')[-1] not in meaning:
+            meaning += f': {spec.constraints}'
+        rows.append((name, [] if spec.default is None else spec.default, meaning))
+    return rows
+
+
 def defaults():
     """{name: normalised default value}."""
     return {p.name: check_value(p.name, p.default) for p in PARAMS}
