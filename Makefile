@@ -8,11 +8,15 @@ STAMP := $(VENV)/.installed
 
 venv: $(STAMP)
 
-$(STAMP): requirements.txt requirements-dev.txt
+$(STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --disable-pip-version-check -r requirements-dev.txt
-	# the source tree on the venv's path, so `python -m lie_dynamics...` works from any folder
-	$(PY) -c "import os, site; open(os.path.join(site.getsitepackages()[0], 'lie_dynamics_src.pth'), 'w').write(os.getcwd() + chr(10))"
+	# The package itself, editable: `python -m lie_dynamics...` from any folder, and the console
+	# scripts (dynamics_node, sim_node, trajectory_source, demo, fill_trajectory) in .venv/bin.
+	# --use-pep517: the legacy `setup.py develop` route would follow setup.cfg's [develop]
+	# script_dir, which puts them where colcon installs them for `ros2 run` (lib/lie_dynamics).
+	$(PY) -m pip install -q --disable-pip-version-check --no-deps --use-pep517 -e .
+	rm -f $(VENV)/lib/python*/site-packages/lie_dynamics_src.pth  # the path file of earlier versions
 	touch $(STAMP)
 
 test: $(STAMP)
@@ -25,4 +29,4 @@ demo: $(STAMP)
 	$(PY) -m lie_dynamics.demo $(ARGS)
 
 clean:
-	rm -rf $(VENV) build install log .pytest_cache
+	rm -rf $(VENV) build install log .pytest_cache lie_dynamics.egg-info

@@ -2,7 +2,9 @@
 the way `ros2 run lie_dynamics dynamics_node` resolves it:
 ament_index_python.get_package_prefix('lie_dynamics')/lib/lie_dynamics/dynamics_node.
 """
+import importlib.util
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -42,6 +44,21 @@ def test_launch_file_compiles():
         compile(fh.read(), path, 'exec')  # launch/launch_ros are not installable here
 
 
+def _check_setup_bash(ws):
+    """`source install/setup.bash` (colcon-bash) puts the package on the ament index and the path:
+    the installed executable is found the way `ros2 run` finds it, and answers --help."""
+    assert (ws / 'install' / 'setup.bash').is_file()
+    script = ('source install/setup.bash && "$PY" -c "from ament_index_python.packages import get_package_prefix; '
+              'print(get_package_prefix(\'lie_dynamics\'))" && '
+              'install/lie_dynamics/lib/lie_dynamics/dynamics_node --help')
+    env = {k: v for k, v in os.environ.items() if k not in ('AMENT_PREFIX_PATH', 'COLCON_PREFIX_PATH')}
+    r = subprocess.run(['bash', '-c', script], cwd=ws, env=dict(env, PY=sys.executable), capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    prefix, usage = r.stdout.split('\n', 1)
+    assert prefix == str(ws / 'install' / 'lie_dynamics') and usage.startswith('usage: dynamics_node'), r.stdout
+
+
 def test_colcon_build_and_ros2_run_resolution(tmp_path):
     src = tmp_path / 'src' / 'lie_dynamics'
     src.mkdir(parents=True)
@@ -55,6 +72,8 @@ def test_colcon_build_and_ros2_run_resolution(tmp_path):
                            cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert build.returncode == 0, build.stdout[-3000:] + build.stderr[-3000:]
 
+    if importlib.util.find_spec('colcon_bash') is not None:   # requirements-dev.txt installs it
+        _check_setup_bash(tmp_path)
     install = tmp_path / 'install' / 'lie_dynamics'
     env = dict(os.environ)
     # what `source install/setup.bash` would do, plus the venv's own ament prefix (ROS wheels)
@@ -73,6 +92,8 @@ def test_colcon_build_and_ros2_run_resolution(tmp_path):
     assert prefix == str(install)
     exe = os.path.join(prefix, 'lib', 'lie_dynamics', 'dynamics_node')
     assert os.path.isfile(exe) and os.access(exe, os.X_OK)
+    usage = subprocess.run([exe, '--help'], env=env, capture_output=True, text=True, timeout=120)
+    assert usage.returncode == 0 and usage.stdout.startswith('usage: dynamics_node'), usage.stdout + usage.stderr
     for other in ('sim_node', 'trajectory_source', 'demo', 'fill_trajectory'):
         path = os.path.join(prefix, 'lib', 'lie_dynamics', other)
         assert os.path.isfile(path) and os.access(path, os.X_OK), other
@@ -128,3 +149,27 @@ def test_colcon_build_and_ros2_run_resolution(tmp_path):
         spin.join(timeout=5)
         node.destroy_node()
         ctx.try_shutdown()
+
+
+def _console_scripts():
+    """The console_scripts names setup.py declares."""
+    with open(os.path.join(ROOT, 'setup.py')) as fh:
+        return re.findall(r"'(\w+) = lie_dynamics[\w.]*:main'", fh.read())
+
+
+def test_the_console_scripts_are_the_documented_executables():
+    assert sorted(_console_scripts()) == ['demo', 'dynamics_node', 'fill_trajectory', 'sim_node',
+                                          'trajectory_source']
+
+
+@pytest.mark.parametrize('name', ['dynamics_node', 'sim_node', 'trajectory_source', 'demo', 'fill_trajectory'])
+def test_console_script_in_the_venv_answers_help(name):
+    """`make venv` installs the package (pip install -e .): each console script sits next to the
+    interpreter and prints its usage under its own name."""
+    path = os.path.join(os.path.dirname(sys.executable), name)
+    if not os.path.exists(path):
+        pytest.skip(f'{name} is not next to {sys.executable}: this interpreter has the package on its path '
+                    'without installing it (`make venv` installs it with pip install -e .)')
+    r = subprocess.run([path, '--help'], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and not r.stderr, r.stdout + r.stderr
+    assert r.stdout.startswith(f'usage: {name} '), r.stdout
