@@ -22,7 +22,12 @@ the node's robot_compensates_gravity). A measured velocity of None (unavailable)
 `uses_velocity` says whether a law reads qd at all, so a caller can skip reading it. `clamp`
 limits a torque (or a batch of torques) to the effort limits and never lets a non-finite value
 through.
+
+Any finite gains, coefficients and states are accepted: a product that overflows (kp = 1e308)
+is +-inf, inf - inf is NaN, silently (no numpy warning on stderr for every state), and `clamp`
+limits or refuses the result. The public functions compute under one np.errstate each.
 """
+import functools
 from typing import NamedTuple, Optional
 
 import numpy as np
@@ -34,6 +39,16 @@ COULOMB_VELOCITY_EPSILON = 0.05
 MODES = ('gravity', 'feedforward', 'computed_torque', 'pd')
 
 
+
+def _quiet(fn):
+    """fn with numpy's overflow and invalid-value warnings off (see the module docstring)."""
+    @functools.wraps(fn)
+    def quiet(*args, **kwargs):
+        with np.errstate(over='ignore', invalid='ignore'):
+            return fn(*args, **kwargs)
+    return quiet
+
+
 # ---------------------------------------------------------------------------------------------- friction
 
 class Friction(NamedTuple):
@@ -43,7 +58,7 @@ class Friction(NamedTuple):
     eps: float = COULOMB_VELOCITY_EPSILON
 
 
-def friction_torque(v, viscous=None, coulomb=None, eps=COULOMB_VELOCITY_EPSILON):
+def _friction_torque(v, viscous=None, coulomb=None, eps=COULOMB_VELOCITY_EPSILON):
     """Friction compensation b v + fc tanh(v / eps) at velocity v, (n,) or a batch (N, n).
 
     viscous (b) and coulomb (fc): per joint (or scalars), None = that term off. The Coulomb term
@@ -58,12 +73,16 @@ def friction_torque(v, viscous=None, coulomb=None, eps=COULOMB_VELOCITY_EPSILON)
     return np.zeros(np.shape(v)) if f is None else f
 
 
-def add_friction(tau, v, friction):
+def _add_friction(tau, v, friction):
     """tau + friction_torque(v, *friction); tau itself when friction is None (off) or v is None
     (velocity unavailable, counts as 0: no friction torque)."""
     if friction is None or v is None:
         return tau
-    return tau + friction_torque(v, *friction)
+    return tau + _friction_torque(v, *friction)
+
+
+friction_torque = _quiet(_friction_torque)
+add_friction = _quiet(_add_friction)
 
 
 def make_friction(viscous=None, coulomb=None, eps=COULOMB_VELOCITY_EPSILON):
@@ -79,7 +98,7 @@ def make_friction(viscous=None, coulomb=None, eps=COULOMB_VELOCITY_EPSILON):
 
 # ---------------------------------------------------------------------------------------------- torque laws
 
-def feedback(q, qd, desired, kp=None, kd=None):
+def _feedback(q, qd, desired, kp=None, kd=None):
     """Kp (q_d - q) + Kd (qd_d - qd), or None when both gains are None (qd None counts as 0)."""
     fb = None
     if kp is not None:
@@ -90,6 +109,10 @@ def feedback(q, qd, desired, kp=None, kd=None):
     return fb
 
 
+feedback = _quiet(_feedback)
+
+
+@_quiet
 def gravity_law(model, q, qd=None, desired=None, kp=None, kd=None, friction=None, velocity_terms=False,
                 gravity=True):
     """g(q) [+ C(q, qd) qd if velocity_terms and qd is known] + f(qd). desired and gains unused."""
@@ -97,31 +120,40 @@ def gravity_law(model, q, qd=None, desired=None, kp=None, kd=None, friction=None
         tau = model.inverse_dynamics(q, qd, np.zeros(model.n), with_gravity=gravity)
     else:
         tau = model.gravity(q) if gravity else np.zeros(model.n)
-    return add_friction(tau, qd, friction)
+    return _add_friction(tau, qd, friction)
 
 
+@_quiet
 def feedforward_law(model, q, qd=None, desired=None, kp=None, kd=None, friction=None, velocity_terms=False,
                     gravity=True):
     """ID(q_d, qd_d, qdd_d) + f(qd_d) + Kp e + Kd de: the model at the desired state, PD on the error."""
     q_d, qd_d, qdd_d = desired
-    tau = add_friction(model.inverse_dynamics(q_d, qd_d, qdd_d, with_gravity=gravity), qd_d, friction)
-    fb = feedback(q, qd, desired, kp, kd)
+    tau = _add_friction(model.inverse_dynamics(q_d, qd_d, qdd_d, with_gravity=gravity), qd_d, friction)
+    fb = _feedback(q, qd, desired, kp, kd)
     return tau if fb is None else tau + fb
 
 
+@_quiet
 def computed_torque_law(model, q, qd=None, desired=None, kp=None, kd=None, friction=None, velocity_terms=False,
                         gravity=True):
     """ID(q, qd, qdd_d + Kp e + Kd de) + f(qd): always with C(q, qd) qd (velocity_terms unused)."""
     if qd is None:
         qd = np.zeros(model.n)
-    fb = feedback(q, qd, desired, kp, kd)
+    fb = _feedback(q, qd, desired, kp, kd)
     qdd = desired[2] if fb is None else desired[2] + fb
-    return add_friction(model.inverse_dynamics(q, qd, qdd, with_gravity=gravity), qd, friction)
+    try:
+        tau = model.inverse_dynamics(q, qd, qdd, with_gravity=gravity)
+    except ValueError:
+        if fb is None or np.isfinite(qdd).all():
+            raise
+        tau = np.full(np.shape(qdd), np.nan)   # an overflowing feedback: non-finite, refused by `clamp`
+    return _add_friction(tau, qd, friction)
 
 
+@_quiet
 def pd_law(model, q, qd=None, desired=None, kp=None, kd=None, friction=None, velocity_terms=False, gravity=True):
     """Kp e + Kd de only: no model terms, no friction."""
-    fb = feedback(q, qd, desired, kp, kd)
+    fb = _feedback(q, qd, desired, kp, kd)
     return np.zeros(model.n) if fb is None else fb
 
 
@@ -155,8 +187,9 @@ class EffortLimits(NamedTuple):
 
 def effort_limits(limits, scale=1.0):
     """EffortLimits of +-limits * scale (a missing limit, inf, stays unlimited also for scale 0)."""
-    lim = np.asarray(limits, dtype=float) * scale
-    lim = np.where(np.isnan(lim), np.inf, lim)  # inf * 0
+    limits = np.asarray(limits, dtype=float)
+    lim = np.full(limits.shape, np.inf)   # inf (or NaN): unlimited, also for scale 0 (no inf * 0)
+    np.multiply(limits, scale, out=lim, where=np.isfinite(limits))
     return EffortLimits(lim, np.minimum(lim, np.finfo(float).max))
 
 

@@ -3,18 +3,20 @@ the smooth friction compensation; the clamp (limits, inf, NaN, batches); and the
 shared by the streaming node and the trajectory fill."""
 import math
 import os
+import warnings
 
 import numpy as np
 import pytest
 
 from lie_dynamics import load_urdf
 from lie_dynamics.laws import (COULOMB_VELOCITY_EPSILON, LAWS, MODES, EffortLimits, Friction, add_friction, clamp,
-                               computed_torque_law, effort_limits, feedforward_law, friction_torque, gravity_law,
-                               make_friction, pd_law, torque, uses_velocity)
+                               computed_torque_law, effort_limits, feedback, feedforward_law, friction_torque,
+                               gravity_law, make_friction, pd_law, torque, uses_velocity)
 from lie_dynamics.ros.compensator import Compensator
 from lie_dynamics.ros.params import defaults
 from lie_dynamics.trajectory import fill_trajectory_efforts
 from core_cases import Clock, big_limits, make
+from test_feedforward_core import point
 
 TOL = 1e-9
 ARM = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), 'config', 'arm7.urdf')
@@ -147,6 +149,34 @@ def test_clamp_limits_inf_and_nan():
     out, over = clamp(T, [1.0, 1.0])
     assert out.tolist() == [[0.2, 1.0], [-1.0, 0.1], [0.0, 0.0]]
     assert over.tolist() == [[False, True], [True, False], [False, False]]
+
+
+@pytest.mark.parametrize('mode', MODES)
+def test_absurd_gains_give_limited_or_no_torque_without_numpy_warnings(arm, mode):
+    """kp = kd = friction = 1e308: products overflow to +-inf (or NaN) silently; the node publishes
+    the limit or nothing, never a non-finite or over-limit value, and numpy says nothing on stderr."""
+    with open(ARM) as fh:
+        xml = fh.read()
+    ctrl = list(arm.joint_names)
+    huge = [1e308]
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')   # a numpy RuntimeWarning would raise here
+        c = make(xml, ctrl, mode=mode, kp=huge, kd=huge, include_velocity_terms=True,
+                 **{'friction.viscous': huge, 'friction.coulomb': huge})
+        assert c.on_desired(ctrl, [point(np.full(arm.n, 2.0), np.full(arm.n, -3.0))])
+        lim = arm.effort_limits
+        answered = 0
+        for q, qd in ((np.zeros(arm.n), np.full(arm.n, 3.0)), (np.full(arm.n, -1.0), np.zeros(arm.n)),
+                      (np.zeros(arm.n), np.full(arm.n, -5.0)), (np.zeros(arm.n), np.full(arm.n, 1e308))):
+            tau = c.on_joint_state(ctrl, q, qd)
+            if tau is not None:
+                answered += 1
+                assert np.all(np.isfinite(tau)) and np.all(np.abs(tau) <= lim), tau
+        assert answered < 4   # the NaN cases (inf - inf) are refused
+        # the library functions themselves
+        e = feedback(np.zeros(2), np.zeros(2), (np.full(2, 2.0), np.full(2, -2.0)), np.full(2, 1e308), None)
+        assert np.all(np.isinf(e))
+        assert np.all(np.isinf(friction_torque(np.array([1e308, -1e308]), 2.0, 1.0)))
 
 
 def test_trajectory_fill_and_streaming_node_use_the_same_friction(arm):
