@@ -318,3 +318,9 @@ def test_identification_script_runs():
     assert out.returncode == 0, out.stderr
     assert 'base parameters' in out.stdout and 'held-out' in out.stdout
     assert 'not identifiable' in out.stdout
+    # the mass table: labelled columns, one row per moving body named after its link
+    lines = out.stdout.splitlines()
+    header = ['body', '(link)', 'true', 'kg', 'identified', 'kg']
+    head = next(i for i, line in enumerate(lines) if line.split() == header)
+    rows = [line.split() for line in lines[head + 1:head + 8]]
+    assert [r[0] for r in rows] == load_urdf(ARM).body_link_names == [f'link{i}' for i in range(1, 8)]

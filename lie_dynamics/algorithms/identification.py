@@ -273,8 +273,10 @@ def _example(args):
           f'the {int(big.sum())} larger than 10 std have median relative error {np.median(rel[big]):.2e}')
     print('mass per body, true vs identified (not separately identifiable where it is only '
           'seen in combinations):')
-    for i, name in enumerate(model.body_joint_names):
-        print(f'  {name:12s} {pi_true[10 * i]:8.4f} {res.parameters[10 * i]:10.4f}')
+    width = max(len('body (link)'), *(len(name) for name in model.body_link_names))
+    print(f'  {"body (link)":{width}s} {"true kg":>10s} {"identified kg":>14s}')
+    for i, name in enumerate(model.body_link_names):
+        print(f'  {name:{width}s} {pi_true[10 * i]:10.4f} {res.parameters[10 * i]:14.4f}')
     qh, qdh, qddh, tau_h, tau_h_noisy = measured(args.seed + 100, 5.0 if args.quick else 10.0)
     pred = res.predict(model, qh, qdh, qddh)
     rms_true = np.sqrt(np.mean((pred - tau_h) ** 2, axis=0))
