@@ -279,7 +279,7 @@ class Model:
     def with_body_inertias(self, J):
         """A copy whose bodies carry the spatial inertias J (nb, 6, 6) as written (payloads and
         folded links included in J: the copy has neither)."""
-        new = copy.deepcopy(self)  # (generated kernels are not copied: see kernels.Kernels.__reduce__)
+        new = copy.deepcopy(self)  # no kernel is copied: they live in codegen.runtime, shared by structure
         new._payloads = {}
         new._J_override = _frozen(np.asarray(J, dtype=float).reshape(self.nb, 6, 6))
         new._update_offsets()

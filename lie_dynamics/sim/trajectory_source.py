@@ -1,6 +1,6 @@
 """A smooth desired-state stream for the feedforward demo (ROS 2 node + the pure function).
 
-    python -m lie_dynamics.trajectory_source --ros-args -p desired_topic:=/dynamics_node/desired
+    python -m lie_dynamics.sim.trajectory_source --ros-args -p desired_topic:=/dynamics_node/desired
 
 For every joint_states message (stamped with the simulator's time t) it publishes one
 trajectory_msgs/JointTrajectory point with the desired positions, velocities and
@@ -30,7 +30,7 @@ PARAMETERS = (
     ('desired_topic', '/dynamics_node/desired', 'trajectory_msgs/JointTrajectory output'),
 )
 EXAMPLE = """
-python -m lie_dynamics.trajectory_source --ros-args -p "home:=[0.0,-0.6,0.0,2.0,0.0,1.6,0.8]" \\
+python -m lie_dynamics.sim.trajectory_source --ros-args -p "home:=[0.0,-0.6,0.0,2.0,0.0,1.6,0.8]" \\
     -p "amplitude:=[0.4]" -p "frequency:=[0.3]" -p desired_topic:=/dynamics_node/desired
 """
 
