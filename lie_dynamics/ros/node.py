@@ -7,7 +7,7 @@ commands, and feedforward efforts for joint_trajectory_controller trajectories.
 A thin shell around `compensator.Compensator` (all decisions live there and in its pieces,
 messages.py, watchdog.py, ramp.py, models.py, diagnostics.py and lie_dynamics.laws: testable
 without ROS); heavy work runs off the control path (background.py). The behaviour, parameter
-by parameter, is described in the README ("The dynamics node").
+by parameter, is described in docs/node.md.
 
 Subscribes  robot_description (std_msgs/String, reliable, transient local, depth 1)
             joint_states      (sensor_msgs/JointState, best effort, depth 1: only the newest
