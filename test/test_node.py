@@ -23,6 +23,7 @@ from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray, String  # noqa: E402
 from std_srvs.srv import SetBool, Trigger  # noqa: E402
@@ -32,6 +33,8 @@ from lie_dynamics.ros.node import DESCRIPTION_QOS, DynamicsNode  # noqa: E402
 from oracle import Oracle  # noqa: E402
 from core_cases import big_limits  # noqa: E402
 from robots import random_urdf, with_payload  # noqa: E402
+
+ROSOUT_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 TOL = 1e-9
 CMD = '/effort_controller/commands'
@@ -66,7 +69,9 @@ class Harness:
         t.create_subscription(Float64MultiArray, CMD, lambda m: self.cmds.append(np.array(m.data)), 100)
         t.create_subscription(JointState, '/dynamics_node/commanded_efforts', self.efforts.append, 100)
         t.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
-        t.create_subscription(Log, '/rosout', self._on_log, 100)
+        # rosout's own QoS (transient local, keep 1000): a line logged before the match (a loaded
+        # machine can take a second to discover the node's rosout publisher) still arrives.
+        t.create_subscription(Log, '/rosout', self._on_log, ROSOUT_QOS)
         self.node = None
         self.spin_error = None
         self.closing = False

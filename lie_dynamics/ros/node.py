@@ -124,6 +124,17 @@ class DynamicsNode(Node):
 
     def __init__(self, node_name='dynamics_node', **kwargs):
         super().__init__(node_name, **kwargs)
+        self._bg = self._gp = None
+        try:
+            self._construct()
+        except BaseException:
+            # refused at start-up: no worker thread may outlive the node, and the rcl node goes
+            # too (a half-made node keeps its /rosout publisher, which rcl shares by logger name
+            # with the next node of the same name in this process: that node's log would be lost)
+            self.destroy_node()
+            raise
+
+    def _construct(self):
         values = {}
         for spec in PARAMS:
             default = _TYPES[spec.kind] if spec.default is None else spec.default
@@ -149,12 +160,7 @@ class DynamicsNode(Node):
                                                event_callbacks=NO_PUB_EVENTS)
         self._bg = Background(self.core, self._sources, publish=self._traj_pub.publish,
                               deserialize=lambda data: deserialize_message(data, JointTrajectory))
-        self._gp = None
-        try:
-            self._start(values)
-        except BaseException:   # refused at start-up: no worker thread may outlive the node
-            self._stop_workers()
-            raise
+        self._start(values)
 
     def _start(self, values):
         """The rest of the start-up, once worker threads exist (__init__ stops them if this raises)."""
@@ -202,7 +208,8 @@ class DynamicsNode(Node):
         self.core.executor = kind
 
     def _stop_workers(self):
-        self._bg.stop()  # before the publishers go: a fill in progress may still publish
+        if self._bg is not None:
+            self._bg.stop()  # before the publishers go: a fill in progress may still publish
         if self._gp is not None:
             self._gp.stop()
 
