@@ -50,7 +50,8 @@ PARAMETERS = (
     ('rate', 1000.0, 'simulation rate, Hz, > 0'),
     ('initial_positions', [0.0], 'start pose, rad (m): one value for every joint, or one per joint'),
     ('damping', True, 'apply the URDF joint damping'),
-    ('command_topic', '/effort_controller/commands', 'std_msgs/Float64MultiArray effort commands'),
+    ('command_topic', 'effort_controller/commands',
+     'std_msgs/Float64MultiArray effort commands (relative: in the node\'s namespace)'),
     ('lockstep', False, 'step only once the command answering the last state has arrived'),
     ('lockstep_timeout', 0.05, 'lockstep: step with the held command after this many s, > 0'),
     ('resend_period', 0.01, 'lockstep: re-send an unanswered state every this many s, > 0'),
@@ -127,7 +128,8 @@ class SimNode(Node):
         # Deep history: a reliable reader whose acknowledgements lag (a busy recorder) must not lose
         # states while the lockstep loop with a fast controller runs ahead of it.
         self.state_pub = self.create_publisher(JointState, 'joint_states', 1000)
-        self.create_subscription(Float64MultiArray, self.command_topic, self._on_command, 10)
+        self.command_topic = self.create_subscription(Float64MultiArray, self.command_topic, self._on_command,
+                                                      10).topic_name  # resolved: /<ns>/...
         self.stamped_topic = v['lockstep_stamped_topic'].strip()
         self.stamped = not (self.lockstep and self.stamped_topic)  # the stamped message of this state came
         if not self.stamped:
