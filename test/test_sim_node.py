@@ -1,12 +1,16 @@
-"""sim_node and trajectory_source: bad configuration is refused with a clear message."""
+"""sim_node and trajectory_source: bad configuration is refused with a clear message; sim_node
+holds its arm until a controller commands it."""
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
 
-from lie_dynamics.sim.trajectory_source import desired_state, per_joint
+rclpy = pytest.importorskip('rclpy')
+
+from lie_dynamics.sim.trajectory_source import desired_state, per_joint  # noqa: E402
 
 ROOT = os.path.join(os.path.dirname(__file__), '..')
 
@@ -51,3 +55,59 @@ def test_desired_state_starts_at_rest_and_is_consistent():
         np.testing.assert_allclose((qp - qm) / (2 * h), qd, atol=1e-8)
         np.testing.assert_allclose((qdp - qdm) / (2 * h), qdd, atol=1e-7)
 
+
+
+def _sim_stack(**params):
+    """A SimNode with `params` and a tester node (joint_states reader, command writer), one executor."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray
+
+    from lie_dynamics.sim.sim_node import SimNode
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    tester = rclpy.create_node('sim_tester', context=ctx)
+    states = []
+    tester.create_subscription(JointState, 'joint_states', states.append, 1000)
+    cmd = tester.create_publisher(Float64MultiArray, 'effort_controller/commands', 10)
+    sim = SimNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+    for n in (tester, sim):
+        ex.add_node(n)
+
+    def spin(cond, timeout):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and not cond():
+            ex.spin_once(timeout_sec=0.01)
+        return cond()
+
+    def close():
+        ex.shutdown()
+        sim.destroy_node()
+        tester.destroy_node()
+        rclpy.shutdown(context=ctx)
+    return sim, states, cmd, spin, close
+
+
+@pytest.mark.parametrize('hold', [True, False])
+def test_sim_node_holds_the_initial_state_until_the_first_command(hold):
+    """Default (hold_until_command): an arm nobody commands stays where it started, its state
+    re-sent for late readers, and steps once a command comes. hold_until_command:=false: it falls."""
+    from std_msgs.msg import Float64MultiArray
+    params = {} if hold else {'hold_until_command': False}
+    sim, states, cmd, spin, close = _sim_stack(rate=500.0, **params)
+    try:
+        q0 = list(sim.sim.q)
+        assert spin(lambda: len(states) >= 5, 30.0), 'no joint_states'
+        if hold:
+            spin(lambda: sim.steps > 0, 1.0)  # give it every chance to step: it must not
+            assert sim.steps == 0 and sim.sim.t == 0.0
+            assert all(list(m.position) == q0 and (m.header.stamp.sec, m.header.stamp.nanosec) == (0, 0)
+                       for m in states)
+            assert spin(lambda: cmd.get_subscription_count() >= 1, 30.0)
+            cmd.publish(Float64MultiArray(data=[0.0] * len(q0)))
+        assert spin(lambda: sim.steps >= 50, 30.0), 'the simulation did not run'
+        assert list(states[-1].position) != q0  # uncompensated: it falls
+    finally:
+        close()

@@ -197,6 +197,8 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
             stack.start('sim_node', 'lie_dynamics.sim.sim_node',
                         {'rate': f'{rate:.1f}', 'initial_positions': ros_array(HOME),
                          'lockstep': 'true' if node_params is not None else 'false',
+                         # without a controller nothing ever commands: the arm must fall from the start
+                         'hold_until_command': 'true' if node_params is not None else 'false',
                          'lockstep_timeout': f'{LOCKSTEP_TIMEOUT:.1f}',
                          'min_subscribers': str(1 + (node_params is not None) + with_traj),
                          'max_steps': str(steps), **(contact_demo.sim_params(duration) if contact else {}),
