@@ -20,7 +20,10 @@ This is a benchmark, not a test: numbers depend on the machine and its load; com
 ratios to the echo nodes measured in the same run.
 """
 import argparse
+import atexit
 import os
+import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -39,8 +42,15 @@ def ros_env():
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     if 'ROS_DOMAIN_ID' not in os.environ:  # a domain no test run or other benchmark uses
         os.environ['ROS_DOMAIN_ID'] = str(reserve_domains(1)[0])
-    if 'ROS_LOG_DIR' not in os.environ:
-        os.environ['ROS_LOG_DIR'] = tempfile.mkdtemp(prefix='lie_dynamics_bench_log_')
+    if 'ROS_LOG_DIR' not in os.environ:  # the nodes' logs: nobody reads them, removed at exit
+        os.environ['ROS_LOG_DIR'] = log_dir = tempfile.mkdtemp(prefix='lie_dynamics_bench_log_')
+        atexit.register(shutil.rmtree, log_dir, ignore_errors=True)
+    if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:  # SIGTERM exits through atexit, like Ctrl-C
+        signal.signal(signal.SIGTERM, _interrupt)
+
+
+def _interrupt(*_):
+    raise KeyboardInterrupt
 
 
 def echo_main():

@@ -15,7 +15,8 @@ and stops everything (SIGINT, then SIGKILL after a grace period; also on Ctrl-C)
   5. payload                feedforward tracking with a load the node does not know, then
                             ~/identify_payload: RMS error before and after, identified vs true
                             mass and CoM (payload_demo.py)
-Prints a table and writes a PNG (joint angles and torques over time) and a CSV of the metrics.
+Prints a table and writes a PNG (joint angles and torques over time), a CSV of the metrics and
+the processes' logs (<out>/logs/<scenario>/).
 The simulator runs in lockstep with the controller (each step waits for the command answering
 the last state, and in the tracking scenarios for the desired state of the next step), so the
 numbers do not depend on how loaded the machine is, and it steps as soon as the answers are in.
@@ -23,6 +24,7 @@ numbers do not depend on how loaded the machine is, and it steps as soon as the 
 import collections
 import itertools
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -99,9 +101,13 @@ class Stack:
         for name, p, _ in self.procs:
             code = p.poll()
             if code is not None and not (code == 0 and name in self.self_ending):
-                raise RuntimeError(f'{name} exited with code {code}; see {self.log_dir}/{name}.log')
+                raise RuntimeError(f'{name} exited with code {code}; its log ends:\n{self.log_tail(name)}')
         return bool(self.self_ending) and all(p.poll() is not None for name, p, _ in self.procs
                                               if name in self.self_ending)
+
+    def log_tail(self, name, lines=20):
+        with open(os.path.join(self.log_dir, name + '.log'), errors='replace') as fh:
+            return ''.join(collections.deque(fh, lines))
 
     def __enter__(self):
         return self
@@ -129,8 +135,18 @@ class Stack:
         return False
 
 
+def log_folder(out, name):
+    """Where the demo writes the process logs of a scenario: <out>/logs/<scenario>/."""
+    return os.path.abspath(os.path.join(out, 'logs', re.sub(r'[^a-z0-9]+', '_', name.lower()).strip('_')))
+
+
 def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=None):
-    """Run one scenario for `duration` simulated seconds (0: until Ctrl-C). Returns a record dict."""
+    """Run one scenario for `duration` simulated seconds (0: until Ctrl-C). Returns a record dict.
+    The processes' output goes to log_dir/<process>.log; without log_dir to a temporary folder,
+    removed at the end (a process that fails is reported with the end of its log)."""
+    if log_dir is None:
+        with tempfile.TemporaryDirectory(prefix='lie_dynamics_demo_') as tmp:
+            return run_scenario(name, duration, rate, status, domain, tmp)
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
@@ -142,7 +158,6 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
     env = dict(os.environ)
     env['ROS_DOMAIN_ID'] = str(domain if domain is not None else reserve_domains(1)[0])
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    log_dir = log_dir or tempfile.mkdtemp(prefix='lie_dynamics_demo_')
     os.makedirs(log_dir, exist_ok=True)
     steps = int(round(duration * rate)) if duration > 0 else 0
     ctx = rclpy.Context()
@@ -318,7 +333,8 @@ scenarios: {names}
 output (in --out): demo_metrics.csv (scenario, samples, drift, rms_error, max_error; rad)
   and demo.png (joint angles and torques over simulated time); with the contact scenario also
   demo_contact.csv (estimate error, largest free-motion estimate and J^T F in N m, detection
-  delay in s, false alarms).
+  delay in s, false alarms); logs/<scenario>/<process>.log, the output of every process
+  (sim_node, dynamics_node, trajectory_source). Nothing is left in the temp dir.
 examples:
   python -m lie_dynamics.demo                          # every scenario, 10 s each
   python -m lie_dynamics.demo --duration 3 --scenarios 'gravity compensation'
@@ -369,7 +385,8 @@ def _run(args):
         for name in (['PD + feedforward'] if args.duration <= 0 else names):
             if args.duration > 0:
                 print(f'running: {name} ({args.duration:g} s simulated)', flush=True)
-            records[name] = run_scenario(name, max(args.duration, 0.0), args.rate, status=status)
+            records[name] = run_scenario(name, max(args.duration, 0.0), args.rate, status=status,
+                                         log_dir=log_folder(args.out, name))
             print()
             if records[name]['interrupted']:
                 raise KeyboardInterrupt
