@@ -2,7 +2,8 @@
 
     make demo                      # 10 s per scenario
     make demo ARGS="--duration 0"  # feedforward tracking until Ctrl-C, live status line
-                                   # (last 2 s); the plot and table cover the last minute
+                                   # (last 2 s; into a file: a line every 10 s); the plot
+                                   # and table cover the last minute
 
 Each scenario starts real processes (sim_node, dynamics_node, trajectory_source) talking
 over DDS on this machine in a DDS domain of its own, records joint_states in this process,
@@ -29,6 +30,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 
 import numpy as np
@@ -52,6 +54,9 @@ HISTORY_S = 60.0
 # controller); shorter waits made results depend on machine load.
 LOCKSTEP_TIMEOUT = 2.0
 STATUS_WINDOW_S = 2.0
+# set by Ctrl-C / SIGTERM in the demo's main: the loops stop at their next check
+STOP = threading.Event()
+STATUS_LOG_PERIOD_S = 10.0  # status lines into a file or pipe (not a terminal): at most this often
 # where trajectory_source publishes and the node (desired_topic ~/desired) listens
 DESIRED_TOPIC = '/dynamics_node/desired'
 PKG_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # lie_dynamics/
@@ -226,6 +231,7 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
             try:
                 while True:
                     ex.spin_once(timeout_sec=0.05)  # one callback: keep this loop lean, it must not lag
+                    _check_stop()
                     if caller is not None:
                         caller.tick()
                     if steps and rec['t'] and rec['t'][-1] >= duration - 0.5 / rate:
@@ -255,6 +261,17 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
     return out
 
 
+def _request_stop(*_):
+    if STOP.is_set():  # asked twice: stop at once
+        raise KeyboardInterrupt
+    STOP.set()
+
+
+def _check_stop():
+    if STOP.is_set():
+        raise KeyboardInterrupt
+
+
 def tail(rec, n):
     """The last n samples of a record of deques, as lists (cost O(n), not O(history))."""
     return {k: list(itertools.islice(reversed(v), n))[::-1] for k, v in rec.items()}
@@ -266,6 +283,7 @@ def _wait(ex, cond, timeout, stack):
         if cond():
             return True
         ex.spin_once(timeout_sec=0.05)
+        _check_stop()
         stack.check()
     return False
 
@@ -292,43 +310,46 @@ def metrics(name, rec):
 
 
 def plot(records, path):
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    """The PNG of the runs (demo_plot.py), each scenario titled with its result."""
+    from .demo_plot import plot as draw
+    notes = {}
+    for name, rec in records.items():
+        m = metrics(name, rec)
+        if 'drift' in m:
+            notes[name] = f"max drift {m['drift']:.1e} rad"
+        elif 'rms_error' in m:
+            notes[name] = f"RMS tracking error {m['rms_error']:.1e} rad"
+    draw(records, path, HOME, lambda t: desired_state(t[:, None], np.asarray(HOME), np.asarray(AMPLITUDE),
+                                                      np.asarray(FREQUENCY))[0], notes)
 
-    fig, axes = plt.subplots(2, len(records), figsize=(4.2 * len(records), 6.5), sharex=True, squeeze=False)
-    for k, (name, rec) in enumerate(records.items()):
-        t = rec['t']
-        ax_q, ax_tau = axes[0, k], axes[1, k]
-        if len(t):
-            ax_q.plot(t, rec['q'] - np.asarray(HOME) if 'compensation' in name else rec['q'], lw=1)
-            if 'compensation' not in name:
-                ax_q.set_prop_cycle(None)
-                ax_q.plot(t, desired_state(t[:, None], np.asarray(HOME), np.asarray(AMPLITUDE),
-                                           np.asarray(FREQUENCY))[0], lw=0.8, ls='--')
-            if name == contact_demo.NAME:
-                contact_demo.plot_panel(ax_tau, rec)
-            else:
-                ax_tau.plot(t, rec['tau'], lw=1)
-        if name == payload_demo.NAME:
-            payload_demo.mark(ax_q, rec)
-        ax_q.set_title(name)
-        ax_q.set_ylabel('q - q_home (rad)' if 'compensation' in name else 'q (solid), q_d (dashed) (rad)')
-        if name != contact_demo.NAME:
-            ax_tau.set_ylabel('motor torque: clipped command (Nm)')
-        ax_tau.set_xlabel('simulated time (s)')
-        ax_q.grid(alpha=0.3)
-        ax_tau.grid(alpha=0.3)
-    axes[0, 0].legend([f'joint{i + 1}' for i in range(len(HOME))], fontsize=7, ncol=2, loc='lower left')
-    fig.suptitle('lie_dynamics demo: bundled 7-DoF arm, 1 kHz simulation')
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+
+class StatusLine:
+    """The live status of an unbounded run. On a terminal one line rewritten in place (about once a
+    second, as run_scenario calls it); into a file or pipe a plain line at most every `period`
+    seconds, so a log does not fill with carriage returns."""
+
+    def __init__(self, stream, period=STATUS_LOG_PERIOD_S, clock=time.monotonic):
+        self.stream, self.period, self.clock = stream, period, clock
+        self.tty = stream.isatty()
+        self.last = None
+
+    def __call__(self, name, rec):
+        now = self.clock()
+        if not self.tty and self.last is not None and now - self.last < self.period:
+            return
+        self.last = now
+        m = metrics(name, {k: np.asarray(v, dtype=float) for k, v in rec.items()})
+        err = m.get('rms_error', m.get('drift', np.nan))
+        line = (f"{name:22s} t = {rec['t'][-1]:7.2f} s  {'rms error' if 'rms_error' in m else 'drift'} "
+                f"(last {STATUS_WINDOW_S:g} s) {err:.2e} rad")
+        self.stream.write(f'\r{line}   ' if self.tty else line + '\n')
+        self.stream.flush()
 
 
 EPILOG = """\
 --duration: simulated seconds per scenario, > 0; or 0 to run the tracking scenario
-  (PD + feedforward) until Ctrl-C with a live status line. Negative values are refused.
+  (PD + feedforward) until Ctrl-C with a live status line (rewritten in place on a
+  terminal; into a file or pipe a line every 10 s). Negative values are refused.
 scenarios: {names}
 output (in --out): demo_metrics.csv (scenario, samples, drift, rms_error, max_error; rad)
   and demo.png (joint angles and torques over simulated time); with the contact scenario also
@@ -368,21 +389,26 @@ def _prepare(args):
 
 
 def _run(args):
-    # SIGTERM (a closing terminal, a CI timeout) cleans up like Ctrl-C: no orphans, no DDS leftovers.
-    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
-    names = args.scenarios or list(scenarios())
+    # Ctrl-C and SIGTERM (a closing terminal, a CI timeout) stop the run cleanly: no orphans, no DDS
+    # leftovers, the results so far written. The handler only sets a flag that the loops check: an
+    # exception raised inside an rclpy call (where a signal usually lands) is not a clean stop.
+    STOP.clear()
+    previous = {sig: signal.signal(sig, _request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        records = _scenarios(args)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    _report(args, records)
+    return 0
 
-    def status(name, rec):
-        m = metrics(name, {k: np.asarray(v, dtype=float) for k, v in rec.items()})
-        err = m.get('rms_error', m.get('drift', np.nan))
-        sys.stdout.write(f"\r{name:22s} t = {rec['t'][-1]:7.2f} s  "
-                         f"{'rms error' if 'rms_error' in m else 'drift'} (last {STATUS_WINDOW_S:g} s) "
-                         f"{err:.2e} rad   ")
-        sys.stdout.flush()
 
+def _scenarios(args):
+    """Run the chosen scenarios (or the unbounded one); name -> record of those that ran."""
+    status = StatusLine(sys.stdout)
     records = {}
     try:
-        for name in (['PD + feedforward'] if args.duration <= 0 else names):
+        for name in (['PD + feedforward'] if args.duration <= 0 else args.scenarios or list(scenarios())):
             if args.duration > 0:
                 print(f'running: {name} ({args.duration:g} s simulated)', flush=True)
             records[name] = run_scenario(name, max(args.duration, 0.0), args.rate, status=status,
@@ -392,6 +418,11 @@ def _run(args):
                 raise KeyboardInterrupt
     except KeyboardInterrupt:
         print('\ninterrupted: processes stopped')
+    return records
+
+
+def _report(args, records):
+    """The table, the CSVs and the PNG."""
     rows = [metrics(n, r) for n, r in records.items()]
     print(f"\n{'scenario':24s} {'samples':>8s} {'max drift (rad)':>16s} {'RMS error (rad)':>16s} "
           f"{'max error (rad)':>16s}")
@@ -417,7 +448,6 @@ def _run(args):
         png = os.path.abspath(os.path.join(args.out, 'demo.png'))
         plot(records, png)
         print(f'plot: {png}')
-    return 0
 
 
 if __name__ == '__main__':
