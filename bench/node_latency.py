@@ -336,18 +336,20 @@ def markdown(rows, targets_at, soak_result, callback):
     lines = ['# joint_states -> effort round trip: the dynamics node beside bare echo nodes', '',
              f'In-process decision logic + g(q) (no DDS): median {callback[0]:.1f} µs, p99 {callback[1]:.1f} µs per '
              'message.', '',
-             '| rate Hz | node | sent | drops | p50 ms | p99 ms | p99.9 ms | max ms | late % | CPU % | p50 × echo |',
-             '|---|---|---|---|---|---|---|---|---|---|---|']
+             '| rate Hz | node | sent | drops | of which blended | p50 ms | p99 ms | p99.9 ms | max ms | late % '
+             '| CPU % | p50 × echo |',
+             '|---|---|---|---|---|---|---|---|---|---|---|---|']
     for r in rows:
-        lines.append(f"| {r['rate']:.0f} | {r['node']} | {r['sent']} | {r['drops']} | {r['p50_ms']:.3f} | "
+        lines.append(f"| {r['rate']:.0f} | {r['node']} | {r['sent']} | {r['drops']} | {r['blended']} | "
+                     f"{r['p50_ms']:.3f} | "
                      f"{r['p99_ms']:.3f} | {r['p999_ms']:.3f} | {r['max_ms']:.3f} | {r['late_pct']:.2f} | "
                      f"{r['cpu_pct']:.0f} | {r['p50_x_echo']:.2f} |")
-    blended = sum(r['blended'] for r in rows)
     lines += ['', 'late % = replies later than one period, drops included; p50 × echo: against the echo node under '
               "rclpy's default executor in the same run. Each run streams a warm-up of "
-              f'{WARMUP_S:g} s (longer than the node\'s ramp_time) and then the measured states without a pause; '
-              f'replies after the clock started that were no state\'s exact answer (blended by a ramp): '
-              f'{blended}.', '',
+              f'{WARMUP_S:g} s (longer than the node\'s ramp_time) and then the measured states without a pause. '
+              'drops = states without their exact answer; of which blended = replies that were no state\'s exact '
+              'answer: the node ramping back in after a pause longer than stale_timeout (a stall of the driver, '
+              'the node or DDS), as in production.', '',
               f'Targets at {targets_at:.0f} Hz ({CHOSEN}):', '']
     for name, ok, text in targets_status(rows, targets_at):
         lines.append(f"- {'met' if ok else 'NOT met'}: {name} ({text})")
