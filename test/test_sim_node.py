@@ -1,6 +1,8 @@
 """sim_node and trajectory_source: bad configuration is refused with a clear message; sim_node
 holds its arm until a controller commands it."""
+import glob
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -111,3 +113,57 @@ def test_sim_node_holds_the_initial_state_until_the_first_command(hold):
         assert list(states[-1].position) != q0  # uncompensated: it falls
     finally:
         close()
+
+
+UR5 = next(iter(glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-packages', 'cmeel.prefix', 'share',
+                                       'example-robot-data', 'robots', 'ur_description', 'urdf',
+                                       'ur5_robot.urdf'))), None)
+
+
+@pytest.mark.skipif(UR5 is None, reason='example-robot-data is a test dependency (requirements-dev.txt)')
+def test_sim_node_then_dynamics_node_with_defaults_hold_an_undamped_ur5():
+    """The two nodes started one after the other with their defaults (the node takes the model
+    from the simulator's robot_description): the arm waits for the controller instead of falling
+    before the first command (with hold_until_command:=false it fell 3.4 rad), then stays where
+    it started."""
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import JointState
+
+    procs = [subprocess.Popen([sys.executable, '-m', 'lie_dynamics.sim.sim_node', '--ros-args', '-p',
+                               f'urdf_path:={UR5}', '-p', 'damping:=false'], cwd=ROOT, stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True)]
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = rclpy.create_node('pair_tester', context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    states = []
+    node.create_subscription(JointState, 'joint_states', states.append, 1000)
+
+    def spin(cond, timeout):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and not cond():
+            ex.spin_once(timeout_sec=0.02)
+        return cond()
+    try:
+        assert spin(lambda: len(states) > 0, 60.0), 'no joint_states from sim_node'
+        spin(lambda: False, 1.0)  # the controller comes a while later
+        procs.append(subprocess.Popen([sys.executable, '-m', 'lie_dynamics.dynamics_node'], cwd=ROOT,
+                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
+        t = lambda m: m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec  # noqa: E731
+        assert spin(lambda: t(states[-1]) >= 2.0, 120.0), 'the simulation did not run for 2 s'
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+        logs = []
+        for p in procs:
+            p.send_signal(signal.SIGINT)
+            try:
+                logs.append(p.communicate(timeout=30)[0])
+            except subprocess.TimeoutExpired:
+                p.kill()
+                logs.append(p.communicate()[0])
+    q = np.array([m.position for m in states])
+    drift = np.max(np.abs(q - q[0]))
+    assert drift < 1e-2, (drift, logs)
