@@ -18,10 +18,10 @@ payload.*: a load the simulated arm carries that its robot_description does not 
 Parameters: see PARAMETERS below, or `python -m lie_dynamics.sim.sim_node --help`. By default
 (hold_until_command) the simulator holds the initial state until the first command arrives, so
 a controller started after it (or still loading its model) finds the arm where it started, not
-fallen. Free-running (lockstep false, the default) it then steps at `rate`. With lockstep it steps as soon as the
-command answering each published state has arrived (not on a timer: as fast as the round trip
-allows), re-sending the state every `resend_period` s and stepping anyway after
-`lockstep_timeout` s: results then do not depend on machine load. With
+fallen. Free-running (lockstep false, the default) it then steps at `rate`. With lockstep it
+steps as soon as the command answering each published state has arrived (not on a timer: as
+fast as the round trip allows), re-sending the state every `resend_period` s and stepping
+anyway after `lockstep_timeout` s: results then do not depend on machine load. With
 `lockstep_stamped_topic` it also waits for the message on that topic stamped with the state's
 time (the demo's desired state for the next step), so the controller has it before the next
 state: the loop is then as deterministic as the timer-paced one, only faster.
@@ -59,7 +59,7 @@ PARAMETERS = (
      'hold the initial state (re-sent every resend_period s) until the first command arrives, like a robot '
      'on its brakes; false: free-running starts at once and an arm nobody commands falls'),
     ('lockstep_timeout', 0.05, 'lockstep: step with the held command after this many s, > 0'),
-    ('resend_period', 0.01, 'lockstep: re-send an unanswered state every this many s, > 0'),
+    ('resend_period', 0.01, 'lockstep, or holding: re-send an unanswered state every this many s, > 0'),
     ('min_subscribers', 0, 'do not start before this many joint_states readers match, >= 0'),
     ('max_steps', 0, 'exit after this many steps, >= 0 (0: run until shut down)'),
     ('external.link', '', 'link an external wrench acts on (empty: none)'),
