@@ -14,6 +14,7 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
@@ -62,6 +63,9 @@ def test_two_namespaced_nodes_for_two_robots_in_one_domain():
     for topic, got in cmds.items():
         node.create_subscription(Float64MultiArray, topic, lambda m, got=got: got.append(np.array(m.data)), 100)
     states = {ns: node.create_publisher(JointState, f'{ns}/joint_states', 10) for ns in ROBOTS}
+    diagnostics = set()  # /diagnostics is global: each status names its node's namespace
+    node.create_subscription(DiagnosticArray, '/diagnostics',
+                             lambda m: diagnostics.update((s.name, s.hardware_id) for s in m.status), 10)
 
     def spin_until(cond, timeout=60.0):
         end = time.monotonic() + timeout
@@ -96,6 +100,9 @@ def test_two_namespaced_nodes_for_two_robots_in_one_domain():
                 np.testing.assert_allclose(tau, expected, atol=TOL, rtol=TOL)
             assert len(theirs) == n_theirs, f'{other} answered the states of {ns}'
             assert cmds['/effort_controller/commands'] == [], 'a command reached the global topic'
+        expected = {('robot1/dynamics_node: gravity compensation', 'lie_arm7'),
+                    ('robot2/dynamics_node: gravity compensation', models['/robot2'].name)}
+        assert spin_until(lambda: expected <= diagnostics, timeout=30.0), diagnostics
     finally:
         ex.shutdown()
         node.destroy_node()
