@@ -6,8 +6,13 @@ per pytest-xdist worker, so parallel workers and other runs on the machine do no
 other's topics. Each domain is reserved with a lock file held for the worker's lifetime
 (lie_dynamics.ros.domains): two test runs on one machine (a developer's and CI's, say) can never
 share a domain, which once let one run's demo processes command the other's simulated arm.
+The log/home directory is removed when the process ends, SIGTERM included (domains.py removes its
+lock files then too).
 """
+import atexit
 import os
+import shutil
+import signal
 import tempfile
 import time
 import zlib
@@ -15,8 +20,15 @@ import zlib
 from lie_dynamics.ros.domains import reserve_domains
 
 
+def _interrupt(*_):
+    raise KeyboardInterrupt  # pytest stops the session as on Ctrl-C, then exits through atexit
+
+
 def _ros_test_environment():
     tmp = tempfile.mkdtemp(prefix='lie_dynamics_ros_')
+    atexit.register(shutil.rmtree, tmp, ignore_errors=True)
+    if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:  # exit through atexit, not straight out
+        signal.signal(signal.SIGTERM, _interrupt)
     os.environ['ROS_LOG_DIR'] = os.path.join(tmp, 'log')
     os.environ['ROS_HOME'] = os.path.join(tmp, 'ros_home')
     home = os.environ.get('HOME', '')

@@ -1,5 +1,9 @@
 """The embedded default, shortened: each demo scenario through the real processes over DDS."""
 import os
+import signal
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -145,3 +149,82 @@ def test_unbounded_run_keeps_bounded_history_and_stops_cleanly(tmp_path, monkeyp
     assert rec['exit_codes'] and all(code == 0 for code in rec['exit_codes'].values()), rec['exit_codes']
     if before is not None:
         assert not _shm_port_files() - before
+
+
+# The demo as a user runs it, in a process of its own whose TMPDIR is private (so only its files are
+# seen), in the DDS domain conftest.py reserved for this worker's demo processes.
+DEMO = ('import os, sys\n'
+        'from lie_dynamics.sim import demo\n'
+        "demo.reserve_domains = lambda count, start=None: [int(os.environ['LIE_DYNAMICS_TEST_DEMO_DOMAIN'])]\n"
+        'sys.exit(demo.main(sys.argv[1:]))\n')
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _demo_process(tmp_path, *args):
+    tmp = tmp_path / 'tmp'
+    tmp.mkdir()
+    return tmp, subprocess.Popen([sys.executable, '-c', DEMO, '--out', str(tmp_path / 'out'), *args], cwd=ROOT,
+                                 env=dict(os.environ, TMPDIR=str(tmp)), stdout=subprocess.PIPE,
+                                 stderr=subprocess.STDOUT, text=True)
+
+
+def test_demo_leaves_nothing_in_the_temp_dir_and_logs_in_the_output_folder(tmp_path):
+    tmp, proc = _demo_process(tmp_path, '--duration', '0.3', '--scenarios', 'gravity compensation', 'PD only')
+    out = proc.communicate(timeout=300)[0]
+    assert proc.returncode == 0, out
+    assert os.listdir(tmp) == [], out
+    logs = tmp_path / 'out' / 'logs'
+    assert sorted(p.name for p in logs.iterdir()) == ['gravity_compensation', 'pd_only']
+    assert sorted(p.name for p in (logs / 'pd_only').iterdir()) == ['dynamics_node.log', 'sim_node.log',
+                                                                    'trajectory_source.log']
+    assert 'simulating lie_arm7' in (logs / 'pd_only' / 'sim_node.log').read_text()
+
+
+@pytest.mark.parametrize('sig', [signal.SIGTERM, signal.SIGINT])
+def test_demo_stopped_by_sigterm_or_ctrl_c_cleans_up(tmp_path, sig):
+    """--duration 0 runs until stopped: SIGTERM or Ctrl-C (SIGINT) stops every process, keeps the
+    results and leaves nothing in the temp dir."""
+    tmp, proc = _demo_process(tmp_path, '--duration', '0')
+    sim_log = tmp_path / 'out' / 'logs' / 'pd_feedforward' / 'sim_node.log'
+    end = time.monotonic() + 120
+    while time.monotonic() < end and proc.poll() is None and not (
+            sim_log.exists() and 'simulating' in sim_log.read_text()):
+        time.sleep(0.1)
+    time.sleep(1.0)  # let it run a little
+    proc.send_signal(sig)
+    out = proc.communicate(timeout=120)[0]
+    assert proc.returncode == 0 and 'interrupted: processes stopped' in out, out
+    assert '\r' not in out  # stdout is a pipe: no status line rewritten in place
+    assert (tmp_path / 'out' / 'demo.png').exists(), out
+    assert os.listdir(tmp) == [], out
+
+
+def _window(t):
+    return {'t': [t - 0.001, t], 'q': [demo.HOME, demo.HOME], 'qd': [[0.0] * 7] * 2, 'tau': [[0.0] * 7] * 2}
+
+
+def test_status_line_is_rewritten_on_a_terminal_and_throttled_into_a_file():
+    """--duration 0 calls the status about once a second: on a terminal each call rewrites the
+    line in place; into a file (a log) only every STATUS_LOG_PERIOD_S, one plain line each."""
+    import io
+    clock = [0.0]
+    log = io.StringIO()
+    status = demo.StatusLine(log, clock=lambda: clock[0])
+    for k in range(35):  # 35 s of calls, one a second
+        clock[0] = float(k)
+        status('gravity compensation', _window(k + 1.0))
+    lines = log.getvalue().splitlines()
+    assert '\r' not in log.getvalue() and len(lines) == 4  # at 0, 10, 20 and 30 s
+    assert lines[1].startswith('gravity compensation') and 't =   11.00 s' in lines[1]
+    master, follower = os.openpty()
+    try:
+        with open(follower, 'w', closefd=False) as tty:
+            status = demo.StatusLine(tty, clock=lambda: clock[0])
+            for k in range(3):
+                clock[0] = float(k)
+                status('gravity compensation', _window(k + 1.0))
+        text = os.read(master, 10000).decode()
+    finally:
+        os.close(master)
+        os.close(follower)
+    assert text.count('\r') == 3 and '\n' not in text

@@ -2,6 +2,7 @@
 the way `ros2 run lie_dynamics dynamics_node` resolves it:
 ament_index_python.get_package_prefix('lie_dynamics')/lib/lie_dynamics/dynamics_node.
 """
+import ast
 import importlib.util
 import os
 import re
@@ -41,7 +42,13 @@ def _wait(pred, timeout, what):
 def test_launch_file_compiles():
     path = os.path.join(ROOT, 'launch', 'dynamics.launch.py')
     with open(path) as fh:
-        compile(fh.read(), path, 'exec')  # launch/launch_ros are not installable here
+        tree = ast.parse(fh.read(), path)  # launch/launch_ros are not installable here: read it
+    calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)]
+    declared = {c.args[0].value for c in calls if c.func.id == 'DeclareLaunchArgument'}
+    assert {'params_file', 'namespace', 'trajectory_out'} <= declared
+    (node,) = [c for c in calls if c.func.id == 'Node']
+    ns = next(k.value for k in node.keywords if k.arg == 'namespace')  # the argument reaches the node
+    assert ast.unparse(ns) == "LaunchConfiguration('namespace')"
 
 
 def _check_setup_bash(ws):

@@ -16,12 +16,16 @@ Subscribes  robot_description (std_msgs/String, reliable, transient local, depth
                               default ~/desired
             ~/trajectory_in   (trajectory_msgs/JointTrajectory from a planner; reliable, depth 1:
                               only the newest matters; taken serialized, read off the control path)
-Publishes   <command_topic>   (std_msgs/Float64MultiArray, `joints` order), one per valid joint_states
+Publishes   <command_topic>   (std_msgs/Float64MultiArray, `joints` order), one per valid joint_states;
+                              default effort_controller/commands (relative)
             ~/trajectory_out  (~/trajectory_in with `effort` filled, reliable, depth 1; remap it to
                               the controller)
             ~/commanded_efforts (sensor_msgs/JointState, if publish_joint_state; input stamp)
             ~/external_torques, ~/collision: the momentum observer on the efforts (contact_topics.py)
-            /diagnostics      (diagnostic_msgs/DiagnosticArray, every diagnostics_period)
+            /diagnostics      (diagnostic_msgs/DiagnosticArray, every diagnostics_period; global by
+                              ROS convention, statuses named after the node's full name)
+Names: every other topic and service is relative or private, so `-r __ns:=/robot1` moves the
+node with all of them under /robot1 (several robots in one DDS domain).
 Services    ~/set_enabled (std_srvs/SetBool), ~/reload_model (std_srvs/Trigger); reliable,
             keep-last SERVICE_QUEUE requests each (beyond that the oldest unanswered ones are
             dropped and their clients wait: call with a timeout)
@@ -349,7 +353,9 @@ class DynamicsNode(Node):
         with self.lock:
             level, message, values = self._gp.report(*self._contact.monitor.report(*self.core.diagnostics()))
             m = self.core.model
-        st = DiagnosticStatus(level=bytes([level]), name=f'{self.get_name()}: gravity compensation',
+        # /diagnostics is shared by every namespace: the status names the node's namespace too
+        st = DiagnosticStatus(level=bytes([level]), name=f"{self.get_fully_qualified_name().lstrip('/')}: "
+                              'gravity compensation',
                               message=message, hardware_id=m.name if m is not None else '')
         st.values = [KeyValue(key=k, value=v) for k, v in values]
         arr = DiagnosticArray(status=[st])

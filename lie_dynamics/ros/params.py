@@ -46,8 +46,10 @@ PARAMS = (
     ParamSpec('joints', 'string_array', None,
               'Controlled joints = the effort controller\'s joint list; order of the command array. '
               'Empty: every movable non-mimic joint in URDF order.', False),
-    ParamSpec('command_topic', 'string', '/effort_controller/commands',
-              'std_msgs/Float64MultiArray effort command topic.', False),
+    ParamSpec('command_topic', 'string', 'effort_controller/commands',
+              'std_msgs/Float64MultiArray effort command topic. Relative names resolve in the node\'s '
+              'namespace: /effort_controller/commands without one, /<ns>/effort_controller/commands '
+              'under -r __ns:=/<ns>.', False),
     ParamSpec('publish_joint_state', 'bool', False,
               'Also publish the command as sensor_msgs/JointState (names + efforts) on ~/commanded_efforts.',
               True),

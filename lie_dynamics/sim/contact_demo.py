@@ -111,7 +111,8 @@ def metrics(rec):
 
 
 def plot_panel(ax, rec):
-    """True J^T F (dashed) against the estimate (solid) per joint, the collision flag shaded."""
+    """True J^T F (dashed) against the estimate (solid) per joint, the collision flag shaded (the
+    figure's legend names them)."""
     s = samples(rec)
     if s is None:
         return
@@ -123,10 +124,9 @@ def plot_panel(ax, rec):
         ax.plot(t, ext, lw=0.9)
         if flags.any():
             lo, hi = ax.get_ylim()
-            ax.fill_between(t, lo, hi, where=flags, color='red', alpha=0.12, lw=0, label='~/collision')
+            ax.fill_between(t, lo, hi, where=flags, color='red', alpha=0.15, lw=0, label='~/collision')
             ax.set_ylim(lo, hi)
-            ax.legend(fontsize=7, loc='lower left')
-    ax.set_ylabel('τ_ext: estimate (solid), Jᵀ F (dashed) (Nm)')
+    ax.set_ylabel('external torque (Nm)')
 
 
 def table(rows):

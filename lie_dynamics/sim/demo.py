@@ -2,7 +2,8 @@
 
     make demo                      # 10 s per scenario
     make demo ARGS="--duration 0"  # feedforward tracking until Ctrl-C, live status line
-                                   # (last 2 s); the plot and table cover the last minute
+                                   # (last 2 s; into a file: a line every 10 s); the plot
+                                   # and table cover the last minute
 
 Each scenario starts real processes (sim_node, dynamics_node, trajectory_source) talking
 over DDS on this machine in a DDS domain of its own, records joint_states in this process,
@@ -15,7 +16,8 @@ and stops everything (SIGINT, then SIGKILL after a grace period; also on Ctrl-C)
   5. payload                feedforward tracking with a load the node does not know, then
                             ~/identify_payload: RMS error before and after, identified vs true
                             mass and CoM (payload_demo.py)
-Prints a table and writes a PNG (joint angles and torques over time) and a CSV of the metrics.
+Prints a table and writes a PNG (joint angles and torques over time), a CSV of the metrics and
+the processes' logs (<out>/logs/<scenario>/).
 The simulator runs in lockstep with the controller (each step waits for the command answering
 the last state, and in the tracking scenarios for the desired state of the next step), so the
 numbers do not depend on how loaded the machine is, and it steps as soon as the answers are in.
@@ -23,10 +25,12 @@ numbers do not depend on how loaded the machine is, and it steps as soon as the 
 import collections
 import itertools
 import os
+import re
 import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 
 import numpy as np
@@ -50,6 +54,9 @@ HISTORY_S = 60.0
 # controller); shorter waits made results depend on machine load.
 LOCKSTEP_TIMEOUT = 2.0
 STATUS_WINDOW_S = 2.0
+# set by Ctrl-C / SIGTERM in the demo's main: the loops stop at their next check
+STOP = threading.Event()
+STATUS_LOG_PERIOD_S = 10.0  # status lines into a file or pipe (not a terminal): at most this often
 # where trajectory_source publishes and the node (desired_topic ~/desired) listens
 DESIRED_TOPIC = '/dynamics_node/desired'
 PKG_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # lie_dynamics/
@@ -99,9 +106,13 @@ class Stack:
         for name, p, _ in self.procs:
             code = p.poll()
             if code is not None and not (code == 0 and name in self.self_ending):
-                raise RuntimeError(f'{name} exited with code {code}; see {self.log_dir}/{name}.log')
+                raise RuntimeError(f'{name} exited with code {code}; its log ends:\n{self.log_tail(name)}')
         return bool(self.self_ending) and all(p.poll() is not None for name, p, _ in self.procs
                                               if name in self.self_ending)
+
+    def log_tail(self, name, lines=20):
+        with open(os.path.join(self.log_dir, name + '.log'), errors='replace') as fh:
+            return ''.join(collections.deque(fh, lines))
 
     def __enter__(self):
         return self
@@ -129,8 +140,18 @@ class Stack:
         return False
 
 
+def log_folder(out, name):
+    """Where the demo writes the process logs of a scenario: <out>/logs/<scenario>/."""
+    return os.path.abspath(os.path.join(out, 'logs', re.sub(r'[^a-z0-9]+', '_', name.lower()).strip('_')))
+
+
 def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=None):
-    """Run one scenario for `duration` simulated seconds (0: until Ctrl-C). Returns a record dict."""
+    """Run one scenario for `duration` simulated seconds (0: until Ctrl-C). Returns a record dict.
+    The processes' output goes to log_dir/<process>.log; without log_dir to a temporary folder,
+    removed at the end (a process that fails is reported with the end of its log)."""
+    if log_dir is None:
+        with tempfile.TemporaryDirectory(prefix='lie_dynamics_demo_') as tmp:
+            return run_scenario(name, duration, rate, status, domain, tmp)
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
@@ -142,7 +163,6 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
     env = dict(os.environ)
     env['ROS_DOMAIN_ID'] = str(domain if domain is not None else reserve_domains(1)[0])
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    log_dir = log_dir or tempfile.mkdtemp(prefix='lie_dynamics_demo_')
     os.makedirs(log_dir, exist_ok=True)
     steps = int(round(duration * rate)) if duration > 0 else 0
     ctx = rclpy.Context()
@@ -197,6 +217,8 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
             stack.start('sim_node', 'lie_dynamics.sim.sim_node',
                         {'rate': f'{rate:.1f}', 'initial_positions': ros_array(HOME),
                          'lockstep': 'true' if node_params is not None else 'false',
+                         # without a controller nothing ever commands: the arm must fall from the start
+                         'hold_until_command': 'true' if node_params is not None else 'false',
                          'lockstep_timeout': f'{LOCKSTEP_TIMEOUT:.1f}',
                          'min_subscribers': str(1 + (node_params is not None) + with_traj),
                          'max_steps': str(steps), **(contact_demo.sim_params(duration) if contact else {}),
@@ -209,6 +231,7 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
             try:
                 while True:
                     ex.spin_once(timeout_sec=0.05)  # one callback: keep this loop lean, it must not lag
+                    _check_stop()
                     if caller is not None:
                         caller.tick()
                     if steps and rec['t'] and rec['t'][-1] >= duration - 0.5 / rate:
@@ -238,6 +261,17 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
     return out
 
 
+def _request_stop(*_):
+    if STOP.is_set():  # asked twice: stop at once
+        raise KeyboardInterrupt
+    STOP.set()
+
+
+def _check_stop():
+    if STOP.is_set():
+        raise KeyboardInterrupt
+
+
 def tail(rec, n):
     """The last n samples of a record of deques, as lists (cost O(n), not O(history))."""
     return {k: list(itertools.islice(reversed(v), n))[::-1] for k, v in rec.items()}
@@ -249,6 +283,7 @@ def _wait(ex, cond, timeout, stack):
         if cond():
             return True
         ex.spin_once(timeout_sec=0.05)
+        _check_stop()
         stack.check()
     return False
 
@@ -275,48 +310,52 @@ def metrics(name, rec):
 
 
 def plot(records, path):
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    """The PNG of the runs (demo_plot.py), each scenario titled with its result."""
+    from .demo_plot import plot as draw
+    notes = {}
+    for name, rec in records.items():
+        m = metrics(name, rec)
+        if 'drift' in m:
+            notes[name] = f"max drift {m['drift']:.1e} rad"
+        elif 'rms_error' in m:
+            notes[name] = f"RMS tracking error {m['rms_error']:.1e} rad"
+    draw(records, path, HOME, lambda t: desired_state(t[:, None], np.asarray(HOME), np.asarray(AMPLITUDE),
+                                                      np.asarray(FREQUENCY))[0], notes)
 
-    fig, axes = plt.subplots(2, len(records), figsize=(4.2 * len(records), 6.5), sharex=True, squeeze=False)
-    for k, (name, rec) in enumerate(records.items()):
-        t = rec['t']
-        ax_q, ax_tau = axes[0, k], axes[1, k]
-        if len(t):
-            ax_q.plot(t, rec['q'] - np.asarray(HOME) if 'compensation' in name else rec['q'], lw=1)
-            if 'compensation' not in name:
-                ax_q.set_prop_cycle(None)
-                ax_q.plot(t, desired_state(t[:, None], np.asarray(HOME), np.asarray(AMPLITUDE),
-                                           np.asarray(FREQUENCY))[0], lw=0.8, ls='--')
-            if name == contact_demo.NAME:
-                contact_demo.plot_panel(ax_tau, rec)
-            else:
-                ax_tau.plot(t, rec['tau'], lw=1)
-        if name == payload_demo.NAME:
-            payload_demo.mark(ax_q, rec)
-        ax_q.set_title(name)
-        ax_q.set_ylabel('q - q_home (rad)' if 'compensation' in name else 'q (solid), q_d (dashed) (rad)')
-        if name != contact_demo.NAME:
-            ax_tau.set_ylabel('motor torque: clipped command (Nm)')
-        ax_tau.set_xlabel('simulated time (s)')
-        ax_q.grid(alpha=0.3)
-        ax_tau.grid(alpha=0.3)
-    axes[0, 0].legend([f'joint{i + 1}' for i in range(len(HOME))], fontsize=7, ncol=2, loc='lower left')
-    fig.suptitle('lie_dynamics demo: bundled 7-DoF arm, 1 kHz simulation')
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+
+class StatusLine:
+    """The live status of an unbounded run. On a terminal one line rewritten in place (about once a
+    second, as run_scenario calls it); into a file or pipe a plain line at most every `period`
+    seconds, so a log does not fill with carriage returns."""
+
+    def __init__(self, stream, period=STATUS_LOG_PERIOD_S, clock=time.monotonic):
+        self.stream, self.period, self.clock = stream, period, clock
+        self.tty = stream.isatty()
+        self.last = None
+
+    def __call__(self, name, rec):
+        now = self.clock()
+        if not self.tty and self.last is not None and now - self.last < self.period:
+            return
+        self.last = now
+        m = metrics(name, {k: np.asarray(v, dtype=float) for k, v in rec.items()})
+        err = m.get('rms_error', m.get('drift', np.nan))
+        line = (f"{name:22s} t = {rec['t'][-1]:7.2f} s  {'rms error' if 'rms_error' in m else 'drift'} "
+                f"(last {STATUS_WINDOW_S:g} s) {err:.2e} rad")
+        self.stream.write(f'\r{line}   ' if self.tty else line + '\n')
+        self.stream.flush()
 
 
 EPILOG = """\
 --duration: simulated seconds per scenario, > 0; or 0 to run the tracking scenario
-  (PD + feedforward) until Ctrl-C with a live status line. Negative values are refused.
+  (PD + feedforward) until Ctrl-C with a live status line (rewritten in place on a
+  terminal; into a file or pipe a line every 10 s). Negative values are refused.
 scenarios: {names}
 output (in --out): demo_metrics.csv (scenario, samples, drift, rms_error, max_error; rad)
   and demo.png (joint angles and torques over simulated time); with the contact scenario also
   demo_contact.csv (estimate error, largest free-motion estimate and J^T F in N m, detection
-  delay in s, false alarms).
+  delay in s, false alarms); logs/<scenario>/<process>.log, the output of every process
+  (sim_node, dynamics_node, trajectory_source). Nothing is left in the temp dir.
 examples:
   python -m lie_dynamics.demo                          # every scenario, 10 s each
   python -m lie_dynamics.demo --duration 3 --scenarios 'gravity compensation'
@@ -350,29 +389,40 @@ def _prepare(args):
 
 
 def _run(args):
-    # SIGTERM (a closing terminal, a CI timeout) cleans up like Ctrl-C: no orphans, no DDS leftovers.
-    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
-    names = args.scenarios or list(scenarios())
+    # Ctrl-C and SIGTERM (a closing terminal, a CI timeout) stop the run cleanly: no orphans, no DDS
+    # leftovers, the results so far written. The handler only sets a flag that the loops check: an
+    # exception raised inside an rclpy call (where a signal usually lands) is not a clean stop.
+    STOP.clear()
+    previous = {sig: signal.signal(sig, _request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        records = _scenarios(args)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    _report(args, records)
+    return 0
 
-    def status(name, rec):
-        m = metrics(name, {k: np.asarray(v, dtype=float) for k, v in rec.items()})
-        err = m.get('rms_error', m.get('drift', np.nan))
-        sys.stdout.write(f"\r{name:22s} t = {rec['t'][-1]:7.2f} s  "
-                         f"{'rms error' if 'rms_error' in m else 'drift'} (last {STATUS_WINDOW_S:g} s) "
-                         f"{err:.2e} rad   ")
-        sys.stdout.flush()
 
+def _scenarios(args):
+    """Run the chosen scenarios (or the unbounded one); name -> record of those that ran."""
+    status = StatusLine(sys.stdout)
     records = {}
     try:
-        for name in (['PD + feedforward'] if args.duration <= 0 else names):
+        for name in (['PD + feedforward'] if args.duration <= 0 else args.scenarios or list(scenarios())):
             if args.duration > 0:
                 print(f'running: {name} ({args.duration:g} s simulated)', flush=True)
-            records[name] = run_scenario(name, max(args.duration, 0.0), args.rate, status=status)
+            records[name] = run_scenario(name, max(args.duration, 0.0), args.rate, status=status,
+                                         log_dir=log_folder(args.out, name))
             print()
             if records[name]['interrupted']:
                 raise KeyboardInterrupt
     except KeyboardInterrupt:
         print('\ninterrupted: processes stopped')
+    return records
+
+
+def _report(args, records):
+    """The table, the CSVs and the PNG."""
     rows = [metrics(n, r) for n, r in records.items()]
     print(f"\n{'scenario':24s} {'samples':>8s} {'max drift (rad)':>16s} {'RMS error (rad)':>16s} "
           f"{'max error (rad)':>16s}")
@@ -398,7 +448,6 @@ def _run(args):
         png = os.path.abspath(os.path.join(args.out, 'demo.png'))
         plot(records, png)
         print(f'plot: {png}')
-    return 0
 
 
 if __name__ == '__main__':

@@ -102,11 +102,16 @@ def metrics(rec, desired):
     return out
 
 
-def mark(ax, rec):
-    """The call and the answer as vertical lines on a panel."""
-    for key, style in (('id_call_t', ':'), ('id_done_t', '--')):
+def mark(ax, rec, label=True):
+    """The ~/identify_payload call and its answer as vertical lines on a panel, each named at the
+    top of the panel (label) and in the figure's legend."""
+    for key, style, colour, text in (('id_call_t', ':', '0.45', 'call'), ('id_done_t', '-.', 'k', 'answer')):
         for x in rec[key]:
-            ax.axvline(x, color='k', ls=style, lw=0.8)
+            ax.axvline(x, color=colour, ls=style, lw=1.5)
+            if label:
+                ax.annotate(text, (x, 1.0), xycoords=('data', 'axes fraction'), xytext=(3, -3),
+                            textcoords='offset points', va='top', ha='left', color=colour,
+                            bbox=dict(boxstyle='round,pad=0.15', fc='white', ec='none', alpha=0.8))
 
 
 def table(rows):

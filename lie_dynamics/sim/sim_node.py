@@ -15,11 +15,13 @@ Subscribes  <command_topic> (std_msgs/Float64MultiArray, ordered as `joints`), h
 payload.*: a load the simulated arm carries that its robot_description does not show (what
 ~/identify_payload of the dynamics node has to find).
 
-Parameters: see PARAMETERS below, or `python -m lie_dynamics.sim.sim_node --help`. With lockstep
-the simulator holds the initial state until the first command arrives, then steps as soon as the
-command answering each published state has arrived (not on a timer: as fast as the round trip
-allows), re-sending the state every `resend_period` s and stepping anyway after
-`lockstep_timeout` s: results then do not depend on machine load. With
+Parameters: see PARAMETERS below, or `python -m lie_dynamics.sim.sim_node --help`. By default
+(hold_until_command) the simulator holds the initial state until the first command arrives, so
+a controller started after it (or still loading its model) finds the arm where it started, not
+fallen. Free-running (lockstep false, the default) it then steps at `rate`. With lockstep it
+steps as soon as the command answering each published state has arrived (not on a timer: as
+fast as the round trip allows), re-sending the state every `resend_period` s and stepping
+anyway after `lockstep_timeout` s: results then do not depend on machine load. With
 `lockstep_stamped_topic` it also waits for the message on that topic stamped with the state's
 time (the demo's desired state for the next step), so the controller has it before the next
 state: the loop is then as deterministic as the timer-paced one, only faster.
@@ -50,10 +52,14 @@ PARAMETERS = (
     ('rate', 1000.0, 'simulation rate, Hz, > 0'),
     ('initial_positions', [0.0], 'start pose, rad (m): one value for every joint, or one per joint'),
     ('damping', True, 'apply the URDF joint damping'),
-    ('command_topic', '/effort_controller/commands', 'std_msgs/Float64MultiArray effort commands'),
+    ('command_topic', 'effort_controller/commands',
+     'std_msgs/Float64MultiArray effort commands (relative: in the node\'s namespace)'),
     ('lockstep', False, 'step only once the command answering the last state has arrived'),
+    ('hold_until_command', True,
+     'hold the initial state (re-sent every resend_period s) until the first command arrives, like a robot '
+     'on its brakes; false: free-running starts at once and an arm nobody commands falls'),
     ('lockstep_timeout', 0.05, 'lockstep: step with the held command after this many s, > 0'),
-    ('resend_period', 0.01, 'lockstep: re-send an unanswered state every this many s, > 0'),
+    ('resend_period', 0.01, 'lockstep, or holding: re-send an unanswered state every this many s, > 0'),
     ('min_subscribers', 0, 'do not start before this many joint_states readers match, >= 0'),
     ('max_steps', 0, 'exit after this many steps, >= 0 (0: run until shut down)'),
     ('external.link', '', 'link an external wrench acts on (empty: none)'),
@@ -86,6 +92,7 @@ class SimNode(Node):
         damping = bool(v['damping'])
         self.command_topic = v['command_topic']
         self.lockstep = bool(v['lockstep'])
+        self.hold = bool(v['hold_until_command'])
         self.lockstep_timeout = float(v['lockstep_timeout'])
         self.resend_period = float(v['resend_period'])
         self.max_steps = int(v['max_steps'])
@@ -127,14 +134,15 @@ class SimNode(Node):
         # Deep history: a reliable reader whose acknowledgements lag (a busy recorder) must not lose
         # states while the lockstep loop with a fast controller runs ahead of it.
         self.state_pub = self.create_publisher(JointState, 'joint_states', 1000)
-        self.create_subscription(Float64MultiArray, self.command_topic, self._on_command, 10)
+        self.command_topic = self.create_subscription(Float64MultiArray, self.command_topic, self._on_command,
+                                                      10).topic_name  # resolved: /<ns>/...
         self.stamped_topic = v['lockstep_stamped_topic'].strip()
         self.stamped = not (self.lockstep and self.stamped_topic)  # the stamped message of this state came
         if not self.stamped:
             self.create_subscription(JointTrajectory, self.stamped_topic, self._on_stamped, 10)
         self.fresh_command = False
         self.readers_ok = False  # every joint_states reader matched and acknowledged the first state
-        self.started = not self.lockstep
+        self.started = not (self.lockstep or self.hold)  # the first step was taken (or may be)
         self.wait_ticks = 0
         # Free-running, the timer steps the simulation at `rate`. In lockstep the answers step it
         # (_ready_to_step) and the timer only re-sends and times out, so it ticks more slowly.
@@ -146,7 +154,8 @@ class SimNode(Node):
         self.timer = self.create_timer(tick, self._tick)
         self._publish_state()
         self.get_logger().info(f'simulating {model.name} ({model.n} joints) at {rate:g} Hz'
-                               f"{', lockstep' if self.lockstep else ''}; commands on {self.command_topic}")
+                               f"{', lockstep' if self.lockstep else ''}; commands on {self.command_topic}"
+                               + ('' if self.started else '; holding the initial state until the first command'))
 
     def _on_command(self, msg):
         data = np.asarray(msg.data, dtype=float)
@@ -157,6 +166,8 @@ class SimNode(Node):
             return
         self.sim.set_command(data)
         self.fresh_command = True
+        if not self.lockstep:
+            self.started = True  # hold_until_command: released; the timer steps from now on
         self._ready_to_step()
 
     def _on_stamped(self, msg):
@@ -187,7 +198,12 @@ class SimNode(Node):
             self._ready_to_step()
             return  # discovery still under way
         if not self.lockstep:
-            self._advance()
+            if self.started:
+                self._advance()
+            else:  # hold_until_command: no command yet, keep the state visible to late readers
+                self.wait_ticks += 1
+                if self.wait_ticks % self.resend_ticks == 0:
+                    self._publish_state()
             return
         if not (self.fresh_command and self.stamped):
             # The answers to the last state have not all come (yet): wait, re-sending the state

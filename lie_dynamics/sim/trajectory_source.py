@@ -27,7 +27,8 @@ PARAMETERS = (
     ('amplitude', [0.3], 'a, rad (m): the motion spans q_home .. q_home + a'),
     ('frequency', [0.25], 'f, Hz'),
     ('lead', 1e-3, 's ahead of each joint_states stamp (one simulator step)'),
-    ('desired_topic', '/dynamics_node/desired', 'trajectory_msgs/JointTrajectory output'),
+    ('desired_topic', 'dynamics_node/desired',
+     'trajectory_msgs/JointTrajectory output (relative: the dynamics node of this namespace)'),
 )
 EXAMPLE = """
 python -m lie_dynamics.sim.trajectory_source --ros-args -p "home:=[0.0,-0.6,0.0,2.0,0.0,1.6,0.8]" \\
