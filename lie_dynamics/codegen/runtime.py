@@ -72,6 +72,8 @@ THRESHOLDS = {
     # with general axes); rows from ~80 states on the arm and 20-100 up to 64 pairs, 40-280
     # for 100-300 pairs (later for chains, earlier for branched trees).
     'regressor': Limits(300, 128, 6, 80, size='pairs', large=64, rows_from_large=192),
+    # Frame Jacobians and J̇q̇ (one kernel per body and frame, O(depth) source): PROVISIONAL.
+    'jacobian': Limits(64, 64, 32, 32),
     # Batch runner: states per chunk, large enough that each ufunc's ~0.5 us fixed cost is
     # small next to its per-element work, small enough that the rows stay in cache (at most
     # ~8 MB of registers and inputs per chunk).
