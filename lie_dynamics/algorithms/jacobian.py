@@ -66,27 +66,27 @@ def _link(model, link):
 
 
 def target(model, link, frame, point):
-    """Validated (body, T, X): the target frame's body (-1: no controlled joint moves it), its
-    pose T (4x4) in the body's URDF frame, and its 12 kernel parameters X (None without a kernel)."""
+    """Validated (body, T, X, p): the link's body (-1: no controlled joint moves it), its pose T
+    (4x4) in the body's URDF frame, the target frame's 12 kernel parameters X (None without a
+    kernel) and the point as 3 floats (None: the link frame's origin)."""
     if frame not in FRAMES:
         raise ValueError(f'unknown frame {frame!r}: use one of {", ".join(repr(f) for f in FRAMES)}')
     b, T, X = runtime.derived(model, ('jacobian_link', link), lambda: _link(model, link)) \
         if isinstance(link, str) else _link(model, link)
     if point is None:
-        return b, T, X
-    p = np.asarray(point, dtype=float)
-    if p.shape != (3,):
-        raise ValueError(f'point must have shape (3,) (a point in the link frame, m), got {p.shape}')
-    if not np.all(np.isfinite(p)):
-        raise ValueError('point contains non-finite values')
-    if b < 0:
-        return b, T, X
-    T = T.copy()
-    T[:3, 3] += T[:3, :3] @ p
-    if X is not None:
-        p0, p1, p2 = p.tolist()
+        return b, T, X, None
+    p = runtime.is_fast_single(point, 3)
+    if p is None:
+        a = np.asarray(point, dtype=float)
+        if a.shape != (3,):
+            raise ValueError(f'point must have shape (3,) (a point in the link frame, m), got {a.shape}')
+        if not np.all(np.isfinite(a)):
+            raise ValueError('point contains non-finite values')
+        p = a.tolist()
+    if X is not None:   # the frame at the point: t + R p
+        p0, p1, p2 = p
         X = X[:9] + [X[9 + r] + X[3 * r] * p0 + X[3 * r + 1] * p1 + X[3 * r + 2] * p2 for r in range(3)]
-    return b, T, X
+    return b, T, X, p
 
 
 def jacobian(model, q, link, frame='world_aligned', point=None, mode=None):
@@ -106,7 +106,7 @@ def jacobian_dot_times_qd(model, q, qd, link, frame='world_aligned', point=None,
 def _call(model, kind, states, link, frame, point, mode):
     if mode not in MODES:
         raise ValueError(f'mode must be one of {MODES}, got {mode!r}')
-    b, T, X = target(model, link, frame, point)
+    b, T, X, p = target(model, link, frame, point)
     n = model.n
     shape = (6, n) if kind == 'jacobian' else (6,)
     if b >= 0 and X is not None and mode is None:
@@ -121,14 +121,14 @@ def _call(model, kind, states, link, frame, point, mode):
     if b < 0:
         out = np.zeros((N,) + shape)
     else:
-        out = _evaluate(model, kind, frame, b, T, X, arrays, mode)
+        out = _evaluate(model, kind, frame, b, T, X, p, arrays, mode)
         if out is None:
             return None
         out = out.reshape((N,) + shape)
     return out[0] if single else out
 
 
-def _evaluate(model, kind, frame, b, T, X, arrays, mode):
+def _evaluate(model, kind, frame, b, T, X, p, arrays, mode):
     N = len(arrays[0])
     if mode != 'vectorized':
         spec = traced.spec(kind, frame, b)
@@ -139,6 +139,9 @@ def _evaluate(model, kind, frame, b, T, X, arrays, mode):
         if vals is not None or mode is not None:
             return vals
     out = np.empty((N, 6, model.n) if kind == 'jacobian' else (N, 6))
+    if p is not None:
+        T = T.copy()
+        T[:3, 3] += T[:3, :3] @ p
     for sl in chunks(N, 200 * model.nb):
         out[sl] = _reference(model, kind, frame, b, T, *(a[sl] for a in arrays))
     return out
