@@ -1,14 +1,16 @@
 """Frame Jacobians and their drift J̇q̇, traced (paper eqs 13-15; algorithms/jacobian.py).
 
 Eq 13 writes the body velocity of f = M e^{[B_1] x_1} ... e^{[B_n] x_n} as a sum of
-Ad-transformed screws: column j of the body Jacobian of body i is Ad_{f_{j,i}^-1} S_j. With
-A_j = Ad_{T_j} S_j the joint's screw in the root frame at the current configuration (eq 15
-with the current screws), that column is Ad_{T_i^-1} A_j: one world pose per ancestor
-(O(depth)) instead of carrying every S_j down the chain (O(depth^2)). In the primed frames of
-codegen.frames the joint axis of body j is the third column z_j of its world rotation R_j, so
-    A_j = (z_j, t_j x z_j) (revolute),  (0, z_j) (prismatic).
-The drift is eq 19 with q̈ = 0 summed over ancestors in the root frame (the vectorised
-RNEA's form, kinematics.spatial_motion): V̇ = sum_j [V_j, A_j ẋ_j].
+Ad-transformed screws: column j of the body Jacobian of body i is Ad_{f_{j,i}^-1} S_j, i.e.
+joint j's screw expressed in frame i. It is computed here from one pose per ancestor
+(O(depth)) rather than by carrying every S_j down the chain (O(depth^2)):
+  * 'world' and 'world_aligned': T_j from the root down; with the joint axis z_j the third
+    column of R_j (codegen.frames turns every axis to z), A_j = Ad_{T_j} S_j = (z_j, t_j x z_j)
+    (revolute) or (0, z_j) (prismatic), the current screws of eq 15;
+  * 'local': the poses T_{P,j} of the joint frames in the target frame P, from P up to the
+    root; the same formula then gives Ad_{T_{P,j}} S_j = Ad_{f_{j,P}^-1} S_j directly.
+The drift is eq 19 with q̈ = 0 summed over ancestors (the vectorised RNEA's form,
+kinematics.spatial_motion): V̇ = sum_j [V_parent(j), A_j ẋ_j].
 
 Rows are linear then angular (vx vy vz wx wy wz), as Pinocchio and geometry_msgs/Twist order
 them; the paper's twists are (w, v). One kernel per (kind, frame, body): the link's pose in
@@ -35,43 +37,52 @@ def _path(fr, body):
     return out[::-1]
 
 
-def _screws(fr, g, x, path):
-    """{j: (R_j, t_j, w_j, v_j)}: world pose of primed frame j and its spatial screw A_j."""
-    out = {}
+def _screw(fr, j, R, t):
+    """(w, v, t): A_j = (z, t x z) (revolute) or (0, z) (prismatic) from the pose (R, t) of
+    primed frame j, and the joint's origin t."""
+    z = (R[0][2], R[1][2], R[2][2])
+    return ((z, la.cross(t, z)) if fr.revolute[j] else (_ZERO, z)) + (t,)
+
+
+def _columns(fr, g, x, X, path, frame):
+    """({j: (w, v, t)}, p): the screws A_j = (w, v) of the path's joints and their origins t in
+    the root frame, or in the target frame for 'local'; p the target's origin in the root frame
+    ('world_aligned' only, else None).
+
+    Root frame: T_j = T_parent f_j(x_j), from the root down. Target frame: from the target
+    T_{P,b} = X^-1 up to the root, T_{P,parent} = T_{P,j} f_j^-1 (f^-1 = (R^T, -R^T t)), so the
+    local columns need no rotation at the end."""
+    out, p = {}, None
+    if frame == 'local':
+        RX = (tuple(X[0:3]), tuple(X[3:6]), tuple(X[6:9]))
+        R = tuple(zip(*RX))
+        t = la.vscale(-1.0, la.mat_vec(R, tuple(X[9:12])))
+        for j in reversed(path):
+            out[j] = _screw(fr, j, R, t)
+            Rf, tf = fr.joint_transform(g, j, x[j])
+            R = la.mat_mat(R, tuple(zip(*Rf)))
+            t = la.vsub(t, la.mat_vec(R, tf))
+        return out, p
+    R, t = _I3, _ZERO
     for j in path:
         Rf, tf = fr.joint_transform(g, j, x[j])
-        p = fr.parent[j]
-        Rp, tp = (out[p][0], out[p][1]) if p >= 0 else (_I3, _ZERO)
-        R, t = la.mat_mat(Rp, Rf), la.vadd(tp, la.mat_vec(Rp, tf))
-        z = (R[0][2], R[1][2], R[2][2])
-        out[j] = (R, t) + ((z, la.cross(t, z)) if fr.revolute[j] else (_ZERO, z))
-    return out
-
-
-def _frame(g, X, R, t):
-    """(R_P, p_P): world pose of the target frame, X = (R_X row-major, t_X) in body frame (R, t)."""
-    RX = (tuple(X[0:3]), tuple(X[3:6]), tuple(X[6:9]))
-    return la.mat_mat(R, RX), la.vadd(t, la.mat_vec(R, tuple(X[9:12])))
+        R, t = la.mat_mat(R, Rf), la.vadd(t, la.mat_vec(R, tf))
+        out[j] = _screw(fr, j, R, t)
+    if frame == 'world_aligned':
+        p = la.vadd(t, la.mat_vec(R, tuple(X[9:12])))
+    return out, p
 
 
 def trace_jacobian(fr, g, x, X, body, frame):
     """The 6 x n Jacobian (row-major, rows v then w) of the target frame on `body`."""
     path = _path(fr, body)
-    A = _screws(fr, g, x, path)
-    Rb, tb = A[body][0], A[body][1]
-    RP, pP = _frame(g, X, Rb, tb) if frame != 'world' else (None, None)
+    A, p = _columns(fr, g, x, X, path, frame)
     cols = {}
     for j in path:
-        _, t, w, v = A[j]
-        if frame == 'world':
-            lin = v
-        elif fr.revolute[j]:    # v + w x p = w x (p - t): the point's velocity about the axis
-            lin = la.cross(w, la.vsub(pP, t))
-        else:
-            lin = v
-        if frame == 'local':
-            lin, w = la.mat_t_vec(RP, lin), la.mat_t_vec(RP, w)
-        cols[j] = tuple(lin) + tuple(w)
+        w, v, t = A[j]
+        if p is not None and fr.revolute[j]:   # v + w x p = w x (p - t): the velocity of the point p
+            v = la.cross(w, la.vsub(p, t))
+        cols[j] = tuple(v) + tuple(w)
     out = [[0.0] * fr.n for _ in range(6)]
     for k in range(fr.n):
         for j in path:
@@ -84,30 +95,29 @@ def trace_jacobian(fr, g, x, X, body, frame):
 
 def trace_drift(fr, g, x, xd, X, body, frame):
     """J̇q̇ of the target frame on `body` as Pinocchio's classical acceleration at q̈ = 0 in that
-    frame (algorithms/jacobian.py): 6 values, linear then angular."""
+    frame (algorithms/jacobian.py): 6 values, linear then angular.
+
+    V̇ = sum_j [V_parent(j), A_j ẋ_j] (eq 19, q̈ = 0) holds in the root frame and, the bracket
+    being Ad-equivariant, with the columns in the target frame too (then V̇ is the body
+    acceleration): 'local' and 'world' are both (v̇ + w x v, ẇ), each in its own frame."""
     path = _path(fr, body)
-    A = _screws(fr, g, x, path)
-    V = {}
+    A, p = _columns(fr, g, x, X, path, frame)
     wd, vd = _ZERO, _ZERO
+    V = None
     for j in path:
-        _, _, w, v = A[j]
+        w, v, _ = A[j]
         a = (la.vscale(xd[j], w), la.vscale(xd[j], v))
-        p = fr.parent[j]
-        if p >= 0:    # [V_j, A_j xd_j] = [V_parent, A_j xd_j] (eq 19, q̈ = 0)
-            bw, bv = la.bracket(V[p], a)
-            wd, vd = la.vadd(wd, bw), la.vadd(vd, bv)
-            V[j] = la.twist_add(V[p], a)
+        if V is None:
+            V = a
         else:
-            V[j] = a
-    w, vs = V[body]
-    if frame == 'world':   # the body-fixed point at the world origin
-        return list(la.vadd(vd, la.cross(w, vs))) + list(wd)
-    RP, pP = _frame(g, X, A[body][0], A[body][1])
-    pd = la.vadd(vs, la.cross(w, pP))                                   # ṗ = v + w x p
-    lin = la.vadd(la.vadd(vd, la.cross(wd, pP)), la.cross(w, pd))      # p̈ at q̈ = 0
-    if frame == 'local':
-        return list(la.mat_t_vec(RP, lin)) + list(la.mat_t_vec(RP, wd))
-    return list(lin) + list(wd)
+            bw, bv = la.bracket(V, a)
+            wd, vd = la.vadd(wd, bw), la.vadd(vd, bv)
+            V = la.twist_add(V, a)
+    w, v = V
+    if p is None:
+        return list(la.vadd(vd, la.cross(w, v))) + list(wd)
+    pd = la.vadd(v, la.cross(w, p))                                    # ṗ = v + w x p
+    return list(la.vadd(la.vadd(vd, la.cross(wd, p)), la.cross(w, pd))) + list(wd)   # p̈ at q̈ = 0
 
 
 def build(fr, kind, frame, body):
