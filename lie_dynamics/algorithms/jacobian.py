@@ -114,7 +114,7 @@ def _call(model, kind, states, link, frame, point, mode):
         if lists is not None:
             k = runtime.single(model, traced.spec(kind, frame, b))
             if k:
-                return np.array(k[0](*lists, X, *k[1])).reshape(shape)
+                return np.fromiter(k[0](*lists, X, *k[1]), float, 6 * n if kind == 'jacobian' else 6).reshape(shape)
     single = np.ndim(states[0]) == 1
     arrays = model.check_states(**dict(zip(('q', 'qd'), states)))
     N = len(arrays[0])
