@@ -264,3 +264,29 @@ def test_bad_arguments_are_refused_with_a_reason():
         model.jacobian(np.full(7, np.inf), 'tool0')
     with pytest.raises(ValueError, match='mode must be one of'):
         jac.jacobian(model, q, 'tool0', mode='fast')
+
+
+def test_eqs_13_to_15_as_corrected_in_the_architecture_notes():
+    """f^-1 ḟ for f = M e^{[B_1] x_1} e^{[B_2] x_2} e^{[B_3] x_3}: eq 13 with e^{-B x} B e^{+B x} in every
+    term, and eqs 14-15 with A_i = M B_i M^-1, equal a central difference; the summary's eq 13 term
+    e^{-B_n x_n} B_{n-1} e^{-B_n x_n} does not."""
+    from lie_dynamics.spatial import Ad, exp6, hat6, inv, vee6
+    rng = np.random.default_rng(13)
+    B = [np.concatenate([w / np.linalg.norm(w), rng.normal(size=3)]) for w in rng.normal(size=(3, 3))]
+    M = exp6(rng.normal(size=6))
+    x, xd, h = rng.normal(size=3), rng.normal(size=3), 1e-6
+
+    def f(x):
+        return M @ exp6(B[0] * x[0]) @ exp6(B[1] * x[1]) @ exp6(B[2] * x[2])
+    fd = vee6(inv(f(x)) @ (f(x + h * xd) - f(x - h * xd)) / (2 * h))
+
+    def e(S, t):
+        return exp6(S * t)
+
+    def eq13(S, sign):
+        return vee6(hat6(S[2]) * xd[2] + e(S[2], -x[2]) @ hat6(S[1]) @ e(S[2], sign * x[2]) * xd[1]
+                    + e(S[2], -x[2]) @ e(S[1], -x[1]) @ hat6(S[0]) @ e(S[1], x[1]) @ e(S[2], x[2]) * xd[0])
+    A = [Ad(M) @ b for b in B]
+    assert np.allclose(eq13(B, 1.0), fd, atol=1e-8)
+    assert np.allclose(Ad(inv(M)) @ eq13(A, 1.0), fd, atol=1e-8)     # eqs 14-15
+    assert not np.allclose(eq13(B, -1.0), fd, atol=1e-3)
