@@ -103,7 +103,24 @@ def jacobian_dot_times_qd(model, q, qd, link, frame='world_aligned', point=None,
     return _call(model, 'jacobian_dot', (q, qd), link, frame, point, mode)
 
 
+def _single(model, kind, link, frame):
+    """(float kernel, its arguments after the states, outputs, shape) for one state of a link
+    frame, or False (route, no kernel, a link no controlled joint moves); cached per version."""
+    b, _, X, _ = target(model, link, frame, None)
+    k = runtime.single(model, traced.spec(kind, frame, b)) if b >= 0 and X is not None else False
+    if not k:
+        return False
+    n = model.n
+    return k[0], (X,) + tuple(k[1]), 6 * n if kind == 'jacobian' else 6, (6, n) if kind == 'jacobian' else (6,)
+
+
 def _call(model, kind, states, link, frame, point, mode):
+    if mode is None and point is None and type(link) is str:   # one state of a link frame: the hot path
+        k = runtime.derived(model, (kind, link, frame), lambda: _single(model, kind, link, frame))
+        if k:
+            lists = runtime.fast_states(model.n, *states)
+            if lists is not None:
+                return np.fromiter(k[0](*lists, *k[1]), float, k[2]).reshape(k[3])
     if mode not in MODES:
         raise ValueError(f'mode must be one of {MODES}, got {mode!r}')
     b, T, X, p = target(model, link, frame, point)
