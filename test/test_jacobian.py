@@ -233,6 +233,30 @@ def test_links_no_controlled_joint_moves_have_zero_jacobians():
             assert np.abs(oracle.frame_jacobian(q[0], link, frame)).max() < 1e-15
 
 
+@needs_erd
+def test_links_moved_only_by_locked_joints_have_zero_jacobians():
+    """Panda controlled by joints 3-7: links 1 and 2 are modelled bodies (ancestors of controlled
+    joints) that only locked joints move; the kernels trace constant zeros for them."""
+    xml = _read(os.path.join(ERD, 'panda_description', 'urdf', 'panda.urdf'))
+    ctrl = [f'panda_joint{i}' for i in range(3, 8)]
+    locked = {'panda_joint1': 0.4, 'panda_joint2': -0.3, 'panda_finger_joint1': 0.02}
+    model = load_urdf(xml, joints=ctrl)
+    model.set_locked(locked)
+    oracle = Oracle(xml, joints=ctrl, locked=locked)
+    q, qd, _ = states(model, N=40, seed=6)       # 40 states: the rows kernel
+    for link in ('panda_link1', 'panda_link2', 'panda_link5'):
+        assert model.link_frames[link][0] >= 0
+        for frame in FRAMES:
+            J, a = model.jacobian(q, link, frame), model.jacobian_dot_times_qd(q, qd, link, frame)
+            J1 = model.jacobian(q[0], link, frame)
+            assert rel_err(J, np.array([oracle.frame_jacobian(x, link, frame) for x in q]), 1.0) < TOL
+            assert rel_err(J1[None], J[:1], 1.0) < 1e-14
+            assert rel_err(a, np.array([oracle.frame_classical_acceleration(x, v, 0 * v, link, frame)
+                                        for x, v in zip(q, qd)]), 1.0) < TOL
+            if link != 'panda_link5':
+                assert not J.any() and not J1.any() and not a.any()
+
+
 def test_a_robot_without_movable_joints():
     model = load_urdf('<robot name="r"><link name="a"/><link name="b"/><joint name="j" type="fixed">'
                       '<parent link="a"/><child link="b"/></joint></robot>')
