@@ -1,7 +1,7 @@
 """All benchmarks in one command: tables (Markdown + CSV/JSON) and PNG charts in one folder.
 
     python -m bench [--quick] [--out DIR] [--only core,lagrangian,accuracy,scaling,stability,robots,node,payload,
-                     observer] [--docs-img DIR]
+                     observer,jacobian] [--docs-img DIR]
     make bench ARGS="--quick"
 
 Sections (each writes its own files into DIR, default bench/out/):
@@ -21,6 +21,8 @@ Sections (each writes its own files into DIR, default bench/out/):
   observer    external-torque observer: estimate error against gain, detection delay against
               threshold, the node's cost per message with the observer beside without it
               (bench/observer.py)
+  jacobian    frame Jacobians and J̇q̇ in the three frames beside pin.computeFrameJacobian and
+              getFrameClassicalAcceleration, one state and batches (bench/jacobian.py)
 --quick shortens everything (a smoke test runs it); the full run takes a few minutes.
 --docs-img copies the PNG charts, palette-compressed, to DIR (docs/img: the copies docs/benchmarks.md shows).
 A failing section is reported and the others still run; the exit status is then 1.
@@ -34,7 +36,8 @@ import time
 import traceback
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-SECTIONS = ('core', 'lagrangian', 'accuracy', 'scaling', 'stability', 'robots', 'node', 'payload', 'observer')
+SECTIONS = ('core', 'lagrangian', 'accuracy', 'scaling', 'stability', 'robots', 'node', 'payload', 'observer',
+            'jacobian')
 
 
 def _core(quick, out):
@@ -88,6 +91,11 @@ def _observer(quick, out):
     observer.run(quick=quick, out=out)
 
 
+def _jacobian(quick, out):
+    from bench import jacobian
+    print(jacobian.run(quick=quick, out=out))
+
+
 def _small_copy(src, dst):
     """Copy a chart for committing: a 128-colour palette PNG is ~3x smaller and looks the same."""
     try:
@@ -102,7 +110,7 @@ def _small_copy(src, dst):
 
 RUNNERS = {'core': _core, 'lagrangian': _lagrangian, 'accuracy': _accuracy, 'scaling': _scaling,
            'stability': _stability, 'robots': _robots, 'node': _node, 'payload': _payload,
-           'observer': _observer}
+           'observer': _observer, 'jacobian': _jacobian}
 
 
 def main(argv=None):

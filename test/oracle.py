@@ -275,3 +275,27 @@ class Oracle:
         if self.model.existFrame(frame, pin.FrameType.BODY):
             return self.model.getFrameId(frame, pin.FrameType.BODY)
         return self.model.getFrameId(frame)
+
+    # ---- frame Jacobians ----
+    REFERENCE = {'world_aligned': pin.LOCAL_WORLD_ALIGNED, 'local': pin.LOCAL, 'world': pin.WORLD}
+
+    def _frame_at(self, frame, point):
+        """(parent joint, placement in it) of a URDF link's frame, moved to `point` (in that frame)."""
+        f = self.model.frames[self._frame_id(frame)]
+        placement = f.placement if point is None else f.placement * pin.SE3(np.eye(3), np.asarray(point, float))
+        return f.parentJoint, placement
+
+    def frame_jacobian(self, q, frame, reference, point=None):
+        """pin.getFrameJacobian of a link frame (or of `point` in it), (6, n) in our columns;
+        reference 'world_aligned' | 'local' | 'world'."""
+        joint, placement = self._frame_at(frame, point)
+        pin.computeJointJacobians(self.model, self.data, self.pin_q(q))
+        J = pin.getFrameJacobian(self.model, self.data, joint, placement, self.REFERENCE[reference])
+        return J @ self.E
+
+    def frame_classical_acceleration(self, q, qd, qdd, frame, reference, point=None):
+        """pin.getFrameClassicalAcceleration (linear, angular) of a link frame (or of `point` in it)."""
+        joint, placement = self._frame_at(frame, point)
+        pin.forwardKinematics(self.model, self.data, self.pin_q(q), self.pin_v(qd), self.pin_v(qdd))
+        return pin.getFrameClassicalAcceleration(self.model, self.data, joint, placement,
+                                                 self.REFERENCE[reference]).vector.copy()

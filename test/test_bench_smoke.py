@@ -75,6 +75,15 @@ def test_robots_benchmark_compares_the_two_pandas(tmp_path):
         assert fh.read(8) == PNG_MAGIC
 
 
+def test_jacobian_section_runs_every_frame_beside_pinocchio(tmp_path):
+    assert bench_main.main(['--quick', '--only', 'jacobian', '--out', str(tmp_path)]) == 0
+    cols, rows = _rows(os.path.join(str(tmp_path), 'jacobian.csv'))
+    assert cols == ['robot', 'n', 'call', 'frame', 'N', 'ours_us', 'pin_us', 'ratio_median', 'ratio_p10', 'ratio_p90']
+    assert {(r['call'], r['frame']) for r in rows if r['N'] == '1'} == \
+        {(c, f) for c in ('jacobian', 'J̇q̇') for f in ('world_aligned', 'local', 'world')}
+    assert all(float(r['ratio_median']) > 0 for r in rows)
+
+
 def test_core_benchmark_still_runs(tmp_path):
     res = core.run(quick=True, sizes=(1, 100), rounds=2)
     core.write(res, str(tmp_path))

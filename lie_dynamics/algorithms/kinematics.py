@@ -7,7 +7,7 @@ of every body are built in a handful of array operations.
 """
 import numpy as np
 
-from ..spatial import Ad
+from ..spatial import Ad, ad
 
 # Permutation swapping the angular and linear halves of a 6-vector.
 _SWAP = np.array([3, 4, 5, 0, 1, 2])
@@ -42,3 +42,17 @@ def adjoints(T):
 def spatial_screws(model, Ad):
     """A_i = Ad_{T_i} S_i: joint screws in the root frame, (N, nb, 6)."""
     return (Ad @ model.S[:, :, None])[..., 0]
+
+
+def spatial_motion(model, A, xd, xdd=None, a0=None):
+    """Root-frame twists V and accelerations Vd of every body, (N, nb, 6) each: eqs 18-19
+    summed over ancestors, V_i = sum_{j <= i} A_j xd_j and
+    Vd_i = Vd_0 + sum_{j <= i} (A_j xdd_j + [V_j, A_j xd_j]), with A = spatial_screws(...).
+    xdd None: the velocity-product (drift) part only; a0: the base acceleration Vd_0 or None."""
+    Axd = A * xd[..., None]
+    V = model.ancestors @ Axd
+    acc = (ad(V) @ Axd[..., None])[..., 0]
+    if xdd is not None:
+        acc = A * xdd[..., None] + acc
+    Vd = model.ancestors @ acc
+    return V, (Vd if a0 is None else Vd + a0)

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..codegen import runtime
 from ..codegen.traced import rnea as traced
-from .kinematics import adjoints, spatial_screws, world_poses
+from .kinematics import adjoints, spatial_motion, spatial_screws, world_poses
 from .lagrangian import chunks
 from ..spatial import ad, Ad_inv
 
@@ -152,10 +152,7 @@ def _vectorized(model, a, fext, with_gravity):
 def _rnea(model, x, xd, xdd, a0, fext):
     Ad, AdinvT = adjoints(world_poses(model, x))
     A = spatial_screws(model, Ad)
-    Axd = A * xd[..., None]
-    V = model.ancestors @ Axd                                  # eq 18, summed over ancestors
-    acc = A * xdd[..., None] + (ad(V) @ Axd[..., None])[..., 0]
-    Vd = model.ancestors @ acc + a0                             # eq 19
+    V, Vd = spatial_motion(model, A, xd, xdd, a0)              # eqs 18-19, summed over ancestors
     # to body frames (Ad_{T^-1} = AdinvT^T), where J_i is constant
     VV = np.stack([V, Vd], axis=-1)
     VVb = np.swapaxes(AdinvT, -1, -2) @ VV

@@ -86,6 +86,12 @@ class Frames:
         out[..., 3:] = np.einsum('bji,...bj->...bi', self.Q, fext[..., 3:])
         return out
 
+    def point_params(self, b, T):
+        """A frame T (4x4) fixed in body b, given in b's URDF frame, as the 12 numbers of the
+        Jacobian kernels (traced/jacobian.py): Q_b^T R row-major, then Q_b^T t (frame b')."""
+        Qt = self.Q[b].T
+        return (Qt @ T[:3, :3]).reshape(-1).tolist() + (Qt @ T[:3, 3]).tolist()
+
     def offsets(self, e0):
         return [float(e0[b]) for b in range(self.nb) if self.offset[b]]
 

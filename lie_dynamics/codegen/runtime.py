@@ -72,6 +72,11 @@ THRESHOLDS = {
     # with general axes); rows from ~80 states on the arm and 20-100 up to 64 pairs, 40-280
     # for 100-300 pairs (later for chains, earlier for branched trees).
     'regressor': Limits(300, 128, 6, 80, size='pairs', large=64, rows_from_large=192),
+    # Frame Jacobians and J̇q̇ (one kernel per kind, frame and body, O(depth) source): on random
+    # chains (tip link) the float kernel beats the vectorised form for one state up to ~96 bodies,
+    # 1.3-1.6x at 64 where a build takes 0.1-0.2 s (0.3 s at 128); on the arm the loop/rows
+    # crossover is 24-40 states, the vectorised form never faster in between.
+    'jacobian': Limits(64, 64, 32, 32),
     # Batch runner: states per chunk, large enough that each ufunc's ~0.5 us fixed cost is
     # small next to its per-element work, small enough that the rows stay in cache (at most
     # ~8 MB of registers and inputs per chunk).

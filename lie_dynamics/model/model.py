@@ -16,7 +16,7 @@ import functools
 
 import numpy as np
 
-from ..algorithms import aba, aba_derivatives, crba, kinematics, lagrangian, regressor, rnea, rnea_derivatives
+from ..algorithms import aba, aba_derivatives, crba, jacobian, kinematics, lagrangian, regressor, rnea, rnea_derivatives
 from .inertia import RTOL, link_inertia, violations
 from .inertia import inertia_scale as scale_of  # the constructor's argument has the plain name
 from ..spatial import exp6, hat3
@@ -379,6 +379,26 @@ class Model:
         if b == -1:
             return T.copy() if np.ndim(q) == 1 else np.broadcast_to(T, (len(q), 4, 4)).copy()
         return self.forward_kinematics(q)[..., b, :, :] @ T
+
+    def jacobian(self, q, link, frame='world_aligned', point=None):
+        """6 x n Jacobian of `link`'s frame, or of `point` fixed in it (in the link frame, m): maps q̇
+        (columns in q's order) to the frame's velocity. (6, n) for q (n,), (N, 6, n) for (N, n).
+        Rows LINEAR THEN ANGULAR (vx vy vz wx wy wz), as Pinocchio and geometry_msgs/Twist; the
+        paper's twists are (w, v). frame, as Pinocchio's getFrameJacobian: 'world_aligned'
+        (LOCAL_WORLD_ALIGNED: ṗ and w in root axes), 'local' (LOCAL: the same in the frame's own
+        axes) or 'world' (WORLD: the spatial twist, linear part at the root origin; `point` changes
+        nothing). Paper eqs 13-15. Mimic joints add to their master's column; locked joints add
+        nothing. A link that no controlled joint moves gets all zeros. Unknown link or frame, bad
+        point: ValueError. Details: algorithms/jacobian.py."""
+        return jacobian.jacobian(self, q, link, frame, point)
+
+    def jacobian_dot_times_qd(self, q, qd, link, frame='world_aligned', point=None):
+        """J̇q̇ for `jacobian(q, link, frame, point)`: (6,) or (N, 6), rows linear then angular. Equal
+        to Pinocchio's getFrameClassicalAcceleration at q̈ = 0, so J q̈ + J̇q̇ is the classical
+        acceleration: in 'world_aligned' (p̈, ẇ) in root axes (exactly J̇q̇), in 'local' the same in
+        the frame's axes, in 'world' that of the body-fixed point at the root origin (the last two
+        are J̇q̇ plus (w x v, 0) of the frame's twist). Details: algorithms/jacobian.py."""
+        return jacobian.jacobian_dot_times_qd(self, q, qd, link, frame, point)
 
     def __repr__(self):
         return (f'Model({self.name!r}, n={self.n}, bodies={self.nb}, joints={self.joint_names}, '
