@@ -303,6 +303,21 @@ class Compensator(TrajectoryInput):
         self._event('warn', 'reject:' + kind, self.last_error)
         return None
 
+    def on_sample(self, sample, now=None):
+        """One joint_states sample (cdr.JointStateSample) -> command or None (on_joint_state)."""
+        return self.on_joint_state(sample.names, sample.position, sample.velocity, sample.effort, now, sample.stamp)
+
+    def refuse_malformed(self, topic, text):
+        """A serialized joint_states (topic 'joint_states') or desired-state message that could not
+        be read: counted as received and rejected, logged under one problem class per topic."""
+        if topic == 'joint_states':
+            self.count.received += 1
+            return self._reject('malformed', f'malformed message: {text}')
+        self.count.desired_received += 1
+        self.count.desired_rejected += 1
+        self._event('warn', 'desired:malformed', self._error(f'desired state rejected: malformed message: {text}'))
+        return None
+
     def on_joint_state(self, names, position, velocity=(), effort=(), now=None, stamp=0):
         """One joint_states message -> command (ndarray, command order) or None (publish nothing).
         stamp: header stamp in ns (0: none); an older one than the last accepted is refused."""
