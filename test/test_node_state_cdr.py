@@ -128,6 +128,9 @@ def check_trajectory(buf, capfd):
     for p, r in zip(points, ref.points, strict=True):
         for f in ('positions', 'velocities', 'accelerations'):
             assert bits(getattr(p, f)) == bits(getattr(r, f)), buf.hex()
+    one = cdr.read_desired(buf, one=True)   # the node's reading: the same, or only the count
+    assert one[0] == names and (one[1] == range(len(points)) if len(points) != 1 else
+                                all(bits(a) == bits(b) for a, b in zip(one[1][0], points[0], strict=True)))
     return True
 
 

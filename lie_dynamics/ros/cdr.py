@@ -176,10 +176,12 @@ class Point(NamedTuple):
     accelerations: np.ndarray
 
 
-def read_desired(buf):
-    """(joint_names, points) of a serialized trajectory_msgs/JointTrajectory, every point read
-    (a desired state has one; the core refuses other counts). Raises ValueError for a
-    malformed or truncated message (Unsupported: another encoding).
+def read_desired(buf, one=False):
+    """(joint_names, points) of a serialized trajectory_msgs/JointTrajectory, every point read.
+    one=True (a desired state, which has exactly one): a message with another number of points
+    is not read beyond its count, and `points` is then range(count) (the core refuses it by its
+    length). Raises ValueError for a malformed or truncated message (Unsupported: another
+    encoding).
 
     Layout: header {int32 sec, uint32 nanosec, string frame_id}, string[] joint_names, then the
     points: float64[] positions, velocities, accelerations, effort, time_from_start {int32, uint32}."""
@@ -193,6 +195,8 @@ def read_desired(buf):
     pos += 4
     if count > (b.end - pos) // 24:   # a point takes at least its four counts and the time
         raise truncated('trajectory')
+    if one and count != 1:
+        return names, range(count)
     points = []
     for _ in range(count):
         arrays = []

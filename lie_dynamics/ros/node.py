@@ -259,7 +259,7 @@ class DynamicsNode(Node):
     def _on_desired(self, data):
         with self.lock:
             try:
-                names, points = read_desired(data)
+                names, points = read_desired(data, one=True)
             except ValueError as exc:
                 self.core.refuse_malformed('desired', str(exc))
             else:
