@@ -11,10 +11,9 @@ error text. The node's loader thread waits on the pipe without the lock.
 
 A child that dies or does not answer within `timeout` s is killed and reported by a
 `BuildLost` error (the caller keeps its model); the next build starts a new child. The child
-runs at a lower CPU priority than the node (BUILD_NICE), so that on a machine with few cores
-it takes what the control path leaves. It dies with the node: it exits on end of input,
-ignores SIGINT (a terminal's Ctrl-C goes to the node, which stops it), and asks the kernel for
-SIGKILL when the thread that started it ends (Linux), so a killed node leaves no orphan.
+dies with the node: it exits on end of input, ignores SIGINT (a terminal's Ctrl-C goes to the
+node, which stops it), and asks the kernel for SIGKILL when the thread that started it ends
+(Linux), so a killed node leaves no orphan.
 """
 import ctypes
 import os
@@ -30,9 +29,6 @@ import warnings
 from .. import InertiaWarning, load_urdf
 
 BUILD_TIMEOUT_S = 120.0   # a build that takes longer is taken for hung (a 5,000-link chain: ~3 s)
-# The child's niceness above the node's: on a machine with few cores a build must not take
-# the CPU from the control path (it is background work; the kernel gives it what is left).
-BUILD_NICE = 10
 _LEN = struct.Struct('<Q')
 _CHUNK = 1 << 20
 _PR_SET_PDEATHSIG = 1
@@ -175,7 +171,6 @@ class BuildProcess:
 def serve(parent=None):
     """The child's loop: a request in, (True, (model, warnings)) or (False, error text) out."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    os.nice(BUILD_NICE)
     try:
         ctypes.CDLL(None).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
     except (OSError, AttributeError):   # not Linux: end of input still ends the loop
