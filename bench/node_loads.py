@@ -16,15 +16,16 @@ as its window (the reference):
     max_trajectory_points from its header; filled and published with --raised).
 --raised starts the node with max_description_links 5,000, max_trajectory_points 200,000 and
 max_description_bytes 20 MB (the description is then 5,000 links). An event's window lasts
-from its start until the node says it is done (its log line, or ~/trajectory_out) plus 0.2 s
-(the diagnostics, every 0.1 s, tell when the reloads are done). --busy N runs N busy-loop
-processes beside it all along (killed at the end). Reported per event: the largest gap in the
-event window and in the quiet stretch after it, their difference (the target: at most 2 ms), replies
-against states sent, and how long the event took; with --repeat R every event runs R times and
-each column is the median. --nice N (negative: needs the privilege) runs this process and the
-node at that niceness, the busy loops at the usual one: on a machine that others load, the
-gaps then show the node rather than the scheduler. --node-src DIR runs the node of another checkout (the root that
-holds its lie_dynamics/), to compare before/after under the same conditions.
+from its start until the node is done (its diagnostics, every 0.1 s, say model_state 'ready'
+again; a trajectory: ~/trajectory_out or its rejection in the log) plus 0.2 s. --busy N runs N
+busy-loop processes beside it all along (killed at the end). Reported per event: the largest
+gap in the event window and in the quiet stretch after it, their difference (the target: at
+most 2 ms), replies against states sent, and how long the event took; with --repeat R every
+event runs R times and each column is the median. --nice N (negative: needs the privilege)
+runs this process and the node at that niceness, the busy loops at the usual one: on a machine
+that others load, the gaps then show the node rather than the scheduler. --node-src DIR runs
+the node of another checkout (the root that holds its lie_dynamics/), to compare before/after
+under the same conditions.
 This is a benchmark, not a test: the numbers depend on the machine and its load.
 """
 import argparse
