@@ -11,6 +11,8 @@ another. Events, each after a pause of QUIET_S seconds and followed by a quiet s
 as its window (the reference):
   * description: the arm with extra links on fixed joints up to the node's max_description_links
     (they fold into the arm's bodies: the model that swaps in serves as fast as the arm);
+  * chain: a chain of as many links, another robot: built in full, then refused (the
+    running model stays);
   * reloads: 20 ~/reload_model calls back to back;
   * trajectory: a 100,000-point trajectory on ~/trajectory_in (refused by the default
     max_trajectory_points from its header; filled and published with --raised).
@@ -41,7 +43,7 @@ import time
 
 import numpy as np
 
-from bench.common import arm_xml, default_urdf
+from bench.common import arm_xml, default_urdf, robot_urdf
 
 JOINTS = [f'joint{i}' for i in range(1, 8)]
 Q = np.array([0.1, 0.5, -0.2, 1.2, 0.3, 0.8, 0.1])
@@ -66,6 +68,16 @@ def folded_description(links):
                      f'<joint name="extra_fixed{i}" type="fixed"><parent link="{parent}"/><child link="extra{i}"/>'
                      f'<origin xyz="0 0 {0.001 * (i % 50)!r}"/></joint>')
     return xml.replace('</robot>', '\n'.join(parts) + '\n</robot>')
+
+
+def chain_description(links):
+    """A random chain of `links` links whose first seven joints are named like the arm's, as
+    another robot: built in full (one body per link, the rest locked), then refused by
+    description_update 'same_robot', so the running model keeps serving."""
+    xml = robot_urdf(links - 1, seed=1)
+    for k in range(1, 8):
+        xml = xml.replace(f'name="j{k:03d}"', f'name="joint{k}"')
+    return xml
 
 
 def serialized_trajectory(n):
@@ -234,6 +246,11 @@ def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):
         for k in range(repeat):
             rows.append(_event(driver, f"description ({caps['links']} links)",
                                lambda k=k: driver.desc.publish(String(data=xmls[k])),
+                               lambda t0: driver.ready_after(t0 + 0.3), 300))
+        chain = chain_description(caps['links'])
+        for k in range(repeat):
+            rows.append(_event(driver, f"chain, refused after its build ({caps['links']} links)",
+                               lambda k=k: driver.desc.publish(String(data=chain + f'<!-- {k} -->')),
                                lambda t0: driver.ready_after(t0 + 0.3), 300))
 
         def reloads():
