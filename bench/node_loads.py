@@ -228,7 +228,9 @@ def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):
     for b in burners:
         os.setpriority(os.PRIO_PROCESS, b.pid, base)
     helpers = []
+    # `-m` puts the working directory first on the path: run there the checkout to be measured
     proc = subprocess.Popen([sys.executable, '-m', 'lie_dynamics.dynamics_node', '--ros-args', *params], env=env,
+                            cwd=os.path.abspath(node_src) if node_src else None,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     ctx = Context()
     rclpy.init(context=ctx)

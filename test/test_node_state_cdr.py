@@ -211,18 +211,25 @@ FLOOD_S = 2.0
 FLOOD_HZ = 1000
 
 
-def _garbage(rng):
-    """Serialized messages that are not valid: counts beyond the buffer, truncated, foreign encodings.
-    Made from a state of joints the node does not control: the transport may hand a truncated
-    message over in a reused buffer, its missing tail filled from an earlier message (seen with
-    rmw_fastrtps across processes), which would make it whole again."""
-    good = bytes(serialize_message(JointState(name=[f'x{i}' for i in range(7)], position=Q.tolist())))
-    kind = rng.randrange(4)
-    if kind == 0:
-        return good[:12] + (2**31).to_bytes(4, 'little') + good[16:]   # frame_id length far beyond the end
-    if kind == 1:
-        return good[:rng.randrange(5, len(good) - 8)]   # cut before the end of the data (not the padding)
+def _garbage(rng, desired):
+    """Serialized messages that are not valid: a sequence count beyond the buffer (what makes
+    rclpy's deserializer print "sequence size exceeds remaining buffer"), truncated, a foreign
+    encoding, random bytes. Made from joints the node does not control: the transport may hand
+    a truncated message over in a reused buffer, its missing tail filled from an earlier message
+    (seen with rmw_fastrtps across processes), which would make it whole again."""
+    if desired:
+        good = bytes(serialize_message(JointTrajectory(joint_names=['x0', 'x1'], points=[
+            JointTrajectoryPoint(positions=[1.0, 2.0], velocities=[0.0, 0.0])])))
+        count = good.find(struct.pack('<dd', 1.0, 2.0)) + 16   # the velocities count
+    else:
+        good = bytes(serialize_message(JointState(name=[f'x{i}' for i in range(7)], position=Q.tolist())))
+        count = good.rfind((7).to_bytes(4, 'little'))           # the positions count
+    kind = rng.randrange(5)
+    if kind < 2:
+        return good[:count] + (2**30 + rng.randrange(2**20)).to_bytes(4, 'little') + good[count + 4:]
     if kind == 2:
+        return good[:rng.randrange(5, count)]   # cut before the end of the data (not the padding)
+    if kind == 3:
         return b'\x00\x07\x00\x00' + good[4:]
     return bytes(rng.randrange(256) for _ in range(rng.randint(8, 64)))
 
@@ -276,7 +283,7 @@ def test_garbage_flood_is_logged_bounded_and_valid_states_answered(tmp_path):
             if k % 20 == 10:   # a valid state every 20 ms, between garbage
                 js.publish(valid[k // 20])
             else:
-                (js if k % 2 else desired).publish(_garbage(rng))
+                (js if k % 2 else desired).publish(_garbage(rng, desired=not k % 2))
             k += 1
             ex.spin_once(timeout_sec=0)
             pause = t0 + k / FLOOD_HZ - time.monotonic()
