@@ -211,11 +211,15 @@ def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):
 
     from lie_dynamics.ros.domains import reserve_domains
     tmp = tempfile.mkdtemp(prefix='lie_dynamics_node_loads_')
-    env = dict(os.environ, ROS_LOG_DIR=os.path.join(tmp, 'log'), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    env = dict(os.environ, ROS_LOG_DIR=os.path.join(tmp, 'log'))
+    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     env.setdefault('ROS_DOMAIN_ID', str(reserve_domains(1)[0]))
     if node_src:
         env['PYTHONPATH'] = os.pathsep.join(p for p in (os.path.abspath(node_src), env.get('PYTHONPATH')) if p)
-    os.environ.update({k: env[k] for k in ('ROS_LOG_DIR', 'ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
+    # this process talks to the node on its domain; its own log stays where rclpy put it (the
+    # temporary folder is removed at the end, and rclpy may log after that)
+    for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID'):
+        os.environ.setdefault(k, env[k])
     caps = RAISED_CAPS if raised else DEFAULT_CAPS
     params = ['-p', f'urdf_path:={default_urdf()}', '-p', f'command_topic:={CMD}', '-p', 'diagnostics_period:=0.1',
               '-p', f"max_description_links:={caps['links']}", '-p', f"max_trajectory_points:={caps['points']}"]
