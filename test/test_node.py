@@ -39,6 +39,10 @@ ROSOUT_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, dura
 TOL = 1e-9
 CMD = '/effort_controller/commands'
 TIMEOUT = 10.0
+# A description from the topic is built in a child process that starts cold (a Python interpreter,
+# numpy, the package) and its kernels are generated before the swap: seconds on a loaded 2-core
+# machine, which a test of what the node does with the model does not measure.
+MODEL_TIMEOUT = 60.0
 
 
 _current = None
@@ -117,7 +121,7 @@ class Harness:
         wait_until(lambda: self.js_pub.get_subscription_count() >= 1 and self.t.count_publishers(CMD) >= 1,
                    what='discovery')
         if wait_model:
-            wait_until(lambda: self.node.core.model is not None, what='model')
+            wait_until(lambda: self.node.core.model is not None, timeout=MODEL_TIMEOUT, what='model')
         return self.node
 
     def publish(self, names, position, velocity=(), effort=()):
@@ -407,7 +411,7 @@ def test_no_model_publishes_nothing_and_parameter_validation(ros, chain):
     wait_until(lambda: any('no robot model' in line for line in ros.logs), what='no-model log')
     assert ros.cmds == []
     ros.desc_pub.publish(String(data=xml))
-    wait_until(lambda: node.core.model is not None, what='model')
+    wait_until(lambda: node.core.model is not None, timeout=MODEL_TIMEOUT, what='model')
     np.testing.assert_allclose(ros.send(ctrl, q), Oracle(xml, joints=ctrl).gravity(q), atol=TOL, rtol=0)
     assert sum('no robot model' in line for line in ros.logs) == 1   # said once
 
