@@ -14,21 +14,23 @@ import re
 
 import numpy as np
 
+from . import native
 from .tracer import Sym
 
-def _render_form(items, const, ref):
-    """Text of sum c_k * atom_k + const; ref(atom, need) gives an atom's text."""
+def form_text(items, const, ref, literal=repr):
+    """Text of sum c_k * atom_k + const; ref(atom, need) gives an atom's text, literal a
+    constant's (the C renderer shares this: the same order of operations, the same results)."""
     items = sorted(items, key=lambda t: t[1] < 0)   # a positive term first when there is one
     out = []
     for k, (a, c) in enumerate(items):
         mag = abs(c)
-        body = ref(a, 2) if mag == 1.0 else f'{mag!r}*{ref(a, 2)}'
+        body = ref(a, 2) if mag == 1.0 else f'{literal(mag)}*{ref(a, 3)}'
         if c < 0:
             out.append(('-' if k == 0 else ' - ') + body)
         else:
             out.append(('' if k == 0 else ' + ') + body)
     if const != 0.0:
-        out.append(f' - {-const!r}' if const < 0 else f' + {const!r}')
+        out.append(f' - {literal(-const)}' if const < 0 else f' + {literal(const)}')
     s = ''.join(out)
     single = len(items) == 1 and const == 0.0
     if single and items[0][1] == 1.0:
@@ -68,11 +70,11 @@ def emit(g, fname, arg_lists, outputs, inline_limit=24):
             names[i] = data
             continue
         if op == 'mul':
-            s, p = f'{ref(data[0], 2)}*{ref(data[1], 2)}', 2
+            s, p = f'{ref(data[0], 2)}*{ref(data[1], 3)}', 2
         elif op == 'inv':
             s, p = f'1.0/{ref(data, 3)}', 2
         elif op == 'lin':
-            s, p = _render_form(data[0], data[1], ref)
+            s, p = form_text(data[0], data[1], ref)
         else:
             s, p = f'{op}({ref(data, 0)})', _PREC_ATOM
         n_ops = 1 + sum(size.get(a, 0) for a in deps(i) if a in text)
@@ -85,7 +87,7 @@ def emit(g, fname, arg_lists, outputs, inline_limit=24):
     def out(o):
         if not isinstance(o, Sym):
             return repr(float(o))
-        return _render_form(tuple(o.terms.items()), o.const, ref)[0]
+        return form_text(tuple(o.terms.items()), o.const, ref)[0]
 
     ret = f'({", ".join(out(o) for o in outputs)}{"," if len(outputs) == 1 else ""})'
     lines, ret = _registers(lines, ret)
@@ -288,6 +290,8 @@ def kernel(g, fname, arg_lists, outputs):
     fn.n_out = len(outputs)
     fn.pool = []   # reusable register blocks of the rows form (runtime.run_rows)
     fn.layout = None
+    # the trace, for the C renderer (runtime.native renders it once, then drops it)
+    fn.trace = (g, arg_lists, outputs) if native.wanted() else None
     return fn, src
 
 

@@ -21,6 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from . import crender, native as _native
 from .frames import Frames
 from .render import rows_function
 
@@ -35,6 +36,7 @@ class Limits(NamedTuple):
     size: str = 'bodies'
     large: int = None         # above this size, rows from rows_from_large states
     rows_from_large: int = None
+    native_max: int = None    # no native kernel above this size (C compile time); None: compile_max
 
 
 # Every size threshold of the algorithms, with the measurement that chose it (timings on the
@@ -82,6 +84,9 @@ THRESHOLDS = {
     'regressor_rows_chunk': 8192,
     # Vectorised references: floats of work arrays per chunk of states (2^21: 16 MB).
     'vectorized_budget': 1 << 21,
+    # Native batches release the GIL from this many states (below, the release costs more
+    # than other threads gain).
+    'native_gil_rows': 64,
     # Compiled kernels kept for structures no live model uses (about 10 per structure).
     'compiled_cache': 256,
 }
@@ -109,12 +114,12 @@ def route(model, name, N=None):
 class _Slot:
     """What the runtime keeps for one live model (dropped with it): its fingerprint, Frames and
     kernels (structure, never invalidated) and values that follow the model's version."""
-    __slots__ = ('ref', 'version', 'fingerprint', 'frames', 'kernels', 'structure', 'values', 'singles')
+    __slots__ = ('ref', 'version', 'fingerprint', 'frames', 'kernels', 'structure', 'values', 'singles', 'natives')
 
     def __init__(self, model):
         self.ref = weakref.ref(model)
         self.version, self.fingerprint, self.frames = None, None, None
-        self.kernels, self.structure, self.values, self.singles = {}, {}, {}, {}
+        self.kernels, self.structure, self.values, self.singles, self.natives = {}, {}, {}, {}, {}
 
 
 _SLOTS = {}                                   # id(model) -> _Slot, removed when the model dies
@@ -129,7 +134,7 @@ def _slot(model):
         s = _SLOTS[id(model)] = _Slot(model)
         weakref.finalize(model, _SLOTS.pop, id(model), None)
     if s.version != model.version:
-        s.values, s.singles = {}, {}          # new dicts: concurrent readers keep the old ones
+        s.values, s.singles, s.natives = {}, {}, {}   # new dicts: concurrent readers keep the old ones
         s.version = model.version
     return s
 
@@ -262,18 +267,25 @@ class Spec:
     condition on the model, or None), `rows_arrays` (parameters of the rows form as 0-d
     arrays, see as_rows) and `checked` (callers check the outputs: the rows form runs
     without floating-point warnings) and `pooled` (the batch runner keeps its register blocks
-    between calls: run_rows)."""
-    __slots__ = ('name', 'build', 'params', 'limits', 'supports', 'rows_arrays', 'checked', 'pooled')
+    between calls: run_rows). For the native backend: `result` (model) -> (shape of one
+    state's result, its first prod(shape) outputs, checked finite; rtol: None, or the
+    outputs after it are pivots then their scales, as many each, accepted above rtol times
+    the scale), None for all outputs as a vector; `scatter` (kernel) -> (flat indices,
+    size) when the outputs are the non-zero entries of a larger result. Parameter
+    functions are called (model, kernel) and (model, None) for the native backend."""
+    __slots__ = ('name', 'build', 'params', 'limits', 'supports', 'rows_arrays', 'checked', 'pooled', 'result',
+                 'scatter')
 
     def __init__(self, name, build, params, limits, supports=None, rows_arrays=False, checked=False,
-                 pooled=False):
+                 pooled=False, result=None, scatter=None):
         self.name, self.build, self.params, self.limits = name, build, tuple(params), limits
         self.supports, self.rows_arrays, self.checked, self.pooled = supports, rows_arrays, checked, pooled
+        self.result, self.scatter = result, scatter
 
     def variant(self, params):
         """The same kernel with other parameter lists (e.g. gravity switched off)."""
         return Spec(self.name, self.build, params, self.limits, self.supports, self.rows_arrays, self.checked,
-                    self.pooled)
+                    self.pooled, self.result, self.scatter)
 
 
 def kernel(model, spec):
@@ -320,6 +332,69 @@ def single(model, spec):
     return b
 
 
+def _native_library(model, spec):
+    """The compiled C kernel of spec for this model's structure (native.Library), or False."""
+    t = THRESHOLDS[spec.limits]
+    size = model.nb if t.size == 'bodies' else pairs(model)
+    if size > (t.compile_max if t.native_max is None else t.native_max) or not _native.wanted():
+        return False
+    if (spec.supports is not None and not spec.supports(model)) or not frames(model).supported:
+        return False
+
+    def render():
+        k = kernel(model, spec)
+        if not k or k[1].trace is None:
+            return None
+        g, arg_lists, outputs = k[1].trace
+        k[1].trace = None                     # rendered once per structure (the library is cached)
+        n_state = len(arg_lists) - len(spec.params)
+        roles = ['state'] * n_state + ['param'] * len(spec.params)
+        index, size = spec.scatter(k) if spec.scatter else (None, None)
+        src = crender.emit_c(g, 'lie_kernel', arg_lists, roles, outputs, index, size)
+        return (src, [len(a) for _, a in arg_lists[:n_state]], [len(a) for _, a in arg_lists[n_state:]],
+                size or len(outputs))
+
+    def make():
+        return _native.library(fingerprint(model), spec.name, render) or False
+    s = _slot(model)
+    key = ('native', spec.name)
+    lib = s.kernels.get(key)
+    if lib is None:
+        lib = s.kernels[key] = _shared((fingerprint(model), key), make)
+    return lib
+
+
+def native(model, spec):
+    """spec's kernel compiled to C with this model's parameters bound (native.bind): call it
+    with the per-state arrays (n,) or (N, n) and an optional `out`; it returns the result or
+    None (input not contiguous float64 of the right shapes, or a result that is not finite
+    or fails the pivot test: the caller's full path takes over). None when the model has no
+    native kernel (backend off or unavailable, too large, unsupported). Cached until the
+    model's version changes."""
+    s = _SLOTS.get(id(model))   # the hot path of a control loop: _slot, inlined
+    if s is None or s.version != model.version or s.ref() is not model:
+        s = _slot(model)
+    b = s.natives.get(spec)
+    if b is None:
+        b = s.natives[spec] = _bind_native(model, spec) or False
+    return b or None
+
+
+def _bind_native(model, spec):
+    lib = _native_library(model, spec)
+    if not lib:
+        return None
+    try:
+        P = tuple(parameter(model, p) if isinstance(p, str) else p(model, None) for p in spec.params)
+    except (ValueError, ZeroDivisionError, OverflowError):
+        return None
+    if tuple(len(p) for p in P) != lib.par_lengths:
+        return None
+    shape, rtol = spec.result(model) if spec.result else ((lib.n_out,), None)
+    n_res = int(np.prod(shape))
+    return _native.bind(lib, P, n_res, shape, rtol is not None, rtol or 0.0, THRESHOLDS['native_gil_rows'])
+
+
 def forget(model):
     """Drop what the runtime keeps for this model (e.g. after changing THRESHOLDS); its
     kernels come back from the shared cache."""
@@ -342,6 +417,23 @@ def evaluate(model, spec, arrays, mode, out=None):
                         pooled=spec.pooled)
     except (ValueError, ZeroDivisionError, OverflowError):   # also from parameters alone, as floats
         return None
+
+
+def check_out(out, shape):
+    """`out` when it is a writeable float64 array of this shape (or None), else ValueError."""
+    if out is not None and not (isinstance(out, np.ndarray) and out.dtype == _F64 and out.shape == tuple(shape)
+                                and out.flags.writeable):
+        got = f'{out.dtype} array of shape {out.shape}' if isinstance(out, np.ndarray) else type(out).__name__
+        raise ValueError(f'out must be a writeable float64 array of shape {tuple(shape)}, got {got}')
+    return out
+
+
+def deliver(result, out):
+    """result, written into `out` when given (checked by check_out before the work)."""
+    if out is None:
+        return result
+    out[...] = result
+    return out
 
 
 def check_mode(mode):

@@ -16,6 +16,7 @@ import numpy as np
 from .. import algebra as la
 from .. import runtime
 from ..render import kernel
+from ...algorithms.cholesky import PD_RTOL
 from ..runtime import Spec
 from ..tracer import SNAP, Graph, Sym, snap
 from ...spatial import hat3
@@ -441,9 +442,19 @@ def supports(model):
     return runtime.structural(model, 'one_body_per_joint', compute)
 
 
+def _geometry(model):
+    """The kernel's frames (_Geometry) of this model's structure, without tracing."""
+    return runtime.structural(model, 'aba_geometry', lambda: _Geometry(runtime.frames(model)))
+
+
 def _inertias(model, k):
-    """The inertia parameters in the kernel's frames (_Geometry.params)."""
-    return tuple(k[3].params(runtime.parameter(model, 'inertia')))
+    """The inertia parameters in the kernel's frames (_Geometry.params; k may be None)."""
+    return tuple(_geometry(model).params(runtime.parameter(model, 'inertia')))
+
+
+def native_wrenches(model, fext):
+    """(N, nb, 6) body-frame wrenches -> the FX argument of the kernels (their frames)."""
+    return _geometry(model).wrenches(fext)
 
 
 def wrenches(k, fext):
@@ -452,6 +463,6 @@ def wrenches(k, fext):
 
 
 ABA = Spec('aba', lambda fr: build_aba(fr, False), (_inertias, 'gravity', 'offsets'), 'aba',
-           supports=supports, checked=True)
+           supports=supports, checked=True, result=lambda model: ((model.n,), PD_RTOL))
 ABA_WRENCH = Spec('aba_wrench', lambda fr: build_aba(fr, True), (_inertias, 'gravity', 'offsets'), 'aba',
-                  supports=supports, checked=True)
+                  supports=supports, checked=True, result=lambda model: ((model.n,), PD_RTOL))

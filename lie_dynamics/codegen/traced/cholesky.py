@@ -7,6 +7,7 @@ with the pivots d_j^2 and diag(M): callers test positive definiteness with them
 (algorithms/cholesky.py), blind to the scale of the masses.
 """
 from ..render import kernel
+from ...algorithms.cholesky import PD_RTOL
 from ..runtime import Spec
 from ..tracer import Graph
 from .crba import trace_mass_matrix
@@ -89,4 +90,4 @@ def build_forward_dynamics(fr):
 
 
 FORWARD_DYNAMICS = Spec('forward_dynamics', build_forward_dynamics, ('inertia', 'gravity', 'offsets'),
-                        'forward_dynamics', checked=True)
+                        'forward_dynamics', checked=True, result=lambda model: ((model.n,), PD_RTOL))

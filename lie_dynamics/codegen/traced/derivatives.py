@@ -2,6 +2,7 @@
 and algorithms/aba_derivatives.py)."""
 from .. import algebra as la
 from ..render import kernel
+from ...algorithms.cholesky import PD_RTOL
 from ..runtime import Spec
 from ..tracer import Graph
 from .cholesky import trace_cho_solve, trace_forward_dynamics, trace_inputs
@@ -202,7 +203,7 @@ INVERSE_DYNAMICS_DERIVATIVES_WRENCH = Spec(
     'inverse_dynamics_derivatives_wrench', lambda fr: build_inverse_dynamics_derivatives(fr, wrench=True),
     ('inertia', 'gravity', 'offsets'), 'inverse_dynamics_derivatives')
 CORIOLIS = Spec('coriolis', lambda fr: build_inverse_dynamics_derivatives(fr, coriolis=True),
-                ('inertia', 'offsets'), 'inverse_dynamics_derivatives')
+                ('inertia', 'offsets'), 'inverse_dynamics_derivatives', result=lambda model: ((model.n, model.n), None))
 FORWARD_DYNAMICS_DERIVATIVES = Spec(
     'forward_dynamics_derivatives', build_forward_dynamics_derivatives, ('inertia', 'gravity', 'offsets'),
-    'forward_dynamics_derivatives', checked=True)
+    'forward_dynamics_derivatives', checked=True, result=lambda model: ((3 * model.n * model.n,), PD_RTOL))

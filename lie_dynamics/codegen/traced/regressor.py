@@ -145,4 +145,6 @@ def build_regressor(fr):
     return kernel(g, 'regressor_kernel', args, [flat[i] for i in idx]) + (np.array(idx, dtype=np.intp), packer)
 
 
-REGRESSOR = Spec('regressor', build_regressor, ('gravity', 'offsets'), 'regressor')
+REGRESSOR = Spec('regressor', build_regressor, ('gravity', 'offsets'), 'regressor',
+                 result=lambda model: ((model.n, 10 * model.nb), None),
+                 scatter=lambda k: (k[3], 10 * k[0].nb * k[0].n))
