@@ -227,7 +227,10 @@ def library(structure, name, render):
     path = os.path.join(d, key[:40] + '.so')
     tmp = None
     if not _verified(path, key):
-        source, widths, par_lengths, n_out = render()
+        rendered = render()
+        if rendered is None:
+            return None
+        source, widths, par_lengths, n_out = rendered
         meta = [len(widths), len(par_lengths), n_out, *widths, *par_lengths]
         if len(meta) > 64:
             return None

@@ -36,7 +36,6 @@ class Limits(NamedTuple):
     size: str = 'bodies'
     large: int = None         # above this size, rows from rows_from_large states
     rows_from_large: int = None
-    native_max: int = None    # no native kernel above this size (C compile time); None: compile_max
 
 
 # Every size threshold of the algorithms, with the measurement that chose it (timings on the
@@ -84,6 +83,11 @@ THRESHOLDS = {
     'regressor_rows_chunk': 8192,
     # Vectorised references: floats of work arrays per chunk of states (2^21: 16 MB).
     'vectorized_budget': 1 << 21,
+    # Native kernels: C compile time grows faster than the source (gcc -O2, this machine under
+    # load: 900 nodes 0.25 s, 4,200 1.0 s, 7,500 1.8-2.7 s, 10,000-13,000 3-33 s, 46,000 57 s;
+    # -O1 is no faster on the large ones). Above this many graph nodes a kernel stays Python
+    # (an arm's whole family is below it: its largest, the forward-dynamics derivatives, 7,500).
+    'native_nodes': 9000,
     # Native batches release the GIL from this many states (below, the release costs more
     # than other threads gain).
     'native_gil_rows': 64,
@@ -335,8 +339,7 @@ def single(model, spec):
 def _native_library(model, spec):
     """The compiled C kernel of spec for this model's structure (native.Library), or False."""
     t = THRESHOLDS[spec.limits]
-    size = model.nb if t.size == 'bodies' else pairs(model)
-    if size > (t.compile_max if t.native_max is None else t.native_max) or not _native.wanted():
+    if (model.nb if t.size == 'bodies' else pairs(model)) > t.compile_max or not _native.wanted():
         return False
     if (spec.supports is not None and not spec.supports(model)) or not frames(model).supported:
         return False
@@ -347,6 +350,8 @@ def _native_library(model, spec):
             return None
         g, arg_lists, outputs = k[1].trace
         k[1].trace = None                     # rendered once per structure (the library is cached)
+        if len(g.live(outputs)[1]) > THRESHOLDS['native_nodes']:
+            return None
         n_state = len(arg_lists) - len(spec.params)
         roles = ['state'] * n_state + ['param'] * len(spec.params)
         index, size = spec.scatter(k) if spec.scatter else (None, None)
