@@ -36,7 +36,7 @@ import warnings
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-FLAGS = ('-O2', '-ffp-contract=off', '-fno-math-errno', '-fPIC', '-shared')
+FLAGS = ('-O2', '-ffp-contract=off', '-fno-math-errno', '-fPIC', '-shared', '-pipe')   # -pipe: no temporary files
 MAGIC = b'\nlie_dynamics native '
 _TRAILER = len(MAGIC) + 64 + 64
 _LOCK = threading.Lock()

@@ -40,6 +40,12 @@ class Limits(NamedTuple):
 
 # Every size threshold of the algorithms, with the measurement that chose it (timings on the
 # 7-DoF arm and random chains and trees, this 2-core machine, numpy 2.4, Python 3.11).
+# Backend dimension: where a native kernel exists (native.py; size within compile_max and
+# native_nodes) it runs at every N, one state and batches alike, and the Limits below route
+# only the Python backend. Measured per state, µs (arm / 30-body chain, inverse dynamics;
+# busy machine, minima of 3-5 repeats): N = 1: native 0.35 / 9, Python float kernel 32 / 730;
+# N = 100: native 0.18 / 2.4, rows 3.1 / 82; N = 10,000: native 0.2-0.4 / 1.9, rows 0.7-1.6 / 4.
+# Mass matrix on the arm: native 0.16-0.4 against rows 0.4-1.0 from N = 1,000.
 THRESHOLDS = {
     # RNEA: compile time grows with the source, and above 256 bodies the vectorised form is
     # as fast for batches. The float kernel (~15 ns per flop) is slower than the vectorised
@@ -385,7 +391,17 @@ def native(model, spec):
     return b or None
 
 
+def use_native(model, on=True):
+    """Let this model use the native kernels (the default) or only the Python ones (on=False:
+    for comparisons in one process; LIE_DYNAMICS_NATIVE=0 switches them off everywhere)."""
+    s = _slot(model)
+    s.structure['native_off'] = not on
+    s.natives = {}
+
+
 def _bind_native(model, spec):
+    if _slot(model).structure.get('native_off'):
+        return None
     lib = _native_library(model, spec)
     if not lib:
         return None
