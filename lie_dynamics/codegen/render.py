@@ -10,7 +10,6 @@ The same traced algorithm is rendered twice:
 it on first use.
 """
 import math
-import re
 
 import numpy as np
 
@@ -47,6 +46,8 @@ def emit(g, fname, arg_lists, outputs, inline_limit=24):
 
     arg_lists: [(list name, [input symbol names])]; outputs: Syms or floats. Dead nodes are
     dropped; intermediate atoms used once are inlined into their consumer (bounded length).
+    Three passes on the graph: which nodes become lines (the rest is inlined), registers for
+    those lines (_registers), then the text.
     """
     deps = g.deps
     roots, live = g.live(outputs)
@@ -56,7 +57,38 @@ def emit(g, fname, arg_lists, outputs, inline_limit=24):
             uses[a] = uses.get(a, 0) + 1
     for a in roots:
         uses[a] = uses.get(a, 0) + 2
-    names, text, size, lines = {}, {}, {}, []
+    order = sorted(live)
+    inlined, size, seq = set(), {}, {}
+
+    def leaves(a):   # the non-inlined nodes node a's text names, in text order
+        return seq[a] if a in inlined else [a]
+
+    def form_leaves(items, const):
+        rec = []
+        form_text(items, const, lambda a, need: rec.extend(leaves(a)) or 'x')
+        return rec
+
+    lines = []       # nodes that become a line
+    for i in order:
+        op, data = g.nodes[i]
+        if op == 'in':
+            continue
+        if op == 'mul':
+            seq[i] = leaves(data[0]) + leaves(data[1])
+        elif op == 'lin':
+            seq[i] = form_leaves(data[0], data[1])
+        else:
+            seq[i] = leaves(data)
+        n_ops = 1 + sum(size.get(a, 0) for a in deps(i) if a in inlined)
+        if uses.get(i, 0) == 1 and n_ops < inline_limit:
+            inlined.add(i)
+            size[i] = n_ops
+        else:
+            lines.append(i)
+    ret_leaves = [a for o in outputs if isinstance(o, Sym) for a in form_leaves(tuple(o.terms.items()), o.const)]
+    regs = _registers(g, lines, seq, ret_leaves)
+
+    names, text = dict(regs), {}
 
     def ref(a, need):
         if a in text:
@@ -64,7 +96,8 @@ def emit(g, fname, arg_lists, outputs, inline_limit=24):
             return f'({s})' if p < need else s
         return names[a]
 
-    for i in sorted(live):
+    body = []
+    for i in order:
         op, data = g.nodes[i]
         if op == 'in':
             names[i] = data
@@ -77,12 +110,10 @@ def emit(g, fname, arg_lists, outputs, inline_limit=24):
             s, p = form_text(data[0], data[1], ref)
         else:
             s, p = f'{op}({ref(data, 0)})', _PREC_ATOM
-        n_ops = 1 + sum(size.get(a, 0) for a in deps(i) if a in text)
-        if uses.get(i, 0) == 1 and n_ops < inline_limit:
-            text[i], size[i] = (s, p), n_ops
+        if i in inlined:
+            text[i] = (s, p)
         else:
-            names[i] = f't{len(lines)}'
-            lines.append((names[i], s))
+            body.append((names[i], s))
 
     def out(o):
         if not isinstance(o, Sym):
@@ -90,54 +121,48 @@ def emit(g, fname, arg_lists, outputs, inline_limit=24):
         return form_text(tuple(o.terms.items()), o.const, ref)[0]
 
     ret = f'({", ".join(out(o) for o in outputs)}{"," if len(outputs) == 1 else ""})'
-    lines, ret = _registers(lines, ret)
     params = [n for n, _ in arg_lists] + ['sin=sin_', 'cos=cos_', 'sqrt=sqrt_']
-    hot = _hot_locals(lines, ret, [nm for _, syms in arg_lists for nm in syms], _MAX_FAST - len(params))
+    hot = _hot_locals(lines, seq, ret_leaves, names, [nm for _, syms in arg_lists for nm in syms],
+                      _MAX_FAST - len(params))
     head = [f'def {fname}({", ".join(params + [f"{h}=0.0" for h in hot])}):']
     for lname, syms in arg_lists:
         if syms:
             head.append(f'    {", ".join(syms)}{"," if len(syms) == 1 else ""} = {lname}')
-    return '\n'.join(head + [f'    {t} = {x}' for t, x in lines] + [f'    return {ret}']) + '\n'
+    return '\n'.join(head + [f'    {t} = {x}' for t, x in body] + [f'    return {ret}']) + '\n'
 
 
-# Identifiers of the generated text (not the exponent of a float literal such as 1e-05).
-_IDENT = re.compile(r'(?<![\w.])[A-Za-z_]\w*')
 # CPython addresses the first 256 local variables with a one-byte argument; every access to a
 # later one costs an extra EXTENDED_ARG instruction (about 10-15% of a large kernel's time).
 _MAX_FAST = 256
 
 
-def _registers(lines, ret):
-    """Rename temporaries so that a name is reused once its value is dead (linear scan).
-
-    Fewer distinct locals keep most of them within the first 256 (see _MAX_FAST).
-    lines: [(temp, expression)] in order; ret: the return expression.
-    """
-    temps = {t for t, _ in lines}
-    toks = [[x for x in _IDENT.findall(e) if x in temps] for _, e in lines]
+def _registers(g, lines, seq, ret_leaves):
+    """{node: register name} for the nodes of `lines` (in order), a name reused once its value
+    is dead (linear scan over the graph's uses: seq[i], the nodes line i reads, in text order;
+    ret_leaves, those the return reads). Fewer distinct locals keep most of them within the
+    first 256 (see _MAX_FAST)."""
+    temps = set(lines)
     last = {}
-    for i, ts in enumerate(toks):
-        for x in ts:
-            last[x] = i
-    for x in _IDENT.findall(ret):
+    for k, i in enumerate(lines):
+        for x in seq[i]:
+            if x in temps:
+                last[x] = k
+    for x in ret_leaves:
         if x in temps:
             last[x] = len(lines)
     regs, free, nreg = {}, [], 0
-    for i, ((t, _), ts) in enumerate(zip(lines, toks, strict=True)):
-        for x in dict.fromkeys(ts):
-            if last[x] == i:
+    for k, i in enumerate(lines):
+        for x in dict.fromkeys(seq[i]):
+            if x in temps and last[x] == k:
                 free.append(regs[x])
         if free:
-            regs[t] = free.pop()
+            regs[i] = free.pop()
         else:
-            regs[t], nreg = f'r{nreg}', nreg + 1
-
-    def ren(e):
-        return _IDENT.sub(lambda m: regs.get(m.group(0), m.group(0)), e)
-    return [(regs[t], ren(e)) for t, e in lines], ren(ret)
+            regs[i], nreg = f'r{nreg}', nreg + 1
+    return regs
 
 
-def _hot_locals(lines, ret, inputs, k):
+def _hot_locals(lines, seq, ret_leaves, names, inputs, k):
     """The k most used locals (registers and unpacked inputs), to be declared first.
 
     Locals are numbered in order of first appearance after the parameters; declaring the
@@ -145,14 +170,12 @@ def _hot_locals(lines, ret, inputs, k):
     the one-byte numbers.
     """
     count = dict.fromkeys(inputs, 0)
-    for t, e in lines:
-        count[t] = count.get(t, 0) + 1
-        for x in _IDENT.findall(e):
-            if x in count:
-                count[x] += 1
-    for x in _IDENT.findall(ret):
-        if x in count:
-            count[x] += 1
+    for i in lines:
+        count[names[i]] = count.get(names[i], 0) + 1
+        for x in seq[i]:
+            count[names[x]] += 1
+    for x in ret_leaves:
+        count[names[x]] += 1
     if len(count) <= k:
         return []
     return sorted(count, key=lambda x: -count[x])[:k]
