@@ -7,7 +7,8 @@ The same traced algorithm is rendered twice:
   * `emit_rows`: a function on numpy rows with one entry per state, for a batch (state-last
     rows; each operation is one ufunc whose fixed cost the whole chunk shares).
 `kernel` compiles the float form and keeps the rows form's source; `rows_function` compiles
-it on first use.
+it on first use. The third rendering, C for the native backend, is crender.py (from the trace
+`kernel` keeps). Argument lists are per-state values unless marked as parameters (Params).
 """
 import math
 
@@ -187,9 +188,14 @@ def compile_function(src, fname):
     return ns[fname]
 
 
-# Names of the argument lists that hold parameters (the same for every state of a batch);
-# every other list holds per-state values, rows in the numpy rendering.
-SCALAR_LISTS = ('P', 'A0', 'E0')
+class Params(tuple):
+    """An argument list of parameters, (name, symbol names): the same for every state of a
+    batch (Python floats in the rows rendering, hoisted out of the per-state work). Any other
+    argument list, a plain (name, symbol names) pair, holds per-state values."""
+    __slots__ = ()
+
+    def __new__(cls, name, syms):
+        return super().__new__(cls, (name, list(syms)))
 
 
 def emit_rows(g, fname, arg_lists, outputs):
@@ -202,7 +208,7 @@ def emit_rows(g, fname, arg_lists, outputs):
     reused once its value is dead, never as the target of an operation that reads it.
     """
     roots, live = g.live(outputs)
-    scalar_in = {nm for lname, syms in arg_lists if lname in SCALAR_LISTS for nm in syms}
+    scalar_in = {nm for lst in arg_lists if isinstance(lst, Params) for nm in lst[1]}
     is_row = {}
     for i in sorted(live):
         op, data = g.nodes[i]

@@ -407,7 +407,7 @@ def build_aba(fr, wrench=False):
     g = Graph()
     co = fr.trace_coordinates(g, rates=1)
     parg, params = fr.trace_params(g)
-    ga = [g.input(f'g{k}') for k in range(3)]
+    a0arg, ga = fr.trace_gravity(g)
     n, nb = fr.n, fr.nb
     taus = [g.input(f'u{j}') for j in range(n)]
     joint_of = [None] * nb
@@ -422,7 +422,7 @@ def build_aba(fr, wrench=False):
         args.append(('FX', names))
         fs = [g.input(nm) for nm in names]
         fext = [(tuple(fs[6 * b:6 * b + 3]), tuple(fs[6 * b + 3:6 * b + 6])) for b in range(nb)]
-    args += [parg, ('A0', [f'g{k}' for k in range(3)]), co['offset_args']]
+    args += [parg, a0arg, co['offset_args']]
     res = trace_aba(fr, geom, g, co['x'], co['xd'], [0.0 if j is None else taus[j] for j in joint_of],
                     params, ga, fext)
     per_joint = [None] * n

@@ -19,11 +19,10 @@ def trace_inputs(fr, g):
     E0), inertia parameters, -g, joint torques)."""
     co = fr.trace_coordinates(g, rates=1)
     parg, params = fr.trace_params(g)
-    ga = [g.input(f'g{k}') for k in range(3)]
+    a0arg, ga = fr.trace_gravity(g)
     n = fr.n
     taus = [g.input(f'u{j}') for j in range(n)]
-    args = co['args'] + [('TAU', [f'u{j}' for j in range(n)]), parg, ('A0', [f'g{k}' for k in range(3)]),
-                         co['offset_args']]
+    args = co['args'] + [('TAU', [f'u{j}' for j in range(n)]), parg, a0arg, co['offset_args']]
     return co, args, params, ga, taus
 
 

@@ -111,8 +111,8 @@ def build_inverse_dynamics_derivatives(fr, wrench=False, center=0, coriolis=Fals
         co['xdd'] = [0.0] * fr.nb
         args += [parg, co['offset_args']]
     else:
-        ga = [g.input(f'g{k}') for k in range(3)]
-        args += [parg, ('A0', [f'g{k}' for k in range(3)]), co['offset_args']]
+        a0arg, ga = fr.trace_gravity(g)
+        args += [parg, a0arg, co['offset_args']]
     dq, dv = trace_derivatives(fr, g, co['x'], co['xd'], co['xdd'], params, ga, fext, center)
     n = fr.n
     if coriolis:
