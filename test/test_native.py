@@ -275,6 +275,21 @@ def test_failing_compiler_under_auto_and_require(tmp_path):
     assert _rel(tau, _reference_tau()) <= TOL
     r = _probe({'LIE_DYNAMICS_NATIVE': 'require', 'CC': '/bin/false'}, tmp_path, check=False)
     assert r.returncode != 0 and 'NativeUnavailable' in r.stderr and '/bin/false' in r.stderr
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([os.path.join(HERE, '..'), os.environ.get('PYTHONPATH', '')]),
+               LIE_DYNAMICS_CACHE_DIR=str(tmp_path / 'cache'), LIE_DYNAMICS_NATIVE='require', CC='/bin/false')
+    again = textwrap.dedent(f'''
+        import numpy as np
+        from lie_dynamics import load_urdf
+        from lie_dynamics.codegen import native
+        m = load_urdf({ARM!r})
+        for _ in range(2):   # every call raises, not only the first
+            try:
+                m.gravity(np.zeros(m.n))
+            except native.NativeUnavailable as e:
+                print('raised', '/bin/false' in str(e))
+    ''')
+    r = subprocess.run([sys.executable, '-c', again], env=env, capture_output=True, text=True, timeout=300)
+    assert r.stdout.split() == ['raised', 'True', 'raised', 'True'], r.stderr
     r = _probe({'LIE_DYNAMICS_NATIVE': 'require', 'CC': 'no-such-compiler-here'}, tmp_path, check=False)
     assert r.returncode != 0 and 'no-such-compiler-here' in r.stderr
 

@@ -56,8 +56,14 @@ def setting():
 
 
 def wanted():
-    """False when the native backend is switched off or known to be unavailable."""
-    return os.environ.get('LIE_DYNAMICS_NATIVE', 'auto').strip() != '0' and _STATE['error'] is None
+    """False when the native backend is switched off or known to be unavailable (under
+    'require' the latter raises NativeUnavailable, every time)."""
+    if os.environ.get('LIE_DYNAMICS_NATIVE', 'auto').strip() == '0':
+        return False
+    if _STATE['error'] is not None:
+        _unavailable(_STATE['error'])
+        return False
+    return True
 
 
 def compiler():
