@@ -104,7 +104,7 @@ def _inverse_dynamics(model, arrs, single, N, wrenches, with_gravity):
     if k is None:
         return _vectorized(model, np.array(arrs), fext, with_gravity)
     if fext is not None:
-        arrays.append(k[0].wrench_params(fext).reshape(N, 6 * model.nb))
+        arrays.append(k.frames.wrench_params(fext).reshape(N, 6 * model.nb))
     tau = runtime.evaluate(model, spec, arrays, mode, out=np.empty((N, model.n)))
     return tau[0] if single else tau
 

@@ -145,7 +145,7 @@ def _kernel(model, q, qd, qdd, fext, mode=None):
     k = runtime.kernel(model, spec) if mode else None
     if k is None:
         return None
-    arrays = [q, qd, qdd] + ([] if fext is None else [k[0].wrench_params(fext).reshape(N, -1)])
+    arrays = [q, qd, qdd] + ([] if fext is None else [k.frames.wrench_params(fext).reshape(N, -1)])
     vals = runtime.evaluate(model, spec, arrays, mode)
     if vals is None:
         return None

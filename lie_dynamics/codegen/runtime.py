@@ -216,10 +216,23 @@ def frames(model):
     return s.frames
 
 
+class Kernel(tuple):
+    """A built kernel of one model structure, by name: `frames` (Frames), `function` (the float
+    kernel, with its rows form: render.kernel), `source` (its Python text) and `extras` (what
+    the build returned after them: the ABA's geometry, the regressor's output index and
+    packer). Still indexable as the tuple (frames, function, source, *extras)."""
+    __slots__ = ()
+
+    frames = property(lambda self: self[0])
+    function = property(lambda self: self[1])
+    source = property(lambda self: self[2])
+    extras = property(lambda self: self[3:])
+
+
 def _compiled(model, name, build):
-    """The kernel `name` of this model's structure: (frames, float function, source, *extra)
-    from build(frames), built once per structure; False when the model's screws are not unit
-    revolute / prismatic axes or build returns None."""
+    """The Kernel `name` of this model's structure from build(frames) (render.kernel's
+    (function, source[, extras...])), built once per structure; False when the model's screws
+    are not unit revolute / prismatic axes or build returns None."""
     s = _slot(model)
     k = s.kernels.get(name)
     if k is None:
@@ -227,7 +240,7 @@ def _compiled(model, name, build):
 
         def make():
             res = build(fr) if fr.supported else None
-            return (fr,) + tuple(res) if res is not None else False
+            return Kernel((fr,) + tuple(res)) if res is not None else False
         k = s.kernels[name] = _shared((fingerprint(model), name), make)
     return k
 
@@ -299,7 +312,7 @@ class Spec:
 
 
 def kernel(model, spec):
-    """(frames, float function, source, *extras) of spec's kernel for this model, or None:
+    """spec's Kernel for this model, or None:
     too large for THRESHOLDS, screws other than unit revolute / prismatic axes, or
     spec.supports(model) false."""
     t = THRESHOLDS[spec.limits]
@@ -338,7 +351,7 @@ def single(model, spec):
     b = s.singles.get(spec)
     if b is None:
         k = _bind(s, model, spec) if route(model, spec.limits) == 'loop' else False
-        b = s.singles[spec] = (k[0][1], k[1], k[0]) if k else False
+        b = s.singles[spec] = (k[0].function, k[1], k[0]) if k else False
     return b
 
 
@@ -352,10 +365,10 @@ def _native_library(model, spec):
 
     def render():
         k = kernel(model, spec)
-        if not k or k[1].trace is None:
+        if not k or k.function.trace is None:
             return None
-        g, arg_lists, outputs = k[1].trace
-        k[1].trace = None                     # rendered once per structure (the library is cached)
+        g, arg_lists, outputs = k.function.trace
+        k.function.trace = None                     # rendered once per structure (the library is cached)
         if len(g.live(outputs)[1]) > THRESHOLDS['native_nodes']:
             return None
         n_state = len(arg_lists) - len(spec.params)
@@ -430,7 +443,7 @@ def evaluate(model, spec, arrays, mode, out=None):
     b = _bind(_slot(model), model, spec)
     if not b:
         return None
-    fn = b[0][1]
+    fn = b[0].function
     try:
         if mode == 'loop':
             return np.array(run_loop(fn, arrays, b[1]), dtype=float).reshape(len(arrays[0]), fn.n_out)

@@ -459,7 +459,7 @@ def native_wrenches(model, fext):
 
 def wrenches(k, fext):
     """(N, nb, 6) body-frame wrenches -> the FX argument of kernel k (its frames)."""
-    return k[3].wrenches(fext)
+    return k.extras[0].wrenches(fext)
 
 
 ABA = Spec('aba', lambda fr: build_aba(fr, False), (_inertias, 'gravity', 'offsets'), 'aba',

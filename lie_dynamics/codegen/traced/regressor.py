@@ -147,4 +147,4 @@ def build_regressor(fr):
 
 REGRESSOR = Spec('regressor', build_regressor, ('gravity', 'offsets'), 'regressor',
                  result=lambda model: ((model.n, 10 * model.nb), None),
-                 scatter=lambda k: (k[3], 10 * k[0].nb * k[0].n))
+                 scatter=lambda k: (k.extras[0], 10 * k.frames.nb * k.frames.n))
