@@ -14,7 +14,7 @@ setup(
         ('share/' + package_name + '/config', glob('config/*')),
         ('share/' + package_name + '/launch', glob('launch/*.py')),
     ],
-    package_data={package_name: ['data/*.urdf']},
+    package_data={package_name: ['data/*.urdf', 'codegen/*.c']},
     install_requires=['setuptools', 'numpy', 'yourdfpy'],
     zip_safe=True,
     maintainer='lie_dynamics developers',

@@ -23,8 +23,8 @@ from bench.reference import LD, Generic
 
 OPS = ('inverse dynamics', 'gravity', 'mass matrix', 'Coriolis term C(q, qd) qd', 'forward dynamics',
        'derivatives dtau/dq, dtau/dqd')
-IMPL_STYLE = {'lie_dynamics': ('o', 'C0'), 'bench': ('s', 'C2'), 'pinocchio': ('D', 'C3'),
-              'modern_robotics': ('^', 'C1')}
+IMPL_STYLE = {'lie_dynamics': ('o', 'C0'), 'lie_dynamics_python': ('v', 'C4'), 'bench': ('s', 'C2'),
+              'pinocchio': ('D', 'C3'), 'modern_robotics': ('^', 'C1')}
 
 
 def _batch(a, N):
@@ -52,6 +52,7 @@ def methods(model, xml, q, qd, qdd, tau, NB, S_mr):
     qb32, qdb32, qddb32 = (a.astype(np.float32) for a in (qb, qdb, qddb))
     zero = np.zeros(n)
     out = {op: [] for op in OPS}
+    py = common.python_kernels(model)   # 'lie_dynamics' rows: the native kernels where a C compiler works
 
     def add(op, method, impl, mode, outputs, timed, per=1):
         out[op].append((method, impl, mode, outputs, timed, per))
@@ -68,6 +69,11 @@ def methods(model, xml, q, qd, qdd, tau, NB, S_mr):
         lambda: model.inverse_dynamics(q[0], qd[0], qdd[0]))
     add(op, 'lie_dynamics batched', 'lie_dynamics', 'batched', first(lambda: model.inverse_dynamics(qb, qdb, qddb)),
         lambda: model.inverse_dynamics(qb, qdb, qddb), NB)
+
+    add(op, 'Python kernels', 'lie_dynamics_python', 'single',
+        each(lambda i: py.inverse_dynamics(q[i], qd[i], qdd[i])), lambda: py.inverse_dynamics(q[0], qd[0], qdd[0]))
+    add(op, 'Python kernels batched', 'lie_dynamics_python', 'batched',
+        first(lambda: py.inverse_dynamics(qb, qdb, qddb)), lambda: py.inverse_dynamics(qb, qdb, qddb), NB)
 
     def vect(i):
         return rnea.inverse_dynamics_vectorized(model, q[i], qd[i], qdd[i])
@@ -87,6 +93,8 @@ def methods(model, xml, q, qd, qdd, tau, NB, S_mr):
     add(op, 'lie_dynamics', 'lie_dynamics', 'single', each(lambda i: model.gravity(q[i])), lambda: model.gravity(q[0]))
     add(op, 'lie_dynamics batched', 'lie_dynamics', 'batched', first(lambda: model.gravity(qb)),
         lambda: model.gravity(qb), NB)
+    add(op, 'Python kernels', 'lie_dynamics_python', 'single', each(lambda i: py.gravity(q[i])),
+        lambda: py.gravity(q[0]))
     add(op, 'potential gradient (eqs 43-45)', 'lie_dynamics', 'single', each(lambda i: model.gravity_potential(q[i])),
         lambda: model.gravity_potential(q[0]))
     add(op, 'Pinocchio', 'pinocchio', 'single', each(lambda i: pin.computeGeneralizedGravity(pm, pd, q[i]).copy()),
@@ -101,6 +109,8 @@ def methods(model, xml, q, qd, qdd, tau, NB, S_mr):
         lambda: model.mass_matrix(q[0]))
     add(op, 'CRBA batched', 'lie_dynamics', 'batched', first(lambda: model.mass_matrix(qb)),
         lambda: model.mass_matrix(qb), NB)
+    add(op, 'CRBA, Python kernels', 'lie_dynamics_python', 'single', each(lambda i: py.mass_matrix(q[i])),
+        lambda: py.mass_matrix(q[0]))
     add(op, 'closed form (eq 39)', 'lie_dynamics', 'single', each(lambda i: model.mass_matrix(q[i], 'closed_form')),
         lambda: model.mass_matrix(q[0], 'closed_form'))
     add(op, 'closed form batched', 'lie_dynamics', 'batched', first(lambda: model.mass_matrix(qb, 'closed_form')),
@@ -140,6 +150,9 @@ def methods(model, xml, q, qd, qdd, tau, NB, S_mr):
         first(lambda: model.forward_dynamics(qb, qdb, taub, method='aba')),
         lambda: model.forward_dynamics(qb, qdb, taub, method='aba'), NB)
 
+    add(op, 'Cholesky, Python kernels', 'lie_dynamics_python', 'single',
+        each(lambda i: py.forward_dynamics(q[i], qd[i], tau[i])), lambda: py.forward_dynamics(q[0], qd[0], tau[0]))
+
     def explicit_inverse(i):
         return np.linalg.inv(model.mass_matrix(q[i])) @ (tau[i] - model.inverse_dynamics(q[i], qd[i], zero))
     add(op, 'explicit inverse M^-1', 'lie_dynamics', 'single', each(explicit_inverse), lambda: explicit_inverse(0))
@@ -157,6 +170,9 @@ def methods(model, xml, q, qd, qdd, tau, NB, S_mr):
     add(op, 'analytic batched', 'lie_dynamics', 'batched',
         first(lambda: np.stack(model.inverse_dynamics_derivatives(qb, qdb, qddb), axis=1)),
         lambda: model.inverse_dynamics_derivatives(qb, qdb, qddb), NB)
+    add(op, 'analytic, Python kernels', 'lie_dynamics_python', 'single',
+        each(lambda i: np.stack(py.inverse_dynamics_derivatives(q[i], qd[i], qdd[i]))),
+        lambda: py.inverse_dynamics_derivatives(q[0], qd[0], qdd[0]))
     add(op, 'forward differences', 'lie_dynamics', 'single',
         each(lambda i: finite_differences(model, q[i], qd[i], qdd[i])),
         lambda: finite_differences(model, q[0], qd[0], qdd[0]))
@@ -305,7 +321,9 @@ def chart(res, robot, path):
         lo, hi = ax.get_xlim()
         ax.set_xlim(lo, hi * 8)  # room for labels
         ax.minorticks_off()      # minor log ticks over ~15 decades made layout take seconds
-    handles = [plt.Line2D([], [], marker=m, color=c, ls='', label=k) for k, (m, c) in IMPL_STYLE.items()]
+    names = {'lie_dynamics': 'lie_dynamics (native C where available)',
+             'lie_dynamics_python': 'lie_dynamics (Python kernels)'}
+    handles = [plt.Line2D([], [], marker=m, color=c, ls='', label=names.get(k, k)) for k, (m, c) in IMPL_STYLE.items()]
     handles.append(plt.Line2D([], [], marker='o', mfc='none', color='k', ls='', label='hollow: batched'))
     fig.legend(handles=handles, loc='lower center', ncol=5, fontsize=8)
     fig.suptitle(f"{robot} ({rows[0]['dof']} DoF): time against error (down and left is better; dotted: float64 eps)")

@@ -182,6 +182,15 @@ def near_coaxial_urdf(tilt):
                     '</robot>'])
 
 
+def python_kernels(model):
+    """A copy of the model that runs the Python kernels only (the native column's peer)."""
+    import copy
+    from lie_dynamics.codegen import runtime
+    py = copy.deepcopy(model)
+    runtime.use_native(py, False)
+    return py
+
+
 def random_states(model, N, seed=0):
     """(q, qd, qdd) of N states, positions inside the joint limits."""
     rng = np.random.default_rng(seed)

@@ -28,8 +28,9 @@ from bench import common
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 SIZES = (1, 100, 10_000)
-IMPLS = ('lie_dynamics', 'lie_dynamics_vectorised', 'pinocchio', 'modern_robotics')
-LABELS = {'lie_dynamics': 'lie_dynamics', 'lie_dynamics_vectorised': 'lie_dynamics vectorised (before)',
+IMPLS = ('lie_dynamics', 'lie_dynamics_python', 'lie_dynamics_vectorised', 'pinocchio', 'modern_robotics')
+LABELS = {'lie_dynamics': 'lie_dynamics (native C kernels)', 'lie_dynamics_python': 'lie_dynamics (Python kernels)',
+          'lie_dynamics_vectorised': 'lie_dynamics vectorised (before)',
           'pinocchio': 'Pinocchio', 'modern_robotics': 'Modern Robotics'}
 
 
@@ -45,6 +46,7 @@ def _build(model, urdf_xml, op, N, rng, mr_states):
     import pinocchio as pin
     from lie_dynamics.algorithms import rnea
 
+    py = common.python_kernels(model)
     pm = pin.buildModelFromXML(urdf_xml)
     pm.gravity.linear = model.gravity_vector
     pd = pm.createData()
@@ -62,6 +64,7 @@ def _build(model, urdf_xml, op, N, rng, mr_states):
     if op == 'inverse_dynamics':
         args = (q[0], qd[0], qdd[0]) if N == 1 else (q, qd, qdd)
         ours = lambda: model.inverse_dynamics(*args)  # noqa: E731
+        ours_py = lambda: py.inverse_dynamics(*args)  # noqa: E731
 
         def vect():
             return rnea.inverse_dynamics_vectorized(model, *args)
@@ -76,6 +79,7 @@ def _build(model, urdf_xml, op, N, rng, mr_states):
     else:
         args = q[0] if N == 1 else q
         ours = lambda: model.gravity(args)  # noqa: E731
+        ours_py = lambda: py.gravity(args)  # noqa: E731
 
         def vect():
             return rnea.gravity_vectorized(model, args)
@@ -87,7 +91,8 @@ def _build(model, urdf_xml, op, N, rng, mr_states):
 
         def mrob():
             return [mr.GravityForces(q[i], g, Mlist, Glist, Slist) for i in range(k)]
-    fns = {'lie_dynamics': (ours, N), 'lie_dynamics_vectorised': (vect, N), 'pinocchio': (pino, N),
+    fns = {'lie_dynamics': (ours, N), 'lie_dynamics_python': (ours_py, N),
+           'lie_dynamics_vectorised': (vect, N), 'pinocchio': (pino, N),
            'modern_robotics': (mrob, k)}
     # same torques from everyone (MR on its subset) before anything is timed
     ref = np.array(pino()).reshape(N, model.n)
@@ -133,11 +138,17 @@ def run(quick=False, urdf=None, rounds=None, sizes=SIZES, seed=0):
                     states_timed=states, estimated=states < N))
     import pinocchio as pin
     meta = dict(robot=model.name, urdf=os.path.relpath(urdf, ROOT) if urdf.startswith(ROOT) else os.path.basename(urdf),
-                dof=model.n, rounds=rounds, quick=quick, python=platform.python_version(),
+                dof=model.n, rounds=rounds, native=_native_on(model), quick=quick, python=platform.python_version(),
                 numpy=np.__version__, pinocchio=pin.__version__, machine=platform.machine(),
                 cpu_count=os.cpu_count(), max_relative_error_vs_pinocchio=accuracy,
                 unit='microseconds (median over rounds); ratio = median of per-round ratios to Pinocchio')
     return dict(meta=meta, rows=rows)
+
+
+def _native_on(model):
+    from lie_dynamics.codegen import runtime
+    from lie_dynamics.codegen.traced import rnea
+    return runtime.native(model, rnea.INVERSE_DYNAMICS) is not None
 
 
 # ------------------------------------------------------------------ reports
@@ -151,20 +162,23 @@ def markdown(result):
     ops = sorted({r['op'] for r in result['rows']}, key=['inverse_dynamics', 'gravity'].index)
     sizes = sorted({r['N'] for r in result['rows']})
     head = ['op', 'N', 'lie_dynamics µs/call', 'lie_dynamics µs/state', 'Pinocchio µs/state',
-            'lie_dynamics / Pinocchio', 'vectorised (before) µs/state', 'before / Pinocchio',
-            'Modern Robotics µs/state', 'MR / Pinocchio']
+            'lie_dynamics / Pinocchio', 'Python kernels µs/state', 'Python kernels / Pinocchio',
+            'vectorised (before) µs/state', 'before / Pinocchio', 'Modern Robotics µs/state', 'MR / Pinocchio']
     lines = [f"# Core benchmark: {meta['robot']} ({meta['dof']} DoF)", '',
              f"Median over {meta['rounds']} interleaved rounds; ratios are medians of per-round ratios "
              f"(same run). Batches: one lie_dynamics call; Pinocchio and Modern Robotics in a Python loop. "
+             f"lie_dynamics: the native C kernels where a C compiler works (else the Python kernels, "
+             f"native: {meta.get('native')}); Python kernels: the same model with the native backend off. "
              f"Python {meta['python']}, numpy {meta['numpy']}, Pinocchio {meta['pinocchio']}, "
              f"{meta['cpu_count']} cores.", '',
              '| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
     for op in ops:
         for N in sizes:
-            o, v, p, m = (by[(op, N, i)] for i in IMPLS)
+            o, y, v, p, m = (by[(op, N, i)] for i in IMPLS)
             est = ' (est.)' if m['estimated'] else ''
             lines.append(f"| {op} | {N} | {o['us_per_call']:.1f} | {o['us_per_state']:.3g} | "
-                         f"{p['us_per_state']:.3g} | {o['ratio_to_pinocchio']:.2f} | {v['us_per_state']:.3g} | "
+                         f"{p['us_per_state']:.3g} | {o['ratio_to_pinocchio']:.2f} | {y['us_per_state']:.3g} | "
+                         f"{y['ratio_to_pinocchio']:.2f} | {v['us_per_state']:.3g} | "
                          f"{v['ratio_to_pinocchio']:.1f} | {m['us_per_state']:.4g}{est} | "
                          f"{m['ratio_to_pinocchio']:.0f} |")
     lines += ['', 'Max relative torque difference to Pinocchio (checked before timing): ' +

@@ -81,18 +81,26 @@ def run(quick=False, out=None, rounds=None):
         q, qd, qdd = q[0], qd[0], qdd[0]
         tau = model.inverse_dynamics(q, qd, qdd)
         assert np.allclose(tau, pin.rnea(pm, pd, q, qd, qdd), atol=1e-9 * max(1, np.abs(tau).max()))
+        py = common.python_kernels(model)
         calls = {
-            'inverse dynamics': (lambda: model.inverse_dynamics(q, qd, qdd), lambda: pin.rnea(pm, pd, q, qd, qdd)),
-            'gravity': (lambda: model.gravity(q), lambda: pin.computeGeneralizedGravity(pm, pd, q)),
-            'mass matrix': (lambda: model.mass_matrix(q), lambda: pin.crba(pm, pd, q)),
-            'forward dynamics': (lambda: model.forward_dynamics(q, qd, tau), lambda: pin.aba(pm, pd, q, qd, tau)),
+            'inverse dynamics': (lambda m: m.inverse_dynamics(q, qd, qdd), lambda: pin.rnea(pm, pd, q, qd, qdd)),
+            'gravity': (lambda m: m.gravity(q), lambda: pin.computeGeneralizedGravity(pm, pd, q)),
+            'mass matrix': (lambda m: m.mass_matrix(q), lambda: pin.crba(pm, pd, q)),
+            'forward dynamics': (lambda m: m.forward_dynamics(q, qd, tau), lambda: pin.aba(pm, pd, q, qd, tau)),
+            'ID derivatives': (lambda m: m.inverse_dynamics_derivatives(q, qd, qdd),
+                               lambda: pin.computeRNEADerivatives(pm, pd, q, qd, qdd)),
+            'FD derivatives': (lambda m: m.forward_dynamics_derivatives(q, qd, tau),
+                               lambda: pin.computeABADerivatives(pm, pd, q, qd, tau)),
         }
         for op, (ours, peer) in calls.items():
-            t = common.time_interleaved({'ours': ours, 'pin': peer}, rounds, target)
-            ratio = t['ours'] / t['pin']
+            t = common.time_interleaved({'ours': lambda f=ours: f(model), 'python': lambda f=ours: f(py),
+                                         'pin': peer}, rounds, target)
+            ratio, ratio_py = t['ours'] / t['pin'], t['python'] / t['pin']
             rows.append(dict(robot=label, n=model.n, bodies=model.nb, op=op, ours_us=float(np.median(t['ours'])) * 1e6,
                              pin_us=float(np.median(t['pin'])) * 1e6, ratio_median=float(np.median(ratio)),
-                             ratio_p10=float(np.percentile(ratio, 10)), ratio_p90=float(np.percentile(ratio, 90))))
+                             ratio_p10=float(np.percentile(ratio, 10)), ratio_p90=float(np.percentile(ratio, 90)),
+                             python_us=float(np.median(t['python'])) * 1e6,
+                             python_ratio=float(np.median(ratio_py))))
     md = markdown(rows)
     print(md)
     if out:
@@ -103,12 +111,16 @@ def run(quick=False, out=None, rounds=None):
 
 def markdown(rows):
     lines = ['# Real robots (example-robot-data): time / Pinocchio, one state', '',
-             'Medians of interleaved rounds; ratio = our time / Pinocchio\'s in the same round (p10-p90).', '',
-             '| robot | n | bodies | call | ratio (p10-p90) | ours (µs) | Pinocchio (µs) |',
-             '|---|---|---|---|---|---|---|']
+             'Medians of interleaved rounds; ratio = our time / Pinocchio\'s in the same round (p10-p90). '
+             'ours: the native C kernels where a C compiler works; Python kernels: the same model with the '
+             'native backend off.', '',
+             '| robot | n | bodies | call | ratio (p10-p90) | ours (µs) | Pinocchio (µs) | Python kernels (µs) '
+             '| Python kernels / Pinocchio |',
+             '|---|---|---|---|---|---|---|---|---|']
     for r in rows:
         lines.append(f"| {r['robot']} | {r['n']} | {r['bodies']} | {r['op']} | {r['ratio_median']:.2f} "
-                     f"({r['ratio_p10']:.2f}-{r['ratio_p90']:.2f}) | {r['ours_us']:.1f} | {r['pin_us']:.2f} |")
+                     f"({r['ratio_p10']:.2f}-{r['ratio_p90']:.2f}) | {r['ours_us']:.2f} | {r['pin_us']:.2f} "
+                     f"| {r['python_us']:.1f} | {r['python_ratio']:.1f} |")
     return '\n'.join(lines) + '\n'
 
 

@@ -182,7 +182,7 @@ def test_codegen_rows_rendering_registers_and_parameters():
         s = g.cos(s * p + b) * (1.5 + 0.1 * i) - a * k
     pk = p * k + 2.0                             # parameters only
     outs = [s, pk * a - 3.0 * b, g.inv(pk), g.sqrt(a * a + k * k), -(a - 2.0 * b) + pk]
-    fn, _ = render.kernel(g, 'k', [('X', ['a', 'b']), ('P', ['p', 'k'])], outs)
+    fn, _ = render.kernel(g, 'k', [('X', ['a', 'b']), render.Params('P', ['p', 'k'])], outs)
     assert fn.nreg < 10 and 'u' in fn.rows_source      # registers reused; a hoisted parameter value
     for line in fn.rows_source.splitlines():
         if 'out=' in line:                       # the target is not read by the same ufunc

@@ -42,23 +42,40 @@ METHODS = ('cholesky', 'aba')
 _MIMIC = "method='aba' does not support mimic joints (they couple bodies); use method='cholesky'"
 
 
-def forward_dynamics(model, q, qd, tau, wrenches=None, method='cholesky'):
+def forward_dynamics(model, q, qd, tau, wrenches=None, method='cholesky', out=None):
     """Joint accelerations qdd with inverse_dynamics(q, qd, qdd, wrenches) = tau.
 
     q, qd, tau: (n,) or (N, n). method: 'cholesky' (any model) or 'aba' (O(n); not for
     models with mimic joints). Raises ValueError when the mass matrix is not positive
-    definite (massless chains).
+    definite (massless chains). out: optional float64 array of the result's shape, written
+    and returned.
     """
     if method not in METHODS:
         raise ValueError(f"unknown forward dynamics method {method!r}: use one of {METHODS}")
+    nk = None
     if not wrenches:
-        lists = runtime.fast_states(model.n, q, qd, tau)
-        if lists is not None:
-            out = _single(model, lists, method)
-            if out is not None:
-                return out
+        nk = runtime.native(model, traced_aba.ABA if method == 'aba' else traced_cholesky.FORWARD_DYNAMICS)
+        if nk is not None:
+            qdd = nk(q, qd, tau, out)
+            if qdd is not None:
+                return qdd
+        elif out is None:
+            lists = runtime.fast_states(model.n, q, qd, tau)
+            if lists is not None:
+                qdd = _single(model, lists, method)
+                if qdd is not None:
+                    return qdd
     single = np.ndim(q) == 1
     q, qd, tau = model.check_states(q=q, qd=qd, tau=tau)
+    runtime.check_out(out, q.shape[1:] if single else q.shape)
+    qdd = nk(q, qd, tau) if nk is not None else None   # inputs that were not contiguous float64 arrays
+    if qdd is None:
+        qdd = _forward_dynamics(model, q, qd, tau, wrenches, method)
+    return runtime.deliver(qdd[0] if single else qdd, out)
+
+
+def _forward_dynamics(model, q, qd, tau, wrenches, method):
+    """forward_dynamics on validated (N, n) arrays, by the kernels or the references."""
     if method == 'aba':
         if not traced_aba.supports(model):
             raise ValueError(_MIMIC)
@@ -70,7 +87,7 @@ def forward_dynamics(model, q, qd, tau, wrenches=None, method='cholesky'):
         out = None if wrenches else _cholesky_kernel(model, q, qd, tau)
         if out is None:
             out = _cholesky_vectorized(model, q, qd, tau, wrenches)
-    return out[0] if single else out
+    return out
 
 
 def _single(model, lists, method):
@@ -131,6 +148,12 @@ def aba_kernel(model, q, qd, tau, wrenches=None, mode=None):
 
 def _aba_kernel(model, q, qd, tau, fext, mode=None):
     spec = traced_aba.ABA if fext is None else traced_aba.ABA_WRENCH
+    nk = runtime.native(model, spec) if mode is None else None
+    if nk is not None:
+        extra = [] if fext is None else [traced_aba.native_wrenches(model, fext)]
+        qdd = nk(*[np.ascontiguousarray(a) for a in [q, qd, tau] + extra])
+        if qdd is not None:
+            return qdd
     mode = runtime.check_mode(mode) or runtime.route(model, 'aba', len(q))
     k = runtime.kernel(model, spec) if mode else None
     if k is None:

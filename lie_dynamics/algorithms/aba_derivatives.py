@@ -29,7 +29,13 @@ def forward_dynamics_derivatives(model, q, qd, tau, wrenches=None):
     (Pinocchio's computeABADerivatives: ddq_dq, ddq_dv, Minv).
     """
     n = model.n
-    if not wrenches:
+    nk = None if wrenches else runtime.native(model, traced.FORWARD_DYNAMICS_DERIVATIVES)
+    if nk is not None:
+        out = nk(q, qd, tau)
+        if out is not None:
+            out = out.reshape(out.shape[:-1] + (3, n, n))
+            return out[..., 0, :, :], out[..., 1, :, :], out[..., 2, :, :]
+    elif not wrenches:
         lists = runtime.fast_states(n, q, qd, tau)
         b = runtime.single(model, traced.FORWARD_DYNAMICS_DERIVATIVES) if lists is not None else False
         if b:
@@ -42,7 +48,12 @@ def forward_dynamics_derivatives(model, q, qd, tau, wrenches=None):
                 return out[0], out[1], out[2]
     single = np.ndim(q) == 1
     q, qd, tau = model.check_states(q=q, qd=qd, tau=tau)
-    out = None if wrenches else _kernel(model, q, qd, tau)
+    out = nk(q, qd, tau) if nk is not None else None
+    if out is not None:
+        out = out.reshape(len(q), 3, n, n)
+        out = out[:, 0], out[:, 1], out[:, 2]
+    elif not wrenches:
+        out = _kernel(model, q, qd, tau)
     if out is not None:
         return tuple(o[0] for o in out) if single else out
     return _vectorized(model, q, qd, tau, wrenches, single)

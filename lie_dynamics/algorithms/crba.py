@@ -33,19 +33,29 @@ def _crba(model, x):
     return U + transpose(U) - U * np.eye(model.nb)
 
 
-def mass_matrix(model, q):
-    """M(q) by the composite rigid body algorithm. q: (n,) or (N, n) -> (n, n) or (N, n, n)."""
+def mass_matrix(model, q, out=None):
+    """M(q) by the composite rigid body algorithm. q: (n,) or (N, n) -> (n, n) or (N, n, n).
+    out: optional float64 array of the result's shape, written and returned."""
     n = model.n
-    x = runtime.is_fast_single(q, n)
-    if x is not None:
-        b = runtime.single(model, traced.MASS_MATRIX)
-        if b:
-            return np.array(b[0](x, *b[1])).reshape(n, n)
+    nk = runtime.native(model, traced.MASS_MATRIX)
+    if nk is not None:
+        M = nk(q, out)
+        if M is not None:
+            return M
+    elif out is None:
+        x = runtime.is_fast_single(q, n)
+        if x is not None:
+            b = runtime.single(model, traced.MASS_MATRIX)
+            if b:
+                return np.array(b[0](x, *b[1])).reshape(n, n)
     single = np.ndim(q) == 1
     q = model.check_batch('q', q)
-    vals = runtime.dispatch(model, traced.MASS_MATRIX, [q])
-    M = mass_matrix_vectorized(model, q) if vals is None else vals.reshape(len(q), n, n)
-    return M[0] if single else M
+    runtime.check_out(out, (n, n) if single else (len(q), n, n))
+    M = nk(q) if nk is not None else None
+    if M is None:
+        vals = runtime.dispatch(model, traced.MASS_MATRIX, [q])
+        M = mass_matrix_vectorized(model, q) if vals is None else vals.reshape(len(q), n, n)
+    return runtime.deliver(M[0] if single else M, out)
 
 
 def mass_matrix_kernel(model, q, mode=None):

@@ -115,15 +115,23 @@ def regressor(model, q, qd, qdd):
     order, parameters as PARAMETER_NAMES (Pinocchio's computeJointTorqueRegressor layout).
     Gravity (as set on the model) is included.
     """
-    lists = runtime.fast_states(model.n, q, qd, qdd)
-    b = runtime.single(model, traced.REGRESSOR) if lists is not None else False
-    if b:
-        out = np.empty((model.n, 10 * model.nb))
-        b[2][4].pack_into(out, 0, *b[0](*lists, *b[1]))
-        return out
+    nk = runtime.native(model, traced.REGRESSOR)
+    if nk is not None:
+        Y = nk(q, qd, qdd)
+        if Y is not None:
+            return Y
+    else:
+        lists = runtime.fast_states(model.n, q, qd, qdd)
+        b = runtime.single(model, traced.REGRESSOR) if lists is not None else False
+        if b:
+            out = np.empty((model.n, 10 * model.nb))
+            b[2].extras[1].pack_into(out, 0, *b[0](*lists, *b[1]))
+            return out
     single = np.ndim(q) == 1
     q, qd, qdd = model.check_states(q=q, qd=qd, qdd=qdd)
-    Y = _kernel(model, q, qd, qdd)
+    Y = nk(q, qd, qdd) if nk is not None else None
+    if Y is None:
+        Y = _kernel(model, q, qd, qdd)
     if Y is None:
         Y = _vectorized(model, q, qd, qdd)
     return Y[0] if single else Y
@@ -169,10 +177,10 @@ def _kernel(model, q, qd, qdd, mode=None):
     k = runtime.kernel(model, traced.REGRESSOR) if mode else None
     if k is None:
         return None
-    idx, packer = k[3], k[4]
+    idx, packer = k.extras
     m = 10 * model.nb * n
     if mode == 'loop':   # each state's non-zero outputs packed straight into place
-        fn, (A0, E0) = k[1], runtime.params(model, traced.REGRESSOR)
+        fn, (A0, E0) = k.function, runtime.params(model, traced.REGRESSOR)
         out = np.empty((N, n, 10 * model.nb))
         for s, (a, b, c) in enumerate(zip(q.tolist(), qd.tolist(), qdd.tolist(), strict=True)):
             packer.pack_into(out, 8 * m * s, *fn(a, b, c, A0, E0))

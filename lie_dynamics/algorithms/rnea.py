@@ -53,33 +53,58 @@ def _states(model, args, names):
     return [x[0] for x in arrs] if np.ndim(args[0]) == 1 else arrs
 
 
-def inverse_dynamics(model, q, qd, qdd, wrenches=None, with_gravity=True):
+def inverse_dynamics(model, q, qd, qdd, wrenches=None, with_gravity=True, out=None):
     """tau for a state (n,) or a batch (N, n): paper eqs 16-21 (see module docstring).
 
     wrenches: optional {link: (m, f)} external wrench acting on the link, in the link frame,
-    (6,) or (N, 6). with_gravity=False gives M(q) qdd + C(q, qd) qd.
+    (6,) or (N, 6). with_gravity=False gives M(q) qdd + C(q, qd) qd. out: optional float64
+    array of the result's shape to write into (a control loop then allocates nothing).
     """
-    if not wrenches:
-        lists = runtime.fast_states(model.n, q, qd, qdd)
-        if lists is not None:
-            b = runtime.single(model, traced.INVERSE_DYNAMICS if with_gravity else _ID_NO_GRAVITY)
-            if b:
-                return np.array(b[0](*lists, *b[1]))
+    nk = None
+    if not wrenches:   # the common case first: the native kernel takes it or declines (None)
+        nk = runtime.native(model, traced.INVERSE_DYNAMICS if with_gravity else _ID_NO_GRAVITY)
+        if nk is not None:
+            tau = nk(q, qd, qdd, out)
+            if tau is not None:
+                return tau
+        else:
+            lists = runtime.fast_states(model.n, q, qd, qdd) if out is None else None
+            if lists is not None:
+                b = runtime.single(model, traced.INVERSE_DYNAMICS if with_gravity else _ID_NO_GRAVITY)
+                if b:
+                    return np.array(b[0](*lists, *b[1]))
     arrs = _states(model, (q, qd, qdd), ('q', 'qd', 'qdd'))
     single = arrs[0].ndim == 1
     N = 1 if single else len(arrs[0])
+    runtime.check_out(out, arrs[0].shape)
+    if nk is not None:   # inputs that were not contiguous float64 arrays
+        tau = nk(*arrs, out)
+        if tau is not None:
+            return tau
+    return runtime.deliver(_inverse_dynamics(model, arrs, single, N, wrenches, with_gravity), out)
+
+
+def _inverse_dynamics(model, arrs, single, N, wrenches, with_gravity):
     fext = external_body_wrenches(model, wrenches, N)
     if fext is None:
         spec = traced.INVERSE_DYNAMICS if with_gravity else _ID_NO_GRAVITY
     else:
         spec = traced.INVERSE_DYNAMICS_WRENCH if with_gravity else _ID_WRENCH_NO_GRAVITY
+    arrays = [x.reshape(N, model.n) for x in arrs]
+    nk = runtime.native(model, spec)
+    if nk is not None:
+        if fext is not None:
+            arrays.append(runtime.frames(model).wrench_params(fext).reshape(N, 6 * model.nb))
+        tau = nk(*[np.ascontiguousarray(a) for a in arrays])
+        if tau is not None:
+            return tau[0] if single else tau
+        del arrays[3:]
     mode = runtime.route(model, 'inverse_dynamics', N)
     k = runtime.kernel(model, spec) if mode else None
     if k is None:
         return _vectorized(model, np.array(arrs), fext, with_gravity)
-    arrays = [x.reshape(N, model.n) for x in arrs]
     if fext is not None:
-        arrays.append(k[0].wrench_params(fext).reshape(N, 6 * model.nb))
+        arrays.append(k.frames.wrench_params(fext).reshape(N, 6 * model.nb))
     tau = runtime.evaluate(model, spec, arrays, mode, out=np.empty((N, model.n)))
     return tau[0] if single else tau
 
@@ -91,19 +116,30 @@ def inverse_dynamics_vectorized(model, q, qd, qdd, wrenches=None, with_gravity=T
                        with_gravity)
 
 
-def gravity(model, q):
-    """g(q): eqs 16-21 with V = 0 and Vd_0 = (0, -g); (n,) or (N, n)."""
-    x = runtime.is_fast_single(q, model.n)
-    if x is not None:
-        b = runtime.single(model, traced.GRAVITY)
-        if b:
-            return np.array(b[0](x, *b[1]))
+def gravity(model, q, out=None):
+    """g(q): eqs 16-21 with V = 0 and Vd_0 = (0, -g); (n,) or (N, n). out: as inverse_dynamics."""
+    nk = runtime.native(model, traced.GRAVITY)
+    if nk is not None:
+        tau = nk(q, out)
+        if tau is not None:
+            return tau
+    elif out is None:
+        x = runtime.is_fast_single(q, model.n)
+        if x is not None:
+            b = runtime.single(model, traced.GRAVITY)
+            if b:
+                return np.array(b[0](x, *b[1]))
     a = _states(model, (q,), ('q',))[0]
+    runtime.check_out(out, a.shape)
+    if nk is not None:
+        tau = nk(a, out)
+        if tau is not None:
+            return tau
     N = 1 if a.ndim == 1 else len(a)
     tau = runtime.dispatch(model, traced.GRAVITY, [a.reshape(N, model.n)], out=np.empty((N, model.n)))
     if tau is None:
-        return gravity_vectorized(model, a)
-    return tau[0] if a.ndim == 1 else tau
+        return runtime.deliver(gravity_vectorized(model, a), out)
+    return runtime.deliver(tau[0] if a.ndim == 1 else tau, out)
 
 
 def external_body_wrenches(model, wrenches, N):

@@ -92,15 +92,22 @@ def inverse_dynamics_derivatives(model, q, qd, qdd, wrenches=None):
     """
     n = model.n
     if not wrenches:
-        lists = runtime.fast_states(n, q, qd, qdd)
-        b = runtime.single(model, traced.INVERSE_DYNAMICS_DERIVATIVES) if lists is not None else False
-        if b:
-            out = np.fromiter(b[0](*lists, *b[1]), float, 2 * n * n).reshape(2, n, n)
-            return out[0], out[1]
+        nk = runtime.native(model, traced.INVERSE_DYNAMICS_DERIVATIVES)
+        if nk is not None:
+            out = nk(q, qd, qdd)
+            if out is not None:
+                out = out.reshape(out.shape[:-1] + (2, n, n))
+                return out[..., 0, :, :], out[..., 1, :, :]
+        else:
+            lists = runtime.fast_states(n, q, qd, qdd)
+            b = runtime.single(model, traced.INVERSE_DYNAMICS_DERIVATIVES) if lists is not None else False
+            if b:
+                out = np.fromiter(b[0](*lists, *b[1]), float, 2 * n * n).reshape(2, n, n)
+                return out[0], out[1]
     single = np.ndim(q) == 1
     q, qd, qdd = model.check_states(q=q, qd=qd, qdd=qdd)
     fext = external_body_wrenches(model, wrenches, len(q))
-    res = _kernel(model, q, qd, qdd, fext)
+    res = _native(model, q, qd, qdd, fext) or _kernel(model, q, qd, qdd, fext)
     if res is None:
         res = _vectorized(model, q, qd, qdd, fext)
     return (res[0][0], res[1][0]) if single else res
@@ -115,6 +122,21 @@ def inverse_dynamics_derivatives_kernel(model, q, qd, qdd, wrenches=None, mode=N
     return res if res is None or not single else (res[0][0], res[1][0])
 
 
+def _native(model, q, qd, qdd, fext):
+    """The native kernel on validated (N, n) arrays: (dtau/dq, dtau/dqd), or None."""
+    spec = traced.INVERSE_DYNAMICS_DERIVATIVES if fext is None else traced.INVERSE_DYNAMICS_DERIVATIVES_WRENCH
+    nk = runtime.native(model, spec)
+    if nk is None:
+        return None
+    N, n = q.shape
+    extra = [] if fext is None else [runtime.frames(model).wrench_params(fext).reshape(N, -1)]
+    vals = nk(*[np.ascontiguousarray(a) for a in [q, qd, qdd] + extra])
+    if vals is None:
+        return None
+    vals = vals.reshape(N, 2, n, n)
+    return vals[:, 0], vals[:, 1]
+
+
 def _kernel(model, q, qd, qdd, fext, mode=None):
     """On validated (N, n) arrays; fext: (N, nb, 6) body-frame wrenches or None."""
     spec = traced.INVERSE_DYNAMICS_DERIVATIVES if fext is None else traced.INVERSE_DYNAMICS_DERIVATIVES_WRENCH
@@ -123,7 +145,7 @@ def _kernel(model, q, qd, qdd, fext, mode=None):
     k = runtime.kernel(model, spec) if mode else None
     if k is None:
         return None
-    arrays = [q, qd, qdd] + ([] if fext is None else [k[0].wrench_params(fext).reshape(N, -1)])
+    arrays = [q, qd, qdd] + ([] if fext is None else [k.frames.wrench_params(fext).reshape(N, -1)])
     vals = runtime.evaluate(model, spec, arrays, mode)
     if vals is None:
         return None
@@ -161,12 +183,21 @@ def coriolis_matrix(model, q, qd):
     q, qd: (n,) or (N, n) -> (n, n) or (N, n, n).
     """
     n = model.n
-    lists = runtime.fast_states(n, q, qd)
-    b = runtime.single(model, traced.CORIOLIS) if lists is not None else False
-    if b:
-        return np.fromiter(b[0](*lists, *b[1]), float, n * n).reshape(n, n)
+    nk = runtime.native(model, traced.CORIOLIS)
+    if nk is not None:
+        C = nk(q, qd)
+        if C is not None:
+            return C
+    else:
+        lists = runtime.fast_states(n, q, qd)
+        b = runtime.single(model, traced.CORIOLIS) if lists is not None else False
+        if b:
+            return np.fromiter(b[0](*lists, *b[1]), float, n * n).reshape(n, n)
     single = np.ndim(q) == 1
     q, qd = model.check_states(q=q, qd=qd)
+    C = nk(q, qd) if nk is not None else None
+    if C is not None:
+        return C[0] if single else C
     C = runtime.dispatch(model, traced.CORIOLIS, [q, qd])
     C = 0.5 * _vectorized(model, q, qd, np.zeros_like(qd), None)[1] if C is None else C.reshape(len(q), n, n)
     return C[0] if single else C

@@ -2,6 +2,7 @@
 import numpy as np
 
 from .algebra import mat_mat, vadd, vscale
+from .render import Params
 from .tracer import snap
 
 
@@ -120,14 +121,19 @@ class Frames:
                     s = s + float(self.E[b, j]) * syms[j]
                 xs.append(s)
             out['xd' if k == 0 else 'xdd'] = xs
-        out['offset_args'] = ('E0', [f'e{b}' for b in range(nb) if self.offset[b]])
+        out['offset_args'] = Params('E0', [f'e{b}' for b in range(nb) if self.offset[b]])
         return out
 
     def trace_params(self, g):
         names = [f'p{b}_{k}' for b in range(self.nb) for k in range(10)]
         syms = [g.input(nm) for nm in names]
         per = [syms[10 * b:10 * b + 10] for b in range(self.nb)]
-        return ('P', names), [(p[0], tuple(p[1:4]), tuple(p[4:10])) for p in per]
+        return Params('P', names), [(p[0], tuple(p[1:4]), tuple(p[4:10])) for p in per]
+
+    def trace_gravity(self, g):
+        """(the A0 argument list, symbols of -g): the linear base acceleration, a parameter."""
+        names = [f'g{k}' for k in range(3)]
+        return Params('A0', names), [g.input(nm) for nm in names]
 
     def joint_transform(self, g, b, x):
         """(R, t) of f_{p',b'}(x) as traced 3x3 / 3-vector."""

@@ -7,28 +7,30 @@ The same traced algorithm is rendered twice:
   * `emit_rows`: a function on numpy rows with one entry per state, for a batch (state-last
     rows; each operation is one ufunc whose fixed cost the whole chunk shares).
 `kernel` compiles the float form and keeps the rows form's source; `rows_function` compiles
-it on first use.
+it on first use. The third rendering, C for the native backend, is crender.py (from the trace
+`kernel` keeps). Argument lists are per-state values unless marked as parameters (Params).
 """
 import math
-import re
 
 import numpy as np
 
+from . import native
 from .tracer import Sym
 
-def _render_form(items, const, ref):
-    """Text of sum c_k * atom_k + const; ref(atom, need) gives an atom's text."""
+def form_text(items, const, ref, literal=repr):
+    """Text of sum c_k * atom_k + const; ref(atom, need) gives an atom's text, literal a
+    constant's (the C renderer shares this: the same order of operations, the same results)."""
     items = sorted(items, key=lambda t: t[1] < 0)   # a positive term first when there is one
     out = []
     for k, (a, c) in enumerate(items):
         mag = abs(c)
-        body = ref(a, 2) if mag == 1.0 else f'{mag!r}*{ref(a, 2)}'
+        body = ref(a, 2) if mag == 1.0 else f'{literal(mag)}*{ref(a, 3)}'
         if c < 0:
             out.append(('-' if k == 0 else ' - ') + body)
         else:
             out.append(('' if k == 0 else ' + ') + body)
     if const != 0.0:
-        out.append(f' - {-const!r}' if const < 0 else f' + {const!r}')
+        out.append(f' - {literal(-const)}' if const < 0 else f' + {literal(const)}')
     s = ''.join(out)
     single = len(items) == 1 and const == 0.0
     if single and items[0][1] == 1.0:
@@ -45,6 +47,8 @@ def emit(g, fname, arg_lists, outputs, inline_limit=24):
 
     arg_lists: [(list name, [input symbol names])]; outputs: Syms or floats. Dead nodes are
     dropped; intermediate atoms used once are inlined into their consumer (bounded length).
+    Three passes on the graph: which nodes become lines (the rest is inlined), registers for
+    those lines (_registers), then the text.
     """
     deps = g.deps
     roots, live = g.live(outputs)
@@ -54,7 +58,38 @@ def emit(g, fname, arg_lists, outputs, inline_limit=24):
             uses[a] = uses.get(a, 0) + 1
     for a in roots:
         uses[a] = uses.get(a, 0) + 2
-    names, text, size, lines = {}, {}, {}, []
+    order = sorted(live)
+    inlined, size, seq = set(), {}, {}
+
+    def leaves(a):   # the non-inlined nodes node a's text names, in text order
+        return seq[a] if a in inlined else [a]
+
+    def form_leaves(items, const):
+        rec = []
+        form_text(items, const, lambda a, need: rec.extend(leaves(a)) or 'x')
+        return rec
+
+    lines = []       # nodes that become a line
+    for i in order:
+        op, data = g.nodes[i]
+        if op == 'in':
+            continue
+        if op == 'mul':
+            seq[i] = leaves(data[0]) + leaves(data[1])
+        elif op == 'lin':
+            seq[i] = form_leaves(data[0], data[1])
+        else:
+            seq[i] = leaves(data)
+        n_ops = 1 + sum(size.get(a, 0) for a in deps(i) if a in inlined)
+        if uses.get(i, 0) == 1 and n_ops < inline_limit:
+            inlined.add(i)
+            size[i] = n_ops
+        else:
+            lines.append(i)
+    ret_leaves = [a for o in outputs if isinstance(o, Sym) for a in form_leaves(tuple(o.terms.items()), o.const)]
+    regs = _registers(g, lines, seq, ret_leaves)
+
+    names, text = dict(regs), {}
 
     def ref(a, need):
         if a in text:
@@ -62,80 +97,73 @@ def emit(g, fname, arg_lists, outputs, inline_limit=24):
             return f'({s})' if p < need else s
         return names[a]
 
-    for i in sorted(live):
+    body = []
+    for i in order:
         op, data = g.nodes[i]
         if op == 'in':
             names[i] = data
             continue
         if op == 'mul':
-            s, p = f'{ref(data[0], 2)}*{ref(data[1], 2)}', 2
+            s, p = f'{ref(data[0], 2)}*{ref(data[1], 3)}', 2
         elif op == 'inv':
             s, p = f'1.0/{ref(data, 3)}', 2
         elif op == 'lin':
-            s, p = _render_form(data[0], data[1], ref)
+            s, p = form_text(data[0], data[1], ref)
         else:
             s, p = f'{op}({ref(data, 0)})', _PREC_ATOM
-        n_ops = 1 + sum(size.get(a, 0) for a in deps(i) if a in text)
-        if uses.get(i, 0) == 1 and n_ops < inline_limit:
-            text[i], size[i] = (s, p), n_ops
+        if i in inlined:
+            text[i] = (s, p)
         else:
-            names[i] = f't{len(lines)}'
-            lines.append((names[i], s))
+            body.append((names[i], s))
 
     def out(o):
         if not isinstance(o, Sym):
             return repr(float(o))
-        return _render_form(tuple(o.terms.items()), o.const, ref)[0]
+        return form_text(tuple(o.terms.items()), o.const, ref)[0]
 
     ret = f'({", ".join(out(o) for o in outputs)}{"," if len(outputs) == 1 else ""})'
-    lines, ret = _registers(lines, ret)
     params = [n for n, _ in arg_lists] + ['sin=sin_', 'cos=cos_', 'sqrt=sqrt_']
-    hot = _hot_locals(lines, ret, [nm for _, syms in arg_lists for nm in syms], _MAX_FAST - len(params))
+    hot = _hot_locals(lines, seq, ret_leaves, names, [nm for _, syms in arg_lists for nm in syms],
+                      _MAX_FAST - len(params))
     head = [f'def {fname}({", ".join(params + [f"{h}=0.0" for h in hot])}):']
     for lname, syms in arg_lists:
         if syms:
             head.append(f'    {", ".join(syms)}{"," if len(syms) == 1 else ""} = {lname}')
-    return '\n'.join(head + [f'    {t} = {x}' for t, x in lines] + [f'    return {ret}']) + '\n'
+    return '\n'.join(head + [f'    {t} = {x}' for t, x in body] + [f'    return {ret}']) + '\n'
 
 
-# Identifiers of the generated text (not the exponent of a float literal such as 1e-05).
-_IDENT = re.compile(r'(?<![\w.])[A-Za-z_]\w*')
 # CPython addresses the first 256 local variables with a one-byte argument; every access to a
 # later one costs an extra EXTENDED_ARG instruction (about 10-15% of a large kernel's time).
 _MAX_FAST = 256
 
 
-def _registers(lines, ret):
-    """Rename temporaries so that a name is reused once its value is dead (linear scan).
-
-    Fewer distinct locals keep most of them within the first 256 (see _MAX_FAST).
-    lines: [(temp, expression)] in order; ret: the return expression.
-    """
-    temps = {t for t, _ in lines}
-    toks = [[x for x in _IDENT.findall(e) if x in temps] for _, e in lines]
+def _registers(g, lines, seq, ret_leaves):
+    """{node: register name} for the nodes of `lines` (in order), a name reused once its value
+    is dead (linear scan over the graph's uses: seq[i], the nodes line i reads, in text order;
+    ret_leaves, those the return reads). Fewer distinct locals keep most of them within the
+    first 256 (see _MAX_FAST)."""
+    temps = set(lines)
     last = {}
-    for i, ts in enumerate(toks):
-        for x in ts:
-            last[x] = i
-    for x in _IDENT.findall(ret):
+    for k, i in enumerate(lines):
+        for x in seq[i]:
+            if x in temps:
+                last[x] = k
+    for x in ret_leaves:
         if x in temps:
             last[x] = len(lines)
     regs, free, nreg = {}, [], 0
-    for i, ((t, _), ts) in enumerate(zip(lines, toks, strict=True)):
-        for x in dict.fromkeys(ts):
-            if last[x] == i:
+    for k, i in enumerate(lines):
+        for x in dict.fromkeys(seq[i]):
+            if x in temps and last[x] == k:
                 free.append(regs[x])
         if free:
-            regs[t] = free.pop()
+            regs[i] = free.pop()
         else:
-            regs[t], nreg = f'r{nreg}', nreg + 1
-
-    def ren(e):
-        return _IDENT.sub(lambda m: regs.get(m.group(0), m.group(0)), e)
-    return [(regs[t], ren(e)) for t, e in lines], ren(ret)
+            regs[i], nreg = f'r{nreg}', nreg + 1
+    return regs
 
 
-def _hot_locals(lines, ret, inputs, k):
+def _hot_locals(lines, seq, ret_leaves, names, inputs, k):
     """The k most used locals (registers and unpacked inputs), to be declared first.
 
     Locals are numbered in order of first appearance after the parameters; declaring the
@@ -143,14 +171,12 @@ def _hot_locals(lines, ret, inputs, k):
     the one-byte numbers.
     """
     count = dict.fromkeys(inputs, 0)
-    for t, e in lines:
-        count[t] = count.get(t, 0) + 1
-        for x in _IDENT.findall(e):
-            if x in count:
-                count[x] += 1
-    for x in _IDENT.findall(ret):
-        if x in count:
-            count[x] += 1
+    for i in lines:
+        count[names[i]] = count.get(names[i], 0) + 1
+        for x in seq[i]:
+            count[names[x]] += 1
+    for x in ret_leaves:
+        count[names[x]] += 1
     if len(count) <= k:
         return []
     return sorted(count, key=lambda x: -count[x])[:k]
@@ -162,9 +188,14 @@ def compile_function(src, fname):
     return ns[fname]
 
 
-# Names of the argument lists that hold parameters (the same for every state of a batch);
-# every other list holds per-state values, rows in the numpy rendering.
-SCALAR_LISTS = ('P', 'A0', 'E0')
+class Params(tuple):
+    """An argument list of parameters, (name, symbol names): the same for every state of a
+    batch (Python floats in the rows rendering, hoisted out of the per-state work). Any other
+    argument list, a plain (name, symbol names) pair, holds per-state values."""
+    __slots__ = ()
+
+    def __new__(cls, name, syms):
+        return super().__new__(cls, (name, list(syms)))
 
 
 def emit_rows(g, fname, arg_lists, outputs):
@@ -177,7 +208,7 @@ def emit_rows(g, fname, arg_lists, outputs):
     reused once its value is dead, never as the target of an operation that reads it.
     """
     roots, live = g.live(outputs)
-    scalar_in = {nm for lname, syms in arg_lists if lname in SCALAR_LISTS for nm in syms}
+    scalar_in = {nm for lst in arg_lists if isinstance(lst, Params) for nm in lst[1]}
     is_row = {}
     for i in sorted(live):
         op, data = g.nodes[i]
@@ -288,6 +319,8 @@ def kernel(g, fname, arg_lists, outputs):
     fn.n_out = len(outputs)
     fn.pool = []   # reusable register blocks of the rows form (runtime.run_rows)
     fn.layout = None
+    # the trace, for the C renderer (runtime.native renders it once, then drops it)
+    fn.trace = (g, arg_lists, outputs) if native.wanted() else None
     return fn, src
 
 

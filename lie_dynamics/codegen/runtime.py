@@ -17,79 +17,13 @@ import contextlib
 import hashlib
 import threading
 import weakref
-from typing import NamedTuple
 
 import numpy as np
 
+from . import crender, native as _native
+from .thresholds import THRESHOLDS, Limits  # noqa: F401 (Limits: part of this module's interface)
 from .frames import Frames
 from .render import rows_function
-
-
-class Limits(NamedTuple):
-    """When a kernel runs, by model size (`size`: bodies, or (body, ancestor-or-self) pairs,
-    the sum of the body depths) and by the number of states N of a call."""
-    compile_max: int          # no kernel above this size (compile time grows with the source)
-    float_max: int            # above: one state and small batches take the vectorised reference
-    loop_below: int           # N below this: the float kernel, state by state
-    rows_from: int            # N from this: the kernel on numpy rows; in between: vectorised
-    size: str = 'bodies'
-    large: int = None         # above this size, rows from rows_from_large states
-    rows_from_large: int = None
-
-
-# Every size threshold of the algorithms, with the measurement that chose it (timings on the
-# 7-DoF arm and random chains and trees, this 2-core machine, numpy 2.4, Python 3.11).
-THRESHOLDS = {
-    # RNEA: compile time grows with the source, and above 256 bodies the vectorised form is
-    # as fast for batches. The float kernel (~15 ns per flop) is slower than the vectorised
-    # reference for one state above ~48 bodies. A Python loop of the float kernel beats the
-    # rows kernel below ~30 states on the arm (each row operation costs ~0.5 us whatever its
-    # length).
-    'inverse_dynamics': Limits(256, 48, 32, 32),
-    # Gravity (subtree masses, a few operations per body): the float kernel wins for one
-    # state at every size up to the compile cap; loop/rows crossover as inverse dynamics.
-    'gravity': Limits(256, 256, 32, 32),
-    # CRBA: the O(n^2) source takes long to compile above 24 bodies; the float loop beats the
-    # vectorised form up to ~40 states on the arm, where the in-place rows take over.
-    'mass_matrix': Limits(24, 24, 40, 40),
-    # Cholesky forward dynamics (CRBA + RNEA bias + factorisation, O(n^2) source, the CRBA's
-    # cap); the float loop beats the rows up to ~48 states on the arm, and the kernel beats
-    # the composed numpy path at every batch size.
-    'forward_dynamics': Limits(24, 24, 48, 48),
-    # ABA (O(n) source): build time grows ~12 ms per body (0.3 s at 24, 1.2 s at 120) while
-    # the kernel stays ~10x faster than the vectorised form; loop/rows crossovers 28-48
-    # states for 2-24 bodies, the vectorised form never clearly faster in between.
-    'aba': Limits(128, 128, 32, 32),
-    # Derivatives of inverse dynamics (and C = 1/2 dtau/dqd): above 16 bodies one state is
-    # faster through the vectorised form; crossovers 4 (loop) and 128 (rows) on 7-20 bodies.
-    'inverse_dynamics_derivatives': Limits(16, 16, 4, 128),
-    # Derivatives of forward dynamics (the derivative kernel's cap); crossovers on the arm
-    # ~8 (loop) and ~80 (rows).
-    'forward_dynamics_derivatives': Limits(16, 16, 8, 80),
-    # Regressor, sized in pairs: 300 pairs (a 24-body chain) compile in ~0.5-0.8 s. The
-    # float kernel (~22 ns per operation, 60-95 per pair) beats the vectorised form for one
-    # state up to ~130-160 pairs. Loop below ~7 states on the arm (3-5 on 10-12-body robots
-    # with general axes); rows from ~80 states on the arm and 20-100 up to 64 pairs, 40-280
-    # for 100-300 pairs (later for chains, earlier for branched trees).
-    'regressor': Limits(300, 128, 6, 80, size='pairs', large=64, rows_from_large=192),
-    # Frame Jacobians and J̇q̇ (one kernel per kind, frame and body, O(depth) source): on random
-    # chains (tip link) the float kernel beats the vectorised form for one state up to ~96 bodies,
-    # 1.3-1.6x at 64 where a build takes 0.1-0.2 s (0.3 s at 128); on the arm the loop/rows
-    # crossover is 24-40 states, the vectorised form never faster in between.
-    'jacobian': Limits(64, 64, 32, 32),
-    # Batch runner: states per chunk, large enough that each ufunc's ~0.5 us fixed cost is
-    # small next to its per-element work, small enough that the rows stay in cache (at most
-    # ~8 MB of registers and inputs per chunk).
-    'rows_chunk': 4096,
-    'rows_bytes': 8 << 20,
-    # Regressor rows: states per call of the batch runner, bounding its (outputs, states)
-    # result (up to 10 nb^2 outputs).
-    'regressor_rows_chunk': 8192,
-    # Vectorised references: floats of work arrays per chunk of states (2^21: 16 MB).
-    'vectorized_budget': 1 << 21,
-    # Compiled kernels kept for structures no live model uses (about 10 per structure).
-    'compiled_cache': 256,
-}
 
 
 def pairs(model):
@@ -114,12 +48,12 @@ def route(model, name, N=None):
 class _Slot:
     """What the runtime keeps for one live model (dropped with it): its fingerprint, Frames and
     kernels (structure, never invalidated) and values that follow the model's version."""
-    __slots__ = ('ref', 'version', 'fingerprint', 'frames', 'kernels', 'structure', 'values', 'singles')
+    __slots__ = ('ref', 'version', 'fingerprint', 'frames', 'kernels', 'structure', 'values', 'singles', 'natives')
 
     def __init__(self, model):
         self.ref = weakref.ref(model)
         self.version, self.fingerprint, self.frames = None, None, None
-        self.kernels, self.structure, self.values, self.singles = {}, {}, {}, {}
+        self.kernels, self.structure, self.values, self.singles, self.natives = {}, {}, {}, {}, {}
 
 
 _SLOTS = {}                                   # id(model) -> _Slot, removed when the model dies
@@ -134,7 +68,7 @@ def _slot(model):
         s = _SLOTS[id(model)] = _Slot(model)
         weakref.finalize(model, _SLOTS.pop, id(model), None)
     if s.version != model.version:
-        s.values, s.singles = {}, {}          # new dicts: concurrent readers keep the old ones
+        s.values, s.singles, s.natives = {}, {}, {}   # new dicts: concurrent readers keep the old ones
         s.version = model.version
     return s
 
@@ -206,10 +140,23 @@ def frames(model):
     return s.frames
 
 
+class Kernel(tuple):
+    """A built kernel of one model structure, by name: `frames` (Frames), `function` (the float
+    kernel, with its rows form: render.kernel), `source` (its Python text) and `extras` (what
+    the build returned after them: the ABA's geometry, the regressor's output index and
+    packer). Still indexable as the tuple (frames, function, source, *extras)."""
+    __slots__ = ()
+
+    frames = property(lambda self: self[0])
+    function = property(lambda self: self[1])
+    source = property(lambda self: self[2])
+    extras = property(lambda self: self[3:])
+
+
 def _compiled(model, name, build):
-    """The kernel `name` of this model's structure: (frames, float function, source, *extra)
-    from build(frames), built once per structure; False when the model's screws are not unit
-    revolute / prismatic axes or build returns None."""
+    """The Kernel `name` of this model's structure from build(frames) (render.kernel's
+    (function, source[, extras...])), built once per structure; False when the model's screws
+    are not unit revolute / prismatic axes or build returns None."""
     s = _slot(model)
     k = s.kernels.get(name)
     if k is None:
@@ -217,7 +164,7 @@ def _compiled(model, name, build):
 
         def make():
             res = build(fr) if fr.supported else None
-            return (fr,) + tuple(res) if res is not None else False
+            return Kernel((fr,) + tuple(res)) if res is not None else False
         k = s.kernels[name] = _shared((fingerprint(model), name), make)
     return k
 
@@ -267,22 +214,29 @@ class Spec:
     condition on the model, or None), `rows_arrays` (parameters of the rows form as 0-d
     arrays, see as_rows) and `checked` (callers check the outputs: the rows form runs
     without floating-point warnings) and `pooled` (the batch runner keeps its register blocks
-    between calls: run_rows)."""
-    __slots__ = ('name', 'build', 'params', 'limits', 'supports', 'rows_arrays', 'checked', 'pooled')
+    between calls: run_rows). For the native backend: `result` (model) -> (shape of one
+    state's result, its first prod(shape) outputs, checked finite; rtol: None, or the
+    outputs after it are pivots then their scales, as many each, accepted above rtol times
+    the scale), None for all outputs as a vector; `scatter` (kernel) -> (flat indices,
+    size) when the outputs are the non-zero entries of a larger result. Parameter
+    functions are called (model, kernel) and (model, None) for the native backend."""
+    __slots__ = ('name', 'build', 'params', 'limits', 'supports', 'rows_arrays', 'checked', 'pooled', 'result',
+                 'scatter')
 
     def __init__(self, name, build, params, limits, supports=None, rows_arrays=False, checked=False,
-                 pooled=False):
+                 pooled=False, result=None, scatter=None):
         self.name, self.build, self.params, self.limits = name, build, tuple(params), limits
         self.supports, self.rows_arrays, self.checked, self.pooled = supports, rows_arrays, checked, pooled
+        self.result, self.scatter = result, scatter
 
     def variant(self, params):
         """The same kernel with other parameter lists (e.g. gravity switched off)."""
         return Spec(self.name, self.build, params, self.limits, self.supports, self.rows_arrays, self.checked,
-                    self.pooled)
+                    self.pooled, self.result, self.scatter)
 
 
 def kernel(model, spec):
-    """(frames, float function, source, *extras) of spec's kernel for this model, or None:
+    """spec's Kernel for this model, or None:
     too large for THRESHOLDS, screws other than unit revolute / prismatic axes, or
     spec.supports(model) false."""
     t = THRESHOLDS[spec.limits]
@@ -321,8 +275,82 @@ def single(model, spec):
     b = s.singles.get(spec)
     if b is None:
         k = _bind(s, model, spec) if route(model, spec.limits) == 'loop' else False
-        b = s.singles[spec] = (k[0][1], k[1], k[0]) if k else False
+        b = s.singles[spec] = (k[0].function, k[1], k[0]) if k else False
     return b
+
+
+def _native_library(model, spec):
+    """The compiled C kernel of spec for this model's structure (native.Library), or False."""
+    t = THRESHOLDS[spec.limits]
+    if (model.nb if t.size == 'bodies' else pairs(model)) > t.compile_max or not _native.wanted():
+        return False
+    if (spec.supports is not None and not spec.supports(model)) or not frames(model).supported:
+        return False
+
+    def render():
+        k = kernel(model, spec)
+        if not k or k.function.trace is None:
+            return None
+        g, arg_lists, outputs = k.function.trace
+        k.function.trace = None                     # rendered once per structure (the library is cached)
+        if len(g.live(outputs)[1]) > THRESHOLDS['native_nodes']:
+            return None
+        n_state = len(arg_lists) - len(spec.params)
+        roles = ['state'] * n_state + ['param'] * len(spec.params)
+        index, size = spec.scatter(k) if spec.scatter else (None, None)
+        src = crender.emit_c(g, 'lie_kernel', arg_lists, roles, outputs, index, size)
+        return (src, [len(a) for _, a in arg_lists[:n_state]], [len(a) for _, a in arg_lists[n_state:]],
+                size or len(outputs))
+
+    def make():
+        return _native.library(fingerprint(model), spec.name, render) or False
+    s = _slot(model)
+    key = ('native', spec.name)
+    lib = s.kernels.get(key)
+    if lib is None:
+        lib = s.kernels[key] = _shared((fingerprint(model), key), make)
+    return lib
+
+
+def native(model, spec):
+    """spec's kernel compiled to C with this model's parameters bound (native.bind): call it
+    with the per-state arrays (n,) or (N, n) and an optional `out`; it returns the result or
+    None (input not contiguous float64 of the right shapes, or a result that is not finite
+    or fails the pivot test: the caller's full path takes over). None when the model has no
+    native kernel (backend off or unavailable, too large, unsupported). Cached until the
+    model's version changes."""
+    s = _SLOTS.get(id(model))   # the hot path of a control loop: _slot, inlined
+    if s is None or s.version != model.version or s.ref() is not model:
+        s = _slot(model)
+    b = s.natives.get(spec)
+    if b is None:
+        b = s.natives[spec] = _bind_native(model, spec) or False
+    return b or None
+
+
+def use_native(model, on=True):
+    """Let this model use the native kernels (the default) or only the Python ones (on=False:
+    for comparisons in one process; LIE_DYNAMICS_NATIVE=0 switches them off everywhere)."""
+    s = _slot(model)
+    s.structure['native_off'] = not on
+    s.natives = {}
+
+
+def _bind_native(model, spec):
+    if _slot(model).structure.get('native_off'):
+        return None
+    lib = _native_library(model, spec)
+    if not lib:
+        return None
+    try:
+        P = tuple(parameter(model, p) if isinstance(p, str) else p(model, None) for p in spec.params)
+    except (ValueError, ZeroDivisionError, OverflowError):
+        return None
+    if tuple(len(p) for p in P) != lib.par_lengths:
+        return None
+    shape, rtol = spec.result(model) if spec.result else ((lib.n_out,), None)
+    n_res = int(np.prod(shape))
+    return _native.bind(lib, P, n_res, shape, rtol is not None, rtol or 0.0, THRESHOLDS['native_gil_rows'])
 
 
 def forget(model):
@@ -339,7 +367,7 @@ def evaluate(model, spec, arrays, mode, out=None):
     b = _bind(_slot(model), model, spec)
     if not b:
         return None
-    fn = b[0][1]
+    fn = b[0].function
     try:
         if mode == 'loop':
             return np.array(run_loop(fn, arrays, b[1]), dtype=float).reshape(len(arrays[0]), fn.n_out)
@@ -347,6 +375,23 @@ def evaluate(model, spec, arrays, mode, out=None):
                         pooled=spec.pooled)
     except (ValueError, ZeroDivisionError, OverflowError):   # also from parameters alone, as floats
         return None
+
+
+def check_out(out, shape):
+    """`out` when it is a writeable float64 array of this shape (or None), else ValueError."""
+    if out is not None and not (isinstance(out, np.ndarray) and out.dtype == _F64 and out.shape == tuple(shape)
+                                and out.flags.writeable):
+        got = f'{out.dtype} array of shape {out.shape}' if isinstance(out, np.ndarray) else type(out).__name__
+        raise ValueError(f'out must be a writeable float64 array of shape {tuple(shape)}, got {got}')
+    return out
+
+
+def deliver(result, out):
+    """result, written into `out` when given (checked by check_out before the work)."""
+    if out is None:
+        return result
+    out[...] = result
+    return out
 
 
 def check_mode(mode):

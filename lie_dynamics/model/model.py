@@ -16,6 +16,7 @@ import functools
 
 import numpy as np
 
+from ..codegen import runtime
 from ..algorithms import aba, aba_derivatives, crba, jacobian, kinematics, lagrangian, regressor, rnea, rnea_derivatives
 from .inertia import RTOL, link_inertia, violations
 from .inertia import inertia_scale as scale_of  # the constructor's argument has the plain name
@@ -368,18 +369,19 @@ class Model:
 
     # ------------------------------------------------------------------ algorithms
     @_jointless(('q', 'qd', 'qdd'), (0,))
-    def inverse_dynamics(self, q, qd, qdd, wrenches=None, with_gravity=True):
+    def inverse_dynamics(self, q, qd, qdd, wrenches=None, with_gravity=True, out=None):
         """tau = M(q) qdd + C(q, qd) qd + g(q) - J^T F_ext: the Lie-group RNEA (paper eqs 16-21).
 
         wrenches: optional {link: (m, f)} external wrench acting on the link, expressed in
         the link frame. with_gravity=False leaves g(q) out. Single state (n,) or batch (N, n).
+        out: optional float64 array of the result's shape, written and returned (no allocation).
         """
-        return rnea.inverse_dynamics(self, q, qd, qdd, wrenches, with_gravity)
+        return rnea.inverse_dynamics(self, q, qd, qdd, wrenches, with_gravity, out)
 
     @_jointless(('q',), (0,))
-    def gravity(self, q):
-        """Gravity compensation torques g(q) (RNEA with V = 0, Vdot_0 = (0, -g))."""
-        return rnea.gravity(self, q)
+    def gravity(self, q, out=None):
+        """Gravity compensation torques g(q) (RNEA with V = 0, Vdot_0 = (0, -g)); out: as inverse_dynamics."""
+        return rnea.gravity(self, q, out)
 
     @_jointless(('q', 'qd'), (0,))
     def coriolis_term(self, q, qd):
@@ -450,13 +452,15 @@ class Model:
 
     # --- Lagrangian dynamics, forward dynamics, derivatives, regressor (lagrangian.py, crba.py, aba.py, ...) ---
     @_jointless(('q',), (0, 0))
-    def mass_matrix(self, q, method='crba'):
+    def mass_matrix(self, q, method='crba', out=None):
         """M(q), (n, n) or (N, n, n). method: 'crba' (composite rigid body, O(n^2); a generated
-        kernel for small models, the fastest) or 'closed_form' (S^T G^T J G S, paper eq 39, O(n^3))."""
+        kernel for small models, the fastest) or 'closed_form' (S^T G^T J G S, paper eq 39, O(n^3)).
+        out: as inverse_dynamics."""
         if method == 'closed_form':
-            return lagrangian.mass_matrix(self, q)
+            M = lagrangian.mass_matrix(self, q)
+            return runtime.deliver(M, runtime.check_out(out, M.shape))
         if method == 'crba':
-            return crba.mass_matrix(self, q)
+            return crba.mass_matrix(self, q, out)
         raise ValueError(f"unknown mass matrix method {method!r}: use 'closed_form' or 'crba'")
 
     @_jointless(('q',), (0, 0, 0))
@@ -498,9 +502,10 @@ class Model:
         return lagrangian.kinetic_energy(self, q, qd)
 
     @_jointless(('q', 'qd', 'tau'), (0,))
-    def forward_dynamics(self, q, qd, tau, wrenches=None, method='cholesky'):
-        """qdd with inverse_dynamics(q, qd, qdd, wrenches) = tau; method 'cholesky' or 'aba' (O(n))."""
-        return aba.forward_dynamics(self, q, qd, tau, wrenches, method)
+    def forward_dynamics(self, q, qd, tau, wrenches=None, method='cholesky', out=None):
+        """qdd with inverse_dynamics(q, qd, qdd, wrenches) = tau; method 'cholesky' or 'aba' (O(n)).
+        out: as inverse_dynamics."""
+        return aba.forward_dynamics(self, q, qd, tau, wrenches, method, out)
 
     @_jointless(('q', 'qd', 'qdd'), (0, 0), (0, 0))
     def inverse_dynamics_derivatives(self, q, qd, qdd, wrenches=None):

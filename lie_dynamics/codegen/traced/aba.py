@@ -16,6 +16,7 @@ import numpy as np
 from .. import algebra as la
 from .. import runtime
 from ..render import kernel
+from ...algorithms.cholesky import PD_RTOL
 from ..runtime import Spec
 from ..tracer import SNAP, Graph, Sym, snap
 from ...spatial import hat3
@@ -406,7 +407,7 @@ def build_aba(fr, wrench=False):
     g = Graph()
     co = fr.trace_coordinates(g, rates=1)
     parg, params = fr.trace_params(g)
-    ga = [g.input(f'g{k}') for k in range(3)]
+    a0arg, ga = fr.trace_gravity(g)
     n, nb = fr.n, fr.nb
     taus = [g.input(f'u{j}') for j in range(n)]
     joint_of = [None] * nb
@@ -421,7 +422,7 @@ def build_aba(fr, wrench=False):
         args.append(('FX', names))
         fs = [g.input(nm) for nm in names]
         fext = [(tuple(fs[6 * b:6 * b + 3]), tuple(fs[6 * b + 3:6 * b + 6])) for b in range(nb)]
-    args += [parg, ('A0', [f'g{k}' for k in range(3)]), co['offset_args']]
+    args += [parg, a0arg, co['offset_args']]
     res = trace_aba(fr, geom, g, co['x'], co['xd'], [0.0 if j is None else taus[j] for j in joint_of],
                     params, ga, fext)
     per_joint = [None] * n
@@ -441,17 +442,27 @@ def supports(model):
     return runtime.structural(model, 'one_body_per_joint', compute)
 
 
+def _geometry(model):
+    """The kernel's frames (_Geometry) of this model's structure, without tracing."""
+    return runtime.structural(model, 'aba_geometry', lambda: _Geometry(runtime.frames(model)))
+
+
 def _inertias(model, k):
-    """The inertia parameters in the kernel's frames (_Geometry.params)."""
-    return tuple(k[3].params(runtime.parameter(model, 'inertia')))
+    """The inertia parameters in the kernel's frames (_Geometry.params; k may be None)."""
+    return tuple(_geometry(model).params(runtime.parameter(model, 'inertia')))
+
+
+def native_wrenches(model, fext):
+    """(N, nb, 6) body-frame wrenches -> the FX argument of the kernels (their frames)."""
+    return _geometry(model).wrenches(fext)
 
 
 def wrenches(k, fext):
     """(N, nb, 6) body-frame wrenches -> the FX argument of kernel k (its frames)."""
-    return k[3].wrenches(fext)
+    return k.extras[0].wrenches(fext)
 
 
 ABA = Spec('aba', lambda fr: build_aba(fr, False), (_inertias, 'gravity', 'offsets'), 'aba',
-           supports=supports, checked=True)
+           supports=supports, checked=True, result=lambda model: ((model.n,), PD_RTOL))
 ABA_WRENCH = Spec('aba_wrench', lambda fr: build_aba(fr, True), (_inertias, 'gravity', 'offsets'), 'aba',
-                  supports=supports, checked=True)
+                  supports=supports, checked=True, result=lambda model: ((model.n,), PD_RTOL))

@@ -7,6 +7,7 @@ with the pivots d_j^2 and diag(M): callers test positive definiteness with them
 (algorithms/cholesky.py), blind to the scale of the masses.
 """
 from ..render import kernel
+from ...algorithms.cholesky import PD_RTOL
 from ..runtime import Spec
 from ..tracer import Graph
 from .crba import trace_mass_matrix
@@ -18,11 +19,10 @@ def trace_inputs(fr, g):
     E0), inertia parameters, -g, joint torques)."""
     co = fr.trace_coordinates(g, rates=1)
     parg, params = fr.trace_params(g)
-    ga = [g.input(f'g{k}') for k in range(3)]
+    a0arg, ga = fr.trace_gravity(g)
     n = fr.n
     taus = [g.input(f'u{j}') for j in range(n)]
-    args = co['args'] + [('TAU', [f'u{j}' for j in range(n)]), parg, ('A0', [f'g{k}' for k in range(3)]),
-                         co['offset_args']]
+    args = co['args'] + [('TAU', [f'u{j}' for j in range(n)]), parg, a0arg, co['offset_args']]
     return co, args, params, ga, taus
 
 
@@ -89,4 +89,4 @@ def build_forward_dynamics(fr):
 
 
 FORWARD_DYNAMICS = Spec('forward_dynamics', build_forward_dynamics, ('inertia', 'gravity', 'offsets'),
-                        'forward_dynamics', checked=True)
+                        'forward_dynamics', checked=True, result=lambda model: ((model.n,), PD_RTOL))

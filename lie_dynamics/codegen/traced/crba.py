@@ -54,4 +54,5 @@ def build_mass_matrix(fr):
     return kernel(g, 'mass_kernel', co['args'] + [parg, co['offset_args']], outputs)
 
 
-MASS_MATRIX = Spec('mass_matrix', build_mass_matrix, ('inertia', 'offsets'), 'mass_matrix')
+MASS_MATRIX = Spec('mass_matrix', build_mass_matrix, ('inertia', 'offsets'), 'mass_matrix',
+                   result=lambda model: ((model.n, model.n), None))

@@ -2,6 +2,7 @@
 and algorithms/aba_derivatives.py)."""
 from .. import algebra as la
 from ..render import kernel
+from ...algorithms.cholesky import PD_RTOL
 from ..runtime import Spec
 from ..tracer import Graph
 from .cholesky import trace_cho_solve, trace_forward_dynamics, trace_inputs
@@ -110,8 +111,8 @@ def build_inverse_dynamics_derivatives(fr, wrench=False, center=0, coriolis=Fals
         co['xdd'] = [0.0] * fr.nb
         args += [parg, co['offset_args']]
     else:
-        ga = [g.input(f'g{k}') for k in range(3)]
-        args += [parg, ('A0', [f'g{k}' for k in range(3)]), co['offset_args']]
+        a0arg, ga = fr.trace_gravity(g)
+        args += [parg, a0arg, co['offset_args']]
     dq, dv = trace_derivatives(fr, g, co['x'], co['xd'], co['xdd'], params, ga, fext, center)
     n = fr.n
     if coriolis:
@@ -202,7 +203,7 @@ INVERSE_DYNAMICS_DERIVATIVES_WRENCH = Spec(
     'inverse_dynamics_derivatives_wrench', lambda fr: build_inverse_dynamics_derivatives(fr, wrench=True),
     ('inertia', 'gravity', 'offsets'), 'inverse_dynamics_derivatives')
 CORIOLIS = Spec('coriolis', lambda fr: build_inverse_dynamics_derivatives(fr, coriolis=True),
-                ('inertia', 'offsets'), 'inverse_dynamics_derivatives')
+                ('inertia', 'offsets'), 'inverse_dynamics_derivatives', result=lambda model: ((model.n, model.n), None))
 FORWARD_DYNAMICS_DERIVATIVES = Spec(
     'forward_dynamics_derivatives', build_forward_dynamics_derivatives, ('inertia', 'gravity', 'offsets'),
-    'forward_dynamics_derivatives', checked=True)
+    'forward_dynamics_derivatives', checked=True, result=lambda model: ((3 * model.n * model.n,), PD_RTOL))

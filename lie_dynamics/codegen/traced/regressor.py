@@ -116,7 +116,7 @@ def build_regressor(fr):
     M, S = fr.M, fr.S
     g = Graph()
     co = fr.trace_coordinates(g, rates=2)
-    a0 = [g.input(f'g{k}') for k in range(3)]
+    a0arg, a0 = fr.trace_gravity(g)
     rows = trace_regressor(fr, g, M, S, co['x'], co['xd'], co['xdd'], a0)
     E, n, nb = fr.E, fr.n, fr.nb
     flat = []
@@ -141,8 +141,10 @@ def build_regressor(fr):
         fmt.append(f'{j - i}d' if keep[i] else f'{8 * (j - i)}x')
         i = j
     packer = struct.Struct('=' + ''.join(fmt))   # native byte order, no alignment
-    args = co['args'] + [('A0', [f'g{k}' for k in range(3)]), co['offset_args']]
+    args = co['args'] + [a0arg, co['offset_args']]
     return kernel(g, 'regressor_kernel', args, [flat[i] for i in idx]) + (np.array(idx, dtype=np.intp), packer)
 
 
-REGRESSOR = Spec('regressor', build_regressor, ('gravity', 'offsets'), 'regressor')
+REGRESSOR = Spec('regressor', build_regressor, ('gravity', 'offsets'), 'regressor',
+                 result=lambda model: ((model.n, 10 * model.nb), None),
+                 scatter=lambda k: (k.extras[0], 10 * k.frames.nb * k.frames.n))

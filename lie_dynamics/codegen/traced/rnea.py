@@ -16,7 +16,7 @@ frames, so payload, gravity and locked-joint changes never recompile.
 import numpy as np
 
 from .. import algebra as la
-from ..render import kernel
+from ..render import Params, kernel
 from ..runtime import Spec
 from ..tracer import Graph
 from ...spatial import hat3
@@ -196,13 +196,13 @@ def build_inverse_dynamics(fr, wrench):
     g = Graph()
     co, cs = _coordinates(fr, g, 2)
     parg, params = fr.trace_params(g)
-    ga = [g.input(f'g{k}') for k in range(3)]
+    a0arg, ga = fr.trace_gravity(g)
     args, fx = list(co['args']), None
     if wrench:   # per-state arguments first, then the parameters
         names = [f'f{b}_{k}' for b in range(fr.nb) for k in range(6)]
         args.append(('FX', names))
         fx = [g.input(nm) for nm in names]
-    args += [parg, ('A0', ['g0', 'g1', 'g2']), co['offset_args']]
+    args += [parg, a0arg, co['offset_args']]
     tau_b = trace_inverse_dynamics(fr, cs, co['x'], co['xd'], co['xdd'], params, ga, fx)
     return kernel(g, 'inverse_dynamics_kernel', args, _torques(fr, tau_b))
 
@@ -222,8 +222,9 @@ def build_gravity(fr):
     names = [f'p{b}_{k}' for b in range(nb) for k in range(4)]
     syms = [g.input(nm) for nm in names]
     params = [syms[4 * b:4 * b + 4] for b in range(nb)]
-    ga = tuple(g.input(f'g{k}') for k in range(3))
-    args = co['args'] + [('P', names), ('A0', ['g0', 'g1', 'g2']), co['offset_args']]
+    a0arg, ga = fr.trace_gravity(g)
+    ga = tuple(ga)
+    args = co['args'] + [Params('P', names), a0arg, co['offset_args']]
     R0 = [np.array(R) for R in fr.R]
     acc = [None] * nb
     for b in range(nb):

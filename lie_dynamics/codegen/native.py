@@ -1,0 +1,262 @@
+"""The native backend: the traced kernels rendered to C (crender.py), compiled once, cached on disk.
+
+Switch: LIE_DYNAMICS_NATIVE = 'auto' (default: native when a C compiler works), '0' (never)
+or 'require' (raise NativeUnavailable when it does not, naming the compiler and its first
+error line). Under 'auto' a failing or missing compiler gives one warning per process and
+the Python kernels, whose results are the same to rounding.
+
+Compiler: $CC, else the compiler Python was built with, else `cc`; flags FLAGS (no
+-ffast-math, -ffp-contract=off: the C kernels compute what the Python kernels compute,
+operation for operation). Cache: $LIE_DYNAMICS_CACHE_DIR, else $XDG_CACHE_HOME/lie_dynamics,
+else ~/.cache/lie_dynamics; a file is named by a hash of everything that determines it
+(the generator's own source, the model structure and kernel name, or the call path's C
+source, with the compiler, its flags and the Python/numpy versions), so a cached kernel
+loads without being traced. Every file ends with a trailer (MAGIC, its key, the SHA-256 of
+the bytes before it), checked before loading: a truncated or foreign file is rebuilt, never
+loaded. Files are written to a temporary name and renamed into place (two processes
+compiling the same kernel both succeed); an unwritable cache folder means compiling in a
+temporary folder, removed after loading.
+"""
+import ctypes
+import functools
+import glob
+import hashlib
+import importlib.machinery
+import importlib.util
+import os
+import shlex
+import shutil
+import subprocess
+import sys
+import sysconfig
+import tempfile
+import threading
+import warnings
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+FLAGS = ('-O2', '-ffp-contract=off', '-fno-math-errno', '-fPIC', '-shared', '-pipe')   # -pipe: no temporary files
+MAGIC = b'\nlie_dynamics native '
+_TRAILER = len(MAGIC) + 64 + 64
+_LOCK = threading.Lock()
+_STATE = {'module': None, 'error': None, 'warned': False, 'compiles': 0}
+
+
+class NativeUnavailable(RuntimeError):
+    """LIE_DYNAMICS_NATIVE=require and the native backend cannot be built."""
+
+
+def setting():
+    """LIE_DYNAMICS_NATIVE: 'auto', '0' or 'require' (ValueError for anything else)."""
+    v = os.environ.get('LIE_DYNAMICS_NATIVE', 'auto').strip().lower() or 'auto'
+    if v in ('auto', '0', 'require'):
+        return v
+    raise ValueError(f"LIE_DYNAMICS_NATIVE must be 'auto', '0' or 'require', got {v!r}")
+
+
+def wanted():
+    """False when the native backend is switched off or known to be unavailable (under
+    'require' the latter raises NativeUnavailable, every time)."""
+    if os.environ.get('LIE_DYNAMICS_NATIVE', 'auto').strip() == '0':
+        return False
+    if _STATE['error'] is not None:
+        _unavailable(_STATE['error'])
+        return False
+    return True
+
+
+def compiler():
+    """The C compiler command (a list): $CC, else Python's build compiler, else cc."""
+    cc = os.environ.get('CC') or sysconfig.get_config_var('CC') or 'cc'
+    return shlex.split(cc)
+
+
+def cache_dir():
+    d = os.environ.get('LIE_DYNAMICS_CACHE_DIR')
+    if d:
+        return d
+    base = os.environ.get('XDG_CACHE_HOME') or os.path.join(os.path.expanduser('~'), '.cache')
+    return os.path.join(base, 'lie_dynamics')
+
+
+def compile_count():
+    """C compilations this process has run (cache hits do not count)."""
+    return _STATE['compiles']
+
+
+@functools.lru_cache(maxsize=1)
+def generator_hash():
+    """Hash of the source that determines the C kernels (the tracer, renderers, traced forms)."""
+    h = hashlib.sha256()
+    for path in sorted(glob.glob(os.path.join(HERE, '*.py')) + glob.glob(os.path.join(HERE, 'traced', '*.py'))):
+        with open(path, 'rb') as fh:
+            h.update(os.path.basename(path).encode() + fh.read())
+    h.update(f'{sys.version_info[:2]} {np.__version__}'.encode())
+    return h.hexdigest()
+
+
+def _key(*parts):
+    h = hashlib.sha256()
+    for p in parts + (' '.join(compiler()), ' '.join(FLAGS)):
+        h.update(str(p).encode() + b'\0')
+    return h.hexdigest()
+
+
+def _verified(path, key):
+    """True when path ends with the trailer of key and the SHA-256 of the bytes before it."""
+    try:
+        with open(path, 'rb') as fh:
+            data = fh.read()
+    except OSError:
+        return False
+    if len(data) <= _TRAILER or not data.endswith(MAGIC + key.encode() + hashlib.sha256(data[:-_TRAILER]).hexdigest()
+                                                  .encode()):
+        return False
+    return True
+
+
+def _first_error(text):
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    errs = [ln for ln in lines if 'error' in ln.lower()]
+    return (errs or lines or ['(no output)'])[0]
+
+
+def _compile(source, key, suffix, extra=()):
+    """Path of the verified library for key, compiling `source` (C text) on a miss."""
+    d = cache_dir()
+    path = os.path.join(d, key[:40] + suffix)
+    if _verified(path, key):
+        return path, None
+    try:
+        os.makedirs(d, exist_ok=True)
+        work = tempfile.mkdtemp(prefix='build-', dir=d)
+        tmpdir = None
+    except OSError:   # read-only or unusable cache: compile in a temporary folder
+        work = tmpdir = tempfile.mkdtemp(prefix='lie_dynamics_native_')
+    try:
+        src = os.path.join(work, 'k.c')
+        lib = os.path.join(work, 'k' + suffix)
+        with open(src, 'w', encoding='utf-8') as fh:
+            fh.write(source)
+        cmd = compiler() + list(FLAGS) + list(extra) + ['-o', lib, src]
+        try:
+            r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+        except (OSError, subprocess.SubprocessError) as e:
+            raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: {e}') from None
+        _STATE['compiles'] += 1
+        if r.returncode != 0 or not os.path.exists(lib):
+            raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: '
+                                    f'{_first_error(r.stderr + r.stdout)}')
+        with open(lib, 'rb') as fh:
+            body = fh.read()
+        with open(lib, 'ab') as fh:
+            fh.write(MAGIC + key.encode() + hashlib.sha256(body).hexdigest().encode())
+        if tmpdir is not None:
+            return lib, tmpdir
+        os.replace(lib, path)   # atomic: a concurrent reader sees the old file or the whole new one
+        return path, None
+    finally:
+        if tmpdir is None:
+            shutil.rmtree(work, ignore_errors=True)
+
+
+def _call_module():
+    """The extension module of the call path (native_call.c), built or loaded once."""
+    with open(os.path.join(HERE, 'native_call.c'), encoding='utf-8') as fh:
+        source = fh.read()
+    incs = [sysconfig.get_paths()['include'], np.get_include()]
+    key = _key(source, sys.version, np.__version__, *incs)
+    suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
+    path, tmp = _compile(source, key, suffix, [f'-I{i}' for i in incs])
+    try:
+        spec = importlib.util.spec_from_file_location('lie_dynamics_native', path)
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+    finally:
+        if tmp:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return mod
+
+
+def module():
+    """The call module, or None when the native backend is off or cannot be built (one
+    warning per process under 'auto'; NativeUnavailable under 'require')."""
+    mode = setting()
+    if mode == '0':
+        return None
+    m = _STATE['module']
+    if m is not None:
+        return m
+    with _LOCK:
+        if _STATE['module'] is None and _STATE['error'] is None:
+            try:
+                _STATE['module'] = _call_module()
+            except NativeUnavailable as e:
+                _STATE['error'] = str(e)
+    if _STATE['error'] is not None:
+        _unavailable(_STATE['error'])
+        return None
+    return _STATE['module']
+
+
+def _unavailable(msg):
+    if setting() == 'require':
+        raise NativeUnavailable(f'LIE_DYNAMICS_NATIVE=require, but {msg}')
+    if not _STATE['warned']:
+        _STATE['warned'] = True
+        warnings.warn(f'lie_dynamics: native kernels unavailable ({msg}); using the Python kernels',
+                      RuntimeWarning, stacklevel=3)
+
+
+class Library:
+    """A compiled kernel: its address and signature (widths of the per-state lists, lengths
+    of the parameter lists, number of outputs), read from the library itself."""
+
+    def __init__(self, path):
+        self.lib = ctypes.CDLL(path)
+        meta = (ctypes.c_long * 64).in_dll(self.lib, 'lie_meta')
+        n_in, n_par, self.n_out = meta[0], meta[1], meta[2]
+        self.widths = tuple(meta[3:3 + n_in])
+        self.par_lengths = tuple(meta[3 + n_in:3 + n_in + n_par])
+        self.address = ctypes.cast(self.lib.lie_kernel, ctypes.c_void_p).value
+
+
+def library(structure, name, render):
+    """The Library of kernel `name` for a model structure (its fingerprint): from the cache,
+    else compiled from render() -> (C source, widths, parameter lengths, n_out). None when
+    the backend is off or unavailable (module())."""
+    if module() is None:
+        return None
+    key = _key(generator_hash(), structure, name)
+    d = cache_dir()
+    path = os.path.join(d, key[:40] + '.so')
+    tmp = None
+    if not _verified(path, key):
+        rendered = render()
+        if rendered is None:
+            return None
+        source, widths, par_lengths, n_out = rendered
+        meta = [len(widths), len(par_lengths), n_out, *widths, *par_lengths]
+        if len(meta) > 64:
+            return None
+        meta = ', '.join(str(int(v)) for v in meta)
+        source = f'#include <math.h>\n{source}const long lie_meta[64] = {{{meta}}};\n'
+        try:
+            path, tmp = _compile(source, key, '.so')
+        except NativeUnavailable as e:
+            _unavailable(str(e))
+            return None
+    try:
+        return Library(path)
+    finally:
+        if tmp:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def bind(lib, params, n_res, out_dims, check=0, rtol=0.0, gil_rows=64):
+    """A callable running lib's kernel with these parameter lists (sequences of floats):
+    call(*per_state_arrays[, out]) -> result, or None when it declines (native_call.c)."""
+    arrays = tuple(np.ascontiguousarray(p, dtype=float).reshape(-1) if len(p) else np.zeros(1) for p in params)
+    return module().bind(lib.address, lib.widths, arrays, lib.n_out, n_res, tuple(out_dims), check, rtol, gil_rows,
+                         (lib, arrays))

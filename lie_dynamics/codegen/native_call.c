@@ -1,0 +1,237 @@
+/* The call path of the native kernels (codegen/native.py): one small CPython extension,
+ * compiled once per Python, numpy and compiler, shared by every generated kernel.
+ *
+ * bind(...) returns a Bound: a kernel's address (a plain C library made by native.py from
+ * crender.py's source) with its parameter lists pre-bound. Calling it with the per-state
+ * arrays (and optionally `out`) runs the kernel for one state (n,) or a batch (N, n), the
+ * batch over rows with the GIL released. It takes only the common case, contiguous float64
+ * arrays of the right shapes and a finite (and, for forward dynamics, positive definite)
+ * result; otherwise it returns None and the caller's full path validates, names the bad
+ * argument or falls back to the reference: the fast path never raises about its inputs.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#define NPY_NO_DEPRECATED_API NPY_1_7_API_VERSION
+#include <numpy/arrayobject.h>
+#include <stddef.h>
+#include <stdint.h>
+#include <string.h>
+
+#define MAX_LISTS 16
+
+typedef void (*kernel_fn)(const double *const *in, const double *const *par, double *out);
+
+typedef struct {
+    PyObject_HEAD
+    vectorcallfunc vectorcall;
+    kernel_fn fn;
+    int n_in, n_par, out_nd, check;
+    Py_ssize_t width[MAX_LISTS];
+    const double *par[MAX_LISTS];
+    npy_intp out_dims[2];
+    Py_ssize_t n_out, n_res, gil_rows;
+    double rtol;
+    PyObject *keep;
+} Bound;
+
+/* 1: the result is finite (and, check 1, every pivot out[n_res + i] > rtol * out[n_res + m + i]) */
+static int accept(const Bound *b, const double *v)
+{
+    double s = 0.0;
+    for (Py_ssize_t k = 0; k < b->n_res; ++k)
+        s += v[k];
+    if (!(s - s == 0.0))
+        return 0;
+    if (b->check) {
+        Py_ssize_t m = (b->n_out - b->n_res) / 2;
+        const double *piv = v + b->n_res, *scale = piv + m;
+        for (Py_ssize_t i = 0; i < m; ++i)
+            if (!(piv[i] > b->rtol * scale[i]))
+                return 0;
+    }
+    return 1;
+}
+
+static int run(const Bound *b, char **data, npy_intp N, double *res, double *tmp)
+{
+    const double *in[MAX_LISTS];
+    for (npy_intp r = 0; r < N; ++r) {
+        for (int i = 0; i < b->n_in; ++i)
+            in[i] = (const double *)data[i] + r * b->width[i];
+        double *row = res + r * b->n_res;
+        if (tmp) {
+            b->fn(in, b->par, tmp);
+            memcpy(row, tmp, sizeof(double) * b->n_res);
+            if (!accept(b, tmp))
+                return 0;
+        } else {
+            b->fn(in, b->par, row);
+            if (!accept(b, row))
+                return 0;
+        }
+    }
+    return 1;
+}
+
+static int plain(PyObject *o, int nd_lo, int nd_hi)
+{
+    if (!PyArray_Check(o))
+        return 0;
+    PyArrayObject *a = (PyArrayObject *)o;
+    int nd = PyArray_NDIM(a);
+    return PyArray_TYPE(a) == NPY_DOUBLE && nd >= nd_lo && nd <= nd_hi && PyArray_IS_C_CONTIGUOUS(a) &&
+           PyArray_ISALIGNED(a) && !PyArray_ISBYTESWAPPED(a);
+}
+
+static PyObject *bound_call(PyObject *self, PyObject *const *args, size_t nargsf, PyObject *kwnames)
+{
+    Bound *b = (Bound *)self;
+    Py_ssize_t nargs = PyVectorcall_NARGS(nargsf);
+    if (kwnames || (nargs != b->n_in && nargs != b->n_in + 1)) {
+        PyErr_Format(PyExc_TypeError, "a native kernel takes %d arrays and an optional out", b->n_in);
+        return NULL;
+    }
+    char *data[MAX_LISTS];
+    int nd = 0;
+    npy_intp N = 1;
+    for (int i = 0; i < b->n_in; ++i) {
+        if (!plain(args[i], 1, 2))
+            Py_RETURN_NONE;
+        PyArrayObject *a = (PyArrayObject *)args[i];
+        npy_intp *d = PyArray_DIMS(a);
+        int ndi = PyArray_NDIM(a);
+        if (d[ndi - 1] != b->width[i])
+            Py_RETURN_NONE;
+        if (i == 0) {
+            nd = ndi;
+            N = ndi == 2 ? d[0] : 1;
+        } else if (ndi != nd || (nd == 2 && d[0] != N)) {
+            Py_RETURN_NONE;
+        }
+        data[i] = PyArray_BYTES(a);
+    }
+    int lead = nd == 2;
+    PyObject *out = nargs > b->n_in ? args[b->n_in] : Py_None;
+    if (out != Py_None) {
+        if (!plain(out, lead + b->out_nd, lead + b->out_nd) || !PyArray_ISWRITEABLE((PyArrayObject *)out))
+            Py_RETURN_NONE;
+        npy_intp *d = PyArray_DIMS((PyArrayObject *)out);
+        if ((lead && d[0] != N) || d[lead] != b->out_dims[0] || (b->out_nd == 2 && d[lead + 1] != b->out_dims[1]))
+            Py_RETURN_NONE;
+        Py_INCREF(out);
+    } else {
+        npy_intp dims[3] = {N, b->out_dims[0], b->out_dims[1]};
+        out = PyArray_SimpleNew(lead + b->out_nd, lead ? dims : dims + 1, NPY_DOUBLE);
+        if (!out)
+            return NULL;
+    }
+    double stack[1024], *tmp = NULL;
+    if (b->n_out > b->n_res) {
+        tmp = b->n_out <= 1024 ? stack : (double *)PyMem_RawMalloc(sizeof(double) * b->n_out);
+        if (!tmp) {
+            Py_DECREF(out);
+            return PyErr_NoMemory();
+        }
+    }
+    int ok;
+    double *res = (double *)PyArray_DATA((PyArrayObject *)out);
+    if (N >= b->gil_rows) {
+        Py_BEGIN_ALLOW_THREADS
+        ok = run(b, data, N, res, tmp);
+        Py_END_ALLOW_THREADS
+    } else {
+        ok = run(b, data, N, res, tmp);
+    }
+    if (tmp && tmp != stack)
+        PyMem_RawFree(tmp);
+    if (!ok) {
+        Py_DECREF(out);
+        Py_RETURN_NONE;
+    }
+    return out;
+}
+
+static void bound_dealloc(PyObject *self)
+{
+    Py_XDECREF(((Bound *)self)->keep);
+    Py_TYPE(self)->tp_free(self);
+}
+
+static PyTypeObject BoundType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "lie_dynamics_native.Bound",
+    .tp_basicsize = sizeof(Bound),
+    .tp_dealloc = bound_dealloc,
+    .tp_vectorcall_offset = offsetof(Bound, vectorcall),
+    .tp_call = PyVectorcall_Call,
+    .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_VECTORCALL,
+    .tp_doc = "A native kernel with its parameters bound: call(*per_state_arrays[, out])",
+};
+
+/* bind(address, widths, params, n_out, n_res, out_dims, check, rtol, gil_rows, keep) */
+static PyObject *bind(PyObject *mod, PyObject *args)
+{
+    unsigned long long addr;
+    PyObject *widths, *params, *dims, *keep;
+    Py_ssize_t n_out, n_res, gil_rows;
+    int check;
+    double rtol;
+    if (!PyArg_ParseTuple(args, "KO!O!nnO!idnO", &addr, &PyTuple_Type, &widths, &PyTuple_Type, &params, &n_out,
+                          &n_res, &PyTuple_Type, &dims, &check, &rtol, &gil_rows, &keep))
+        return NULL;
+    Py_ssize_t n_in = PyTuple_GET_SIZE(widths), n_par = PyTuple_GET_SIZE(params), out_nd = PyTuple_GET_SIZE(dims);
+    if (n_in < 1 || n_in > MAX_LISTS || n_par > MAX_LISTS || out_nd < 1 || out_nd > 2) {
+        PyErr_SetString(PyExc_ValueError, "bind: unsupported kernel signature");
+        return NULL;
+    }
+    Bound *b = PyObject_New(Bound, &BoundType);
+    if (!b)
+        return NULL;
+    b->vectorcall = bound_call;
+    b->fn = (kernel_fn)(uintptr_t)addr;
+    b->n_in = (int)n_in;
+    b->n_par = (int)n_par;
+    b->out_nd = (int)out_nd;
+    b->out_dims[1] = 1;
+    for (Py_ssize_t i = 0; i < out_nd; ++i)
+        b->out_dims[i] = PyLong_AsSsize_t(PyTuple_GET_ITEM(dims, i));
+    for (Py_ssize_t i = 0; i < n_in; ++i)
+        b->width[i] = PyLong_AsSsize_t(PyTuple_GET_ITEM(widths, i));
+    for (Py_ssize_t i = 0; i < n_par; ++i) {
+        PyObject *p = PyTuple_GET_ITEM(params, i);
+        if (!plain(p, 1, 1)) {
+            b->keep = NULL;
+            Py_DECREF(b);
+            PyErr_SetString(PyExc_ValueError, "bind: parameters must be contiguous float64 vectors");
+            return NULL;
+        }
+        b->par[i] = (const double *)PyArray_DATA((PyArrayObject *)p);
+    }
+    b->n_out = n_out;
+    b->n_res = n_res;
+    b->check = check;
+    b->rtol = rtol;
+    b->gil_rows = gil_rows;
+    Py_INCREF(keep);
+    b->keep = keep;
+    if (PyErr_Occurred()) {
+        Py_DECREF(b);
+        return NULL;
+    }
+    return (PyObject *)b;
+}
+
+static PyMethodDef methods[] = {
+    {"bind", bind, METH_VARARGS, "Bind a kernel's address and parameters (native.py)."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "lie_dynamics_native", NULL, -1, methods};
+
+PyMODINIT_FUNC PyInit_lie_dynamics_native(void)
+{
+    import_array();
+    if (PyType_Ready(&BoundType) < 0)
+        return NULL;
+    return PyModule_Create(&module);
+}

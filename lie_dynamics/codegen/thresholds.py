@@ -1,0 +1,86 @@
+"""THRESHOLDS: every size threshold of the generated kernels, with the measurement that chose it.
+
+runtime.py routes by it (runtime.route) and re-exports it: `runtime.THRESHOLDS` is this dict.
+"""
+from typing import NamedTuple
+
+
+class Limits(NamedTuple):
+    """When a kernel runs, by model size (`size`: bodies, or (body, ancestor-or-self) pairs,
+    the sum of the body depths) and by the number of states N of a call."""
+    compile_max: int          # no kernel above this size (compile time grows with the source)
+    float_max: int            # above: one state and small batches take the vectorised reference
+    loop_below: int           # N below this: the float kernel, state by state
+    rows_from: int            # N from this: the kernel on numpy rows; in between: vectorised
+    size: str = 'bodies'
+    large: int = None         # above this size, rows from rows_from_large states
+    rows_from_large: int = None
+
+
+# Every size threshold of the algorithms, with the measurement that chose it (timings on the
+# 7-DoF arm and random chains and trees, this 2-core machine, numpy 2.4, Python 3.11).
+# Backend dimension: where a native kernel exists (native.py; size within compile_max and
+# native_nodes) it runs at every N, one state and batches alike, and the Limits below route
+# only the Python backend. Measured per state, µs (arm / 30-body chain, inverse dynamics;
+# busy machine, minima of 3-5 repeats): N = 1: native 0.35 / 9, Python float kernel 32 / 730;
+# N = 100: native 0.18 / 2.4, rows 3.1 / 82; N = 10,000: native 0.2-0.4 / 1.9, rows 0.7-1.6 / 4.
+# Mass matrix on the arm: native 0.16-0.4 against rows 0.4-1.0 from N = 1,000.
+THRESHOLDS = {
+    # RNEA: compile time grows with the source, and above 256 bodies the vectorised form is
+    # as fast for batches. The float kernel (~15 ns per flop) is slower than the vectorised
+    # reference for one state above ~48 bodies. A Python loop of the float kernel beats the
+    # rows kernel below ~30 states on the arm (each row operation costs ~0.5 us whatever its
+    # length).
+    'inverse_dynamics': Limits(256, 48, 32, 32),
+    # Gravity (subtree masses, a few operations per body): the float kernel wins for one
+    # state at every size up to the compile cap; loop/rows crossover as inverse dynamics.
+    'gravity': Limits(256, 256, 32, 32),
+    # CRBA: the O(n^2) source takes long to compile above 24 bodies; the float loop beats the
+    # vectorised form up to ~40 states on the arm, where the in-place rows take over.
+    'mass_matrix': Limits(24, 24, 40, 40),
+    # Cholesky forward dynamics (CRBA + RNEA bias + factorisation, O(n^2) source, the CRBA's
+    # cap); the float loop beats the rows up to ~48 states on the arm, and the kernel beats
+    # the composed numpy path at every batch size.
+    'forward_dynamics': Limits(24, 24, 48, 48),
+    # ABA (O(n) source): build time grows ~12 ms per body (0.3 s at 24, 1.2 s at 120) while
+    # the kernel stays ~10x faster than the vectorised form; loop/rows crossovers 28-48
+    # states for 2-24 bodies, the vectorised form never clearly faster in between.
+    'aba': Limits(128, 128, 32, 32),
+    # Derivatives of inverse dynamics (and C = 1/2 dtau/dqd): above 16 bodies one state is
+    # faster through the vectorised form; crossovers 4 (loop) and 128 (rows) on 7-20 bodies.
+    'inverse_dynamics_derivatives': Limits(16, 16, 4, 128),
+    # Derivatives of forward dynamics (the derivative kernel's cap); crossovers on the arm
+    # ~8 (loop) and ~80 (rows).
+    'forward_dynamics_derivatives': Limits(16, 16, 8, 80),
+    # Regressor, sized in pairs: 300 pairs (a 24-body chain) compile in ~0.5-0.8 s. The
+    # float kernel (~22 ns per operation, 60-95 per pair) beats the vectorised form for one
+    # state up to ~130-160 pairs. Loop below ~7 states on the arm (3-5 on 10-12-body robots
+    # with general axes); rows from ~80 states on the arm and 20-100 up to 64 pairs, 40-280
+    # for 100-300 pairs (later for chains, earlier for branched trees).
+    'regressor': Limits(300, 128, 6, 80, size='pairs', large=64, rows_from_large=192),
+    # Frame Jacobians and J̇q̇ (one kernel per kind, frame and body, O(depth) source): on random
+    # chains (tip link) the float kernel beats the vectorised form for one state up to ~96 bodies,
+    # 1.3-1.6x at 64 where a build takes 0.1-0.2 s (0.3 s at 128); on the arm the loop/rows
+    # crossover is 24-40 states, the vectorised form never faster in between.
+    'jacobian': Limits(64, 64, 32, 32),
+    # Batch runner: states per chunk, large enough that each ufunc's ~0.5 us fixed cost is
+    # small next to its per-element work, small enough that the rows stay in cache (at most
+    # ~8 MB of registers and inputs per chunk).
+    'rows_chunk': 4096,
+    'rows_bytes': 8 << 20,
+    # Regressor rows: states per call of the batch runner, bounding its (outputs, states)
+    # result (up to 10 nb^2 outputs).
+    'regressor_rows_chunk': 8192,
+    # Vectorised references: floats of work arrays per chunk of states (2^21: 16 MB).
+    'vectorized_budget': 1 << 21,
+    # Native kernels: C compile time grows faster than the source (gcc -O2, this machine under
+    # load: 900 nodes 0.25 s, 4,200 1.0 s, 7,500 1.8-2.7 s, 10,000-13,000 3-33 s, 46,000 57 s;
+    # -O1 is no faster on the large ones). Above this many graph nodes a kernel stays Python
+    # (an arm's whole family is below it: its largest, the forward-dynamics derivatives, 7,500).
+    'native_nodes': 9000,
+    # Native batches release the GIL from this many states (below, the release costs more
+    # than other threads gain).
+    'native_gil_rows': 64,
+    # Compiled kernels kept for structures no live model uses (about 10 per structure).
+    'compiled_cache': 256,
+}
