@@ -1,7 +1,10 @@
 """The dynamics node's heavy work off the control path, in plain Python (no rclpy import).
 
-Reading a robot description, building its model and generating its code (a warm-up call),
-and filling a trajectory with efforts run in one worker thread (worker.py). The control path
+Reading a robot description and building its model run in a child process (build_process.py:
+the interpreter lock stays with the control path), driven by one worker thread (worker.py)
+that waits for the model without the lock, then generates its code (a warm-up call: once per
+robot structure, cached) and checks it against the settings; filling a trajectory with
+efforts runs in that thread too. The control path
 (the executor thread: joint_states callbacks and the timer) calls `collect()`, a plain
 attribute test while nothing has finished, and swaps a finished model in there, between two
 commands: until then the previous model answers every joint_states message. A description
@@ -14,13 +17,19 @@ XML, a file that does not exist; a trajectory with more points than max_trajecto
 without a model or while disabled.
 
 Python threads share one interpreter lock: a long call into C that keeps it (parsing XML,
-converting a message) delays the control path by its length. Trajectories are therefore read
-and written in their serialized form (trajectory_cdr.py: milliseconds for 100,000 points,
-where rclpy's conversion takes seconds under the lock), and the caps bound the rest.
+converting a message) delays the control path by its length. Descriptions are therefore
+parsed in another process, trajectories are read and written in their serialized form
+(trajectory_cdr.py: milliseconds for 100,000 points, where rclpy's conversion takes seconds
+under the lock), and the caps bound the rest. A build process that dies or hangs is reported
+like a refused description (the running model stays) and replaced at the next load.
 """
+import contextlib
 import ctypes
+import functools
 import os
+import sys
 
+from .build_process import BuildProcess, build
 from .diagnostics import clip
 from .messages import Rejected
 from .models import warm_up
@@ -40,6 +49,22 @@ except (OSError, AttributeError):  # not glibc
     _MALLOC_TRIM = None
 
 
+# While a job runs, the loader thread hands the interpreter lock over within this time when the
+# control path waits for it (Python's default, 5 ms, widened the gaps between replies by as much).
+JOB_SWITCH_INTERVAL_S = 0.0005
+
+
+@contextlib.contextmanager
+def short_switch_interval():
+    """sys.setswitchinterval(JOB_SWITCH_INTERVAL_S) for the duration (restored after)."""
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(min(old, JOB_SWITCH_INTERVAL_S))
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(old)
+
+
 def release_memory():
     """Return freed heap memory to the system where the C library can (glibc)."""
     if _MALLOC_TRIM is not None:
@@ -57,6 +82,7 @@ class Background:
         self.publish = publish
         self.deserialize = deserialize
         self.worker = Worker('lie_dynamics_loader')
+        self.process = BuildProcess()   # its child starts with the first load after start-up
 
     # ------------------------------------------------------------------ robot descriptions
     def precheck(self, kind, text, settings=None):
@@ -78,29 +104,22 @@ class Background:
             return f'{size} bytes, more than max_description_bytes ({cap})'
         return None
 
-    def _links(self, xml, settings):
-        cap = settings['max_description_links']
-        links = xml.count('<link')   # an upper bound (comments count too), found before parsing
-        if links > cap:
-            raise ValueError(f'{links} <link> elements, more than max_description_links ({cap})')
-
-    def _build(self, kind, text, inertia):
-        """The Plan of a new model (worker thread): read, parse, build, configure, warm up.
-        (build_model records load_urdf's warnings with warnings.catch_warnings, which acts on the
-        whole process while it runs: the control path raises none.)"""
+    def _build(self, kind, text, inertia, remote=True):
+        """The Plan of a new model (worker thread): read and build (in the build process when
+        remote, else here: start-up), configure, warm up. (A build here records load_urdf's
+        warnings with warnings.catch_warnings, which acts on the whole process while it runs.)"""
         core = self.core
         s = core.settings
         source, label = open_source(kind, text)
-        if kind == 'file':
-            with open(source, encoding='utf-8') as fh:
-                source = fh.read(s['max_description_bytes'] + 1)
-        self._links(source, s)
+        caps = (kind == 'file', s['max_description_bytes'], s['max_description_links'])
+        builder = functools.partial(self.process.build if remote else build, caps=caps)
         try:
-            model = core.build_model(source, inertia)
-            plan = core.plan(None, model, label)
-            warm_up(model)
+            with short_switch_interval():
+                model = core.build_model(source, inertia, builder=builder)
+                plan = core.plan(None, model, label)
+                warm_up(model)
         finally:
-            if len(source) > TRIM_BYTES:
+            if not remote and len(source) > TRIM_BYTES:
                 release_memory()
         return plan
 
@@ -124,7 +143,7 @@ class Background:
         try:
             err = self.precheck(kind, text)
             if err is None:
-                return self._install((kind, text, label), self._build(kind, text, inertia), None)
+                return self._install((kind, text, label), self._build(kind, text, inertia, remote=False), None)
         except Exception as exc:  # noqa: BLE001 - any bad input: log, keep the previous model, never die
             err = str(exc) or type(exc).__name__
         return self.core.note_description_error(f'{label}: {err}')
@@ -163,7 +182,8 @@ class Background:
     def _fill(self, job, data, cap):
         """(worker thread) -> clamp note; raises ValueError for a rejected trajectory."""
         try:
-            return self._fill_message(job, data, cap)
+            with short_switch_interval():
+                return self._fill_message(job, data, cap)
         finally:
             if len(data) > TRIM_BYTES:
                 release_memory()
@@ -201,5 +221,7 @@ class Background:
         self.core.loading = busy[2] if busy is not None else ''
 
     def stop(self, timeout=2.0):
+        self.process.stop()   # first: a build waited for ends at once
         self.worker.stop(timeout)
+        self.process.stop()   # one the thread may have started meanwhile
 

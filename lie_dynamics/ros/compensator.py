@@ -35,8 +35,8 @@ import warnings
 
 import numpy as np
 
-from .. import InertiaWarning, load_urdf
 from ..laws import LAWS, clamp, gravity_law, uses_velocity
+from .build_process import build
 from .diagnostics import (DIAG_TEXT_MAX, ERROR, INERTIA_LOG_LINES, INERTIA_TEXT_MAX, OK, WARN, Counters, Throttle,
                           Window, clip, names_text, report)
 from .messages import JointStateReader, NameMap, Rejected, read_desired
@@ -214,18 +214,17 @@ class Compensator(TrajectoryInput):
         and keeps the previous model if the new one does not fit the settings."""
         self.apply(self.plan(None, model, info))
 
-    def build_model(self, source, inertia=None):
+    def build_model(self, source, inertia=None, builder=None):
         """load_urdf(source) for the command layout with the configured gravity and inertia
         policy (`inertia` overrides `inertia_policy`); not made current. Raises ValueError (also
-        for a strict refusal)."""
+        for a strict refusal). builder: build_process.build (the default: in this process) or
+        another callable with its signature (BuildProcess.build: in a child process)."""
         policy = check_value('inertia_policy', self.settings['inertia_policy'] if inertia is None else inertia)
-        with warnings.catch_warnings(record=True) as caught:
-            # set_model reports the model's own report once per link: nothing raw on stderr
-            warnings.simplefilter('always', InertiaWarning)
-            model = load_urdf(source, joints=self.layout, gravity=self.settings['gravity'], inertia=policy)
-        for w in caught:  # other warnings are not ours to swallow
-            if not issubclass(w.category, InertiaWarning):
-                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        # InertiaWarnings are recorded: set_model reports the model's own report once per link
+        model, other = (builder or build)(source, joints=self.layout, gravity=self.settings['gravity'],
+                                          inertia=policy)
+        for message, category, filename, lineno in other:  # other warnings are not ours to swallow
+            warnings.warn_explicit(message, category, filename, lineno)
         return model
 
     def load(self, source, info='', inertia=None):
@@ -301,6 +300,21 @@ class Compensator(TrajectoryInput):
         self.count.rejected += 1
         self.last_error = clip(f'joint_states rejected: {text}', DIAG_TEXT_MAX)
         self._event('warn', 'reject:' + kind, self.last_error)
+        return None
+
+    def on_sample(self, sample, now=None):
+        """One joint_states sample (cdr.JointStateSample) -> command or None (on_joint_state)."""
+        return self.on_joint_state(sample.names, sample.position, sample.velocity, sample.effort, now, sample.stamp)
+
+    def refuse_malformed(self, topic, text):
+        """A serialized joint_states (topic 'joint_states') or desired-state message that could not
+        be read: counted as received and rejected, logged under one problem class per topic."""
+        if topic == 'joint_states':
+            self.count.received += 1
+            return self._reject('malformed', f'malformed message: {text}')
+        self.count.desired_received += 1
+        self.count.desired_rejected += 1
+        self._event('warn', 'desired:malformed', self._error(f'desired state rejected: malformed message: {text}'))
         return None
 
     def on_joint_state(self, names, position, velocity=(), effort=(), now=None, stamp=0):

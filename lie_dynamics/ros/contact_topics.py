@@ -10,6 +10,7 @@ import array
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
+from .cdr import stamp_parts
 from .contact import ContactMonitor
 
 
@@ -23,8 +24,9 @@ class ContactTopics:
         self._ext, self._flag = JointState(), Bool()
         self._accepted = 0  # core.count.accepted at the last message observed
 
-    def observe(self, core, msg, names):
-        """After the command for joint_states `msg`: the observer, if the compensator accepted it.
+    def observe(self, core, sample, names):
+        """After the command for a joint_states `sample` (cdr.JointStateSample): the observer, if
+        the compensator accepted it.
         names: the command layout as the node keeps it (the same list object while it holds)."""
         if core.count.accepted == self._accepted:
             return
@@ -33,13 +35,11 @@ class ContactTopics:
         c.sync(core.settings, core.model, core.friction, core.layout)
         if not c.active:
             return
-        stamp = msg.header.stamp
-        out = c.on_state(core.reader.map.idx, core.last_q, msg.velocity, msg.effort,
-                         stamp.sec * 1_000_000_000 + stamp.nanosec)
+        out = c.on_state(core.reader.map.idx, core.last_q, sample.velocity, sample.effort, sample.stamp)
         if out is None:
             return
         ext = self._ext
-        ext.header.stamp = stamp
+        ext.header.stamp.sec, ext.header.stamp.nanosec = stamp_parts(sample.stamp)
         if ext.name is not names:  # the setter checks every name: only when the layout changes
             ext.name = names
         ext.effort = array.array('d', out[0].tobytes())

@@ -29,7 +29,9 @@ class NameMap:
         self.idx = None
 
     def build(self, names, controlled):
-        self.names = list(names)
+        # kept as given (a decoded sample's tuple, a message's list): the next message's list
+        # compares equal to it only in the same type
+        self.names = names if isinstance(names, tuple) else list(names)
         self.error = None
         index = {}
         dup = []

@@ -11,9 +11,10 @@ by parameter, is described in docs/node.md.
 
 Subscribes  robot_description (std_msgs/String, reliable, transient local, depth 1)
             joint_states      (sensor_msgs/JointState, best effort, depth 1: only the newest
-                              state matters, an old one queued behind it is never answered)
+                              state matters, an old one queued behind it is never answered;
+                              taken serialized, read by cdr.py: a malformed one is one log line)
             <desired_topic>   (trajectory_msgs/JointTrajectory, one point; best effort, depth 1),
-                              default ~/desired
+                              default ~/desired; taken serialized, like joint_states
             ~/trajectory_in   (trajectory_msgs/JointTrajectory from a planner; reliable, depth 1:
                               only the newest matters; taken serialized, read off the control path)
 Publishes   <command_topic>   (std_msgs/Float64MultiArray, `joints` order), one per valid joint_states;
@@ -57,6 +58,7 @@ from std_srvs.srv import SetBool, Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from .background import Background
+from .cdr import JointStateDecoder, read_desired, sample_of, stamp_parts
 from .compensator import Compensator, Throttle
 from .contact import check_settings
 from .contact_topics import ContactTopics
@@ -152,6 +154,7 @@ class DynamicsNode(Node):
         # reused for every command (measured: -5 us per message, -12 us with publish_joint_state)
         self._cmd_msg = Float64MultiArray()
         self._js_msg = JointState()
+        self._decoder = JointStateDecoder()   # keeps the last name list: decoded once per stream
 
         # Hot path: no default QoS-event handlers (each one is waited on at every executor
         # wake-up). joint_states is best effort, like robot_state_publisher's subscription:
@@ -173,10 +176,11 @@ class DynamicsNode(Node):
         self.create_subscription(String, 'robot_description', self._on_description, DESCRIPTION_QOS,
                                  event_callbacks=NO_SUB_EVENTS)
         self._warned_publishers = set()
-        self.create_subscription(JointState, 'joint_states', self.on_joint_state, JOINT_STATES_QOS,
+        # Raw: read by cdr.py; rclpy's deserializer would log every malformed message unthrottled.
+        self.create_subscription(JointState, 'joint_states', self.on_joint_state, JOINT_STATES_QOS, raw=True,
                                  event_callbacks=NO_SUB_EVENTS)
         desired = self.create_subscription(JointTrajectory, values['desired_topic'], self._on_desired,
-                                           DESIRED_QOS, event_callbacks=NO_SUB_EVENTS)
+                                           DESIRED_QOS, raw=True, event_callbacks=NO_SUB_EVENTS)
         self.core.desired_topic = desired.topic_name
         self.create_subscription(JointTrajectory, '~/trajectory_in', self._on_trajectory, TRAJECTORY_QOS, raw=True,
                                  event_callbacks=NO_SUB_EVENTS)
@@ -241,29 +245,39 @@ class DynamicsNode(Node):
     # ------------------------------------------------------------------ hot path
     @_guarded
     def on_joint_state(self, msg):
-        """The joint_states callback (public: benchmarks drive it in-process)."""
+        """The joint_states callback: the serialized message (bytes, as the subscription delivers
+        it) or a sensor_msgs/JointState (benchmarks drive it in-process with either)."""
         t0 = time.perf_counter()
         with self.lock:
             core = self.core
+            try:
+                sample = self._decoder.read(msg) if isinstance(msg, bytes) else sample_of(msg)
+            except ValueError as exc:
+                core.refuse_malformed('joint_states', str(exc))
+                self._drain_events()
+                return
             if self._bg.worker.has_outcomes:
                 self._collect()
-            stamp = msg.header.stamp
             self._gp.before_command(core)
-            tau = core.on_joint_state(msg.name, msg.position, msg.velocity, msg.effort, None,
-                                      stamp.sec * 1_000_000_000 + stamp.nanosec)
+            tau = core.on_sample(sample)
             if tau is not None:
-                self._publish(tau, stamp)
-            self._contact.observe(core, msg, self._out_names)  # after the command: never delays it
+                self._publish(tau, sample.stamp)
+            self._contact.observe(core, sample, self._out_names)  # after the command: never delays it
             if self._gp.ident.recording is not None:  # ~/identify_payload records (after the command)
-                self._gp.ident.add(core, msg.velocity, msg.effort, stamp.sec * 1_000_000_000 + stamp.nanosec)
+                self._gp.ident.add(core, sample.velocity, sample.effort, sample.stamp)
             if core.events or self._contact.monitor.events:
                 self._drain_events()
             core.record_compute_time(time.perf_counter() - t0)
 
     @_guarded
-    def _on_desired(self, msg):
+    def _on_desired(self, data):
         with self.lock:
-            self.core.on_desired(msg.joint_names, msg.points)
+            try:
+                names, points = read_desired(data, one=True)
+            except ValueError as exc:
+                self.core.refuse_malformed('desired', str(exc))
+            else:
+                self.core.on_desired(names, points)
             if self.core.events:
                 self._drain_events()
 
@@ -273,14 +287,17 @@ class DynamicsNode(Node):
             self._bg.fill(data)
             self._drain_events()
 
-    def _publish(self, tau, stamp=None):
+    def _publish(self, tau, stamp=None):  # stamp: the input's (ns); None: now
         data = array.array('d', tau.tobytes())
         out = self._cmd_msg
         out.data = data
         self._cmd_pub.publish(out)
         if self._js_pub is not None:
             js = self._js_msg
-            js.header.stamp = stamp if stamp is not None else self.get_clock().now().to_msg()
+            if stamp is None:
+                js.header.stamp = self.get_clock().now().to_msg()
+            else:
+                js.header.stamp.sec, js.header.stamp.nanosec = stamp_parts(stamp)
             if js.name is not self._out_names:  # the setter checks every name: only when the layout changes
                 js.name = self._out_names
             js.effort = data

@@ -6,8 +6,8 @@ rclpy converts a message to Python objects point by point while holding the inte
 included, for seconds. Read here, a trajectory whose points all have the same array lengths
 (every valid one) is a few strided array views; other ones are walked point by point and
 refused with the same reasons as trajectory_msgs.trajectory_arrays. Plain CDR (XCDR1, little
-or big endian: what rmw_fastrtps and rmw_cyclonedds send) is read; any other encoding raises
-Unsupported and the caller deserializes the message instead.
+or big endian: what rmw_fastrtps and rmw_cyclonedds send) is read with the primitives of
+cdr.py; any other encoding raises Unsupported and the caller deserializes the message instead.
 
 Layout, aligned relative to the payload (after the 4-byte encapsulation header):
 header {int32 sec, uint32 nanosec, string frame_id}, string[] joint_names, uint32 point
@@ -16,43 +16,11 @@ then the doubles, aligned to 8 when there are any) and time_from_start {int32, u
 """
 import numpy as np
 
+from .cdr import Buffer, Unsupported, align as _align, truncated
 from .trajectory_msgs import block
 
+__all__ = ['FIELDS', 'Unsupported', 'head', 'read', 'arrays', 'write']
 FIELDS = ('positions', 'velocities', 'accelerations', 'effort')
-_ORDER = {b'\x00\x01': '<', b'\x00\x00': '>'}
-
-
-class Unsupported(ValueError):
-    """A serialized message in an encoding this module does not read."""
-
-
-def _align(pos, n):
-    return (pos + n - 1) & ~(n - 1)
-
-
-def _truncated():
-    return ValueError('serialized trajectory is truncated')
-
-
-class _Buffer:
-    def __init__(self, buf):
-        if len(buf) < 4:
-            raise _truncated()
-        self.order = _ORDER.get(bytes(buf[:2]))
-        if self.order is None:
-            raise Unsupported(f'CDR encapsulation {bytes(buf[:2]).hex()} is not read here')
-        self.buf = buf
-        self.end = len(buf) - 4   # payload length
-
-    def u32(self, pos):
-        """The uint32 at payload offset pos."""
-        if pos + 4 > self.end:
-            raise _truncated()
-        return int.from_bytes(self.buf[4 + pos:8 + pos], 'little' if self.order == '<' else 'big')
-
-    def view(self, dtype, start, shape, strides):
-        """Array view of the payload from offset `start` (read-only on bytes, writable on arrays)."""
-        return np.ndarray(shape, dtype=self.order + dtype, buffer=self.buf, offset=4 + start, strides=strides)
 
 
 def head(buf):
@@ -62,24 +30,18 @@ def head(buf):
 
 
 def _head(buf):
-    b = _Buffer(buf)
+    b = Buffer(buf, 'trajectory')
     pos = 8                              # header.stamp
     pos += 4 + b.u32(pos)                # header.frame_id
     pos = _align(pos, 4)
     count = b.u32(pos)
     pos += 4
     if count > (b.end - pos) // 4:
-        raise _truncated()
+        raise truncated('trajectory')
     names = []
     for _ in range(count):
-        pos = _align(pos, 4)
-        size = b.u32(pos)
-        pos += 4
-        if pos + size > b.end:
-            raise _truncated()
-        raw = bytes(buf[4 + pos:4 + pos + size])
-        pos += size
-        names.append((raw[:-1] if raw.endswith(b'\0') else raw).decode('utf-8', 'replace'))
+        text, pos = b.string(pos)
+        names.append(text)
     pos = _align(pos, 4)
     return b, names, b.u32(pos), pos + 4
 
@@ -162,13 +124,13 @@ def _walk(b, p0, n):
             if c:
                 pos = _align(pos, 8)
             if c > (b.end - pos) // 8:
-                raise _truncated()
+                raise truncated('trajectory')
             if f != 'effort':
                 rows[f].append(b.view('f8', pos, (c,), (8,)))
             pos += 8 * c
         pos = _align(pos, 4)
         if pos + 8 > b.end:
-            raise _truncated()
+            raise truncated('trajectory')
         sec[i] = b.view('i4', pos, (1,), (4,))[0]
         nsec[i] = b.view('u4', pos + 4, (1,), (4,))[0]
         pos += 8
@@ -186,7 +148,7 @@ def read(buf):
     if n == 0:
         raise ValueError('trajectory has no points')
     if n > (b.end - p0) // 24:   # a point takes at least 4 counts and the time
-        raise _truncated()
+        raise truncated('trajectory')
     fast = _regular(b, p0, n)
     if fast is not None and fast[0]['positions'].shape[1] == k and \
             all(fast[0][f].shape[1] in (0, k) for f in ('velocities', 'accelerations')):
@@ -218,7 +180,7 @@ def write(traj, efforts):
     groups, end = _groups(p0, n, counts)
     out = np.zeros(4 + end, dtype=np.uint8)
     out[:len(prefix)] = np.frombuffer(prefix, dtype=np.uint8)
-    b = _Buffer(out)
+    b = Buffer(out, 'trajectory')
     for start, stride, m, (offsets, t, _), rows in groups:
         if not m:
             continue

@@ -1,0 +1,360 @@
+"""Do heavy events stall the dynamics node's replies? The largest gap between replies, seen
+from another process streaming joint_states at 500 Hz, during each event beside a quiet
+stretch just before it.
+
+    python -m bench.node_loads [--raised] [--busy N] [--repeat R] [--node-src DIR] [--nice N] [--quick]
+
+The node runs as `python -m lie_dynamics.dynamics_node` on the bundled arm (its own process,
+default parameters: the EventsExecutor). This process publishes serialized joint_states at
+500 Hz from one thread and stamps each reply (std_msgs/Float64MultiArray) as it arrives in
+another. Events, each after a pause of QUIET_S seconds and followed by a quiet stretch as long
+as its window (the reference):
+  * description: the arm with extra links on fixed joints up to the node's max_description_links
+    (they fold into the arm's bodies: the model that swaps in serves as fast as the arm);
+  * chain: a chain of as many links, another robot: built in full, then refused (the
+    running model stays);
+  * reloads: 20 ~/reload_model calls back to back;
+  * trajectory: a 100,000-point trajectory on ~/trajectory_in (refused by the default
+    max_trajectory_points from its header; filled and published with --raised).
+--raised starts the node with max_description_links 5,000, max_trajectory_points 200,000 and
+max_description_bytes 20 MB (the description is then 5,000 links). An event's window lasts
+from its start until the node is done (its diagnostics, every 0.1 s, say model_state 'ready'
+again; a trajectory: ~/trajectory_out or its rejection in the log) plus 0.2 s. --busy N runs N
+busy-loop processes beside it all along (killed at the end). Reported per event: the largest
+gap in the event window and in the quiet stretch after it, their difference (the target: at
+most 2 ms), replies against states sent, and how long the event took; with --repeat R every
+event runs R times and each column is the median. --nice N (negative: needs the privilege)
+runs this process and the node at that niceness, the busy loops at the usual one: on a machine
+that others load, the gaps then show the node rather than the scheduler. --node-src DIR runs
+the node of another checkout (the root that holds its lie_dynamics/), to compare before/after
+under the same conditions.
+This is a benchmark, not a test: the numbers depend on the machine and its load.
+"""
+import argparse
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+
+import numpy as np
+
+from bench.common import arm_xml, default_urdf, robot_urdf
+
+JOINTS = [f'joint{i}' for i in range(1, 8)]
+Q = np.array([0.1, 0.5, -0.2, 1.2, 0.3, 0.8, 0.1])
+RATE = 500.0
+QUIET_S = 3.0
+CMD = '/node_loads/commands'
+NODE = '/dynamics_node'
+DEFAULT_CAPS = {'links': 256, 'points': 10_000}
+RAISED_CAPS = {'links': 5_000, 'points': 200_000, 'bytes': 20_000_000}
+
+
+def folded_description(links):
+    """The arm's URDF with extra links on fixed joints, `links` <link> elements in all."""
+    xml = arm_xml()
+    extra = links - xml.count('<link')
+    arm_links = re.findall(r'<link name="([^"]+)"', xml)
+    parts = []
+    for i in range(extra):
+        parent = arm_links[1 + i % (len(arm_links) - 1)]
+        parts.append(f'<link name="extra{i}"><inertial><mass value="0.001"/><inertia ixx="1e-7" ixy="0" ixz="0" '
+                     f'iyy="1e-7" iyz="0" izz="1e-7"/></inertial></link>'
+                     f'<joint name="extra_fixed{i}" type="fixed"><parent link="{parent}"/><child link="extra{i}"/>'
+                     f'<origin xyz="0 0 {0.001 * (i % 50)!r}"/></joint>')
+    return xml.replace('</robot>', '\n'.join(parts) + '\n</robot>')
+
+
+def chain_description(links):
+    """A random chain of `links` links whose first seven joints are named like the arm's, as
+    another robot: built in full (one body per link, the rest locked), then refused by
+    description_update 'same_robot', so the running model keeps serving."""
+    xml = robot_urdf(links - 1, seed=1)
+    for k in range(1, 8):
+        xml = xml.replace(f'name="j{k:03d}"', f'name="joint{k}"')
+    return xml
+
+
+def serialized_trajectory(n):
+    """A serialized n-point trajectory of the arm at 1 kHz (written directly with trajectory_cdr)."""
+    from rclpy.serialization import serialize_message
+    from trajectory_msgs.msg import JointTrajectory
+
+    from lie_dynamics.ros import trajectory_cdr as cdr
+    head = bytes(serialize_message(JointTrajectory(joint_names=JOINTS)))
+    prefix = head[:-4] + n.to_bytes(4, 'little')
+    k = np.arange(n)
+    traj = dict(prefix=prefix, joint_names=JOINTS, sec=k // 1000, nanosec=(k % 1000) * 1_000_000,
+                positions=np.tile(Q, (n, 1)), velocities=np.zeros((n, 7)), accelerations=None)
+    return cdr.write(traj, np.zeros((n, 7)))
+
+
+class Driver:
+    """The streaming side: publisher thread, executor thread, reply times, the node's log."""
+
+    def __init__(self, ctx):
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rcl_interfaces.msg import Log
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from rclpy.serialization import serialize_message
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float64MultiArray, String
+        from trajectory_msgs.msg import JointTrajectory
+
+        from lie_dynamics.ros.node import DESCRIPTION_QOS, TRAJECTORY_QOS
+        self.node = rclpy.create_node('node_loads_driver', context=ctx)
+        self.ex = SingleThreadedExecutor(context=ctx)
+        self.ex.add_node(self.node)
+        self.replies, self.logs, self.filled, self.states = [], [], [], []
+        deep = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        self.node.create_subscription(Float64MultiArray, CMD, lambda m: self.replies.append(time.monotonic()), deep)
+        self.node.create_subscription(Log, '/rosout', self._on_log, deep)
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, deep)
+        self.node.create_subscription(JointTrajectory, f'{NODE}/trajectory_out',
+                                      lambda m: self.filled.append(time.monotonic()), TRAJECTORY_QOS, raw=True)
+        self.js = self.node.create_publisher(JointState, 'joint_states', 1)
+        self.desc = self.node.create_publisher(String, 'robot_description', DESCRIPTION_QOS)
+        self.state = bytes(serialize_message(JointState(name=JOINTS, position=Q.tolist())))
+        self.sent = 0
+        self.stop = threading.Event()
+        self.threads = [threading.Thread(target=self._spin, daemon=True)]
+        self.threads[0].start()
+
+    def _on_log(self, msg):
+        if msg.name == NODE.strip('/'):
+            self.logs.append((time.monotonic(), msg.msg))
+
+    def _on_diag(self, msg):
+        for st in msg.status:
+            for kv in st.values:
+                if kv.key == 'model_state':
+                    self.states.append((time.monotonic(), kv.value))
+
+    def ready_after(self, t0):
+        """When the diagnostics first said model_state 'ready' after t0 (no load running or waiting)."""
+        return next((t for t, v in list(self.states) if t >= t0 and v == 'ready'), None)
+
+    def _spin(self):
+        while not self.stop.is_set():
+            self.ex.spin_once(timeout_sec=0.05)
+
+    def stream(self):
+        def run():
+            period, t = 1.0 / RATE, time.monotonic()
+            while not self.stop.is_set():
+                self.js.publish(self.state)
+                self.sent += 1
+                t += period
+                pause = t - time.monotonic()
+                if pause > 0:
+                    time.sleep(pause)
+                else:
+                    t = time.monotonic()
+        th = threading.Thread(target=run, daemon=True)
+        th.start()
+        self.threads.append(th)
+
+    def wait(self, pred, timeout, what):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if pred():
+                return
+            time.sleep(0.01)
+        raise RuntimeError(f'timed out waiting for {what}')
+
+    def gap(self, t0, t1):
+        """(largest gap between replies in [t0, t1], replies in it)."""
+        r = np.array([t for t in list(self.replies) if t0 <= t <= t1])
+        return (float(np.max(np.diff(r))) if len(r) > 1 else float('inf')), len(r)
+
+    def log_after(self, t0, pattern):
+        return next((t for t, m in list(self.logs) if t >= t0 and re.search(pattern, m)), None)
+
+    def close(self):
+        self.stop.set()
+        for th in self.threads:
+            th.join(timeout=5)
+        self.node.destroy_node()
+
+
+def _event(driver, name, start, done, timeout):
+    """The event, then a quiet stretch as long as its window (the largest gap grows with the
+    window's length): one result row."""
+    time.sleep(QUIET_S)
+    sent0 = driver.sent
+    t0 = time.monotonic()
+    start()
+    driver.wait(lambda: done(t0) is not None, timeout, name)
+    t_done = done(t0)
+    time.sleep(0.2)
+    t1 = time.monotonic()
+    busy, replies = driver.gap(t0, t1)
+    sent = driver.sent - sent0
+    time.sleep(t1 - t0)
+    quiet, _ = driver.gap(t1, 2 * t1 - t0)
+    return {'event': name, 'quiet_gap_ms': quiet * 1e3, 'event_gap_ms': busy * 1e3, 'widened_ms': (busy - quiet) * 1e3,
+            'replies': replies, 'sent': sent, 'event_s': t_done - t0}
+
+
+def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):
+    import rclpy
+    from rclpy.context import Context
+    from std_msgs.msg import String
+    from std_srvs.srv import Trigger
+
+    from lie_dynamics.ros.domains import reserve_domains
+    tmp = tempfile.mkdtemp(prefix='lie_dynamics_node_loads_')
+    env = dict(os.environ, ROS_LOG_DIR=os.path.join(tmp, 'log'), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    env.setdefault('ROS_DOMAIN_ID', str(reserve_domains(1)[0]))
+    if node_src:
+        env['PYTHONPATH'] = os.pathsep.join(p for p in (os.path.abspath(node_src), env.get('PYTHONPATH')) if p)
+    os.environ.update({k: env[k] for k in ('ROS_LOG_DIR', 'ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
+    caps = RAISED_CAPS if raised else DEFAULT_CAPS
+    params = ['-p', f'urdf_path:={default_urdf()}', '-p', f'command_topic:={CMD}', '-p', 'diagnostics_period:=0.1',
+              '-p', f"max_description_links:={caps['links']}", '-p', f"max_trajectory_points:={caps['points']}"]
+    if 'bytes' in caps:
+        params += ['-p', f"max_description_bytes:={caps['bytes']}"]
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    if nice:
+        os.nice(nice)   # before any child: the node inherits it
+    burners = [subprocess.Popen([sys.executable, '-c', 'while True: pass']) for _ in range(busy)]
+    for b in burners:
+        os.setpriority(os.PRIO_PROCESS, b.pid, base)
+    helpers = []
+    proc = subprocess.Popen([sys.executable, '-m', 'lie_dynamics.dynamics_node', '--ros-args', *params], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ctx = Context()
+    rclpy.init(context=ctx)
+    driver = None
+    rows = []
+    try:
+        driver = Driver(ctx)
+        driver.wait(lambda: driver.js.get_subscription_count() and driver.node.count_publishers(CMD), 60, 'discovery')
+        driver.stream()
+        driver.wait(lambda: len(driver.replies) > 100, 60, 'replies')
+        cli = driver.node.create_client(Trigger, f'{NODE}/reload_model')
+        cli.wait_for_service(timeout_sec=30)
+        xml = folded_description(caps['links'])
+        xmls = [xml.replace('</robot>', f'<!-- {k} --></robot>') for k in range(repeat)]   # each one new
+        for k in range(repeat):
+            rows.append(_event(driver, f"description ({caps['links']} links)",
+                               lambda k=k: driver.desc.publish(String(data=xmls[k])),
+                               lambda t0: driver.ready_after(t0 + 0.3), 300))
+        chain = chain_description(caps['links'])
+        for k in range(repeat):
+            rows.append(_event(driver, f"chain, refused after its build ({caps['links']} links)",
+                               lambda k=k: driver.desc.publish(String(data=chain + f'<!-- {k} -->')),
+                               lambda t0: driver.ready_after(t0 + 0.3), 300))
+
+        def reloads():
+            for _ in range(20):
+                fut = cli.call_async(Trigger.Request())
+                driver.wait(fut.done, 30, 'reload answer')
+            driver.reloads_sent = time.monotonic()
+
+        def reloads_done(t0):
+            sent = getattr(driver, 'reloads_sent', None)   # loads run (or wait) from each answer on
+            return None if sent is None else driver.ready_after(sent)
+        for _ in range(repeat):
+            driver.reloads_sent = None
+            rows.append(_event(driver, '20 reloads', reloads, reloads_done, 300))
+        if not quick:
+            # sent by a process of its own: rclpy keeps the interpreter lock while it publishes
+            # 20 MB, which would stall this process's stream and reply times, not the node's
+            sender = subprocess.Popen([sys.executable, '-m', 'bench.node_loads', '--send-trajectory'], env=env,
+                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+            helpers.append(sender)
+            if sender.stdout.readline().strip() != 'ready':
+                raise RuntimeError('the trajectory sender did not start')
+
+            def send():
+                sender.stdin.write('send\n')
+                sender.stdin.flush()
+                sender.stdout.readline()
+            for _ in range(repeat):
+                n_filled = len(driver.filled)
+                rows.append(_event(driver, '100,000-point trajectory', send,
+                                   lambda t0, n=n_filled: (driver.filled[n] if len(driver.filled) > n
+                                                           else driver.log_after(t0, 'trajectory rejected')), 120))
+    finally:
+        if driver is not None:
+            driver.close()
+        ctx.try_shutdown()
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        for b in burners + helpers:
+            b.kill()
+            b.wait()
+        shutil.rmtree(tmp, ignore_errors=True)
+    return _medians(rows)
+
+
+def _medians(rows):
+    out = []
+    for name in dict.fromkeys(r['event'] for r in rows):
+        same = [r for r in rows if r['event'] == name]
+        out.append({k: (name if k == 'event' else float(np.median([r[k] for r in same]))) for k in same[0]})
+        out[-1]['runs'] = len(same)
+    return out
+
+
+def markdown(rows, raised, busy):
+    head = (f"caps {'raised' if raised else 'default'}, {busy} busy loops beside; joint_states at {RATE:g} Hz; "
+            f'niceness {os.getpriority(os.PRIO_PROCESS, 0)}; quiet stretch after each event, as long as its window')
+    lines = [head, '', '| event | runs | quiet gap ms | event gap ms | widened ms | replies / sent | event s |',
+             '|---|---|---|---|---|---|---|']
+    for r in rows:
+        lines.append(f"| {r['event']} | {r['runs']} | {r['quiet_gap_ms']:.1f} | {r['event_gap_ms']:.1f} | "
+                     f"{r['widened_ms']:+.1f} | {r['replies']:.0f} / {r['sent']:.0f} | {r['event_s']:.2f} |")
+    return '\n'.join(lines)
+
+
+def send_trajectories():
+    """(--send-trajectory) Publish the 100,000-point trajectory once per line on stdin."""
+    import rclpy
+    from trajectory_msgs.msg import JointTrajectory
+
+    from lie_dynamics.ros.node import TRAJECTORY_QOS
+    rclpy.init()
+    node = rclpy.create_node('node_loads_trajectory_sender')
+    pub = node.create_publisher(JointTrajectory, f'{NODE}/trajectory_in', TRAJECTORY_QOS)
+    data = serialized_trajectory(100_000)
+    while not pub.get_subscription_count():
+        time.sleep(0.05)
+    print('ready', flush=True)
+    for _ in sys.stdin:
+        pub.publish(data)
+        print('sent', flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog='python -m bench.node_loads', description=__doc__.split('\n')[0])
+    ap.add_argument('--raised', action='store_true', help='caps raised to 5,000 links and 200,000 points')
+    ap.add_argument('--busy', type=int, default=0, help='busy-loop processes beside the node')
+    ap.add_argument('--repeat', type=int, default=1, help='runs of each event (medians reported)')
+    ap.add_argument('--node-src', help='run the node of this checkout instead')
+    ap.add_argument('--nice', type=int, default=0, help='niceness of this process and the node')
+    ap.add_argument('--quick', action='store_true', help='no trajectory event')
+    ap.add_argument('--send-trajectory', action='store_true', help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    if a.send_trajectory:
+        return send_trajectories()
+    print(markdown(run(a.raised, a.busy, a.quick, a.repeat, a.node_src, a.nice), a.raised, a.busy))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

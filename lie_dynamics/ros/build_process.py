@@ -1,0 +1,195 @@
+"""Robot models built in a separate process, in plain Python (no rclpy import).
+
+Parsing a description and building its model is seconds of pure Python for a large robot; in
+the node's process it would hold the interpreter lock that the control path needs (a
+5,000-link description stalled replies by 120-133 ms). `BuildProcess` runs it in a child
+interpreter instead (`python -m lie_dynamics.ros.build_process`, started with exec: no fork of
+a process with DDS threads), speaking pickle over a pipe: the request is the description text
+or path with the caps and the build options, the answer the finished Model (it pickles its
+constant data; kernels are generated where it is used) and the warnings to re-issue, or the
+error text. The node's loader thread waits on the pipe without the lock.
+
+A child that dies or does not answer within `timeout` s is killed and reported by a
+`BuildLost` error (the caller keeps its model); the next build starts a new child. The child
+dies with the node: it exits on end of input, ignores SIGINT (a terminal's Ctrl-C goes to the
+node, which stops it), and asks the kernel for SIGKILL when the thread that started it ends
+(Linux), so a killed node leaves no orphan.
+"""
+import ctypes
+import os
+import pickle
+import select
+import signal
+import struct
+import subprocess
+import sys
+import time
+import warnings
+
+from .. import InertiaWarning, load_urdf
+
+BUILD_TIMEOUT_S = 120.0   # a build that takes longer is taken for hung (a 5,000-link chain: ~3 s)
+_LEN = struct.Struct('<Q')
+_CHUNK = 1 << 20
+_PR_SET_PDEATHSIG = 1
+
+
+class BuildLost(RuntimeError):
+    """The build process died or did not answer in time (it has been killed)."""
+
+
+def read_description(source, caps=None):
+    """The URDF text of `source` within caps = (is_file, max_bytes, max_links): a file is read
+    up to max_bytes + 1 characters; more than max_links `<link` tags (an upper bound: comments
+    count too) raises ValueError before parsing. Without caps: source unchanged."""
+    if caps is None:
+        return source
+    is_file, max_bytes, max_links = caps
+    if is_file:
+        with open(source, encoding='utf-8') as fh:
+            source = fh.read(max_bytes + 1)
+    links = source.count('<link')
+    if links > max_links:
+        raise ValueError(f'{links} <link> elements, more than max_description_links ({max_links})')
+    return source
+
+
+def build(source, caps=None, *, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn'):
+    """(model, other warnings) of a description: read_description, then load_urdf with its
+    InertiaWarnings recorded (the model's physical_consistency() report carries them; the
+    caller logs that once) and any other warning returned as (message, category, filename,
+    lineno) for the caller to re-issue. Raises ValueError."""
+    text = read_description(source, caps)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter('always', InertiaWarning)
+        model = load_urdf(text, joints=joints, gravity=gravity, inertia=inertia)
+    other = [(str(w.message), w.category, w.filename, w.lineno) for w in caught
+             if not issubclass(w.category, InertiaWarning)]
+    return model, other
+
+
+def _send(fd, obj):
+    data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+    view = memoryview(_LEN.pack(len(data)) + data)
+    while view:
+        view = view[os.write(fd, view):]
+
+
+_TIMEOUT = object()
+
+
+def _receive(fd, deadline=None, clock=None):
+    """The next object on fd; None at end of input, _TIMEOUT when `deadline` (clock()) passes."""
+    buf = bytearray()
+    need = _LEN.size
+    size = None
+    while len(buf) < need:
+        if deadline is not None:
+            left = deadline - clock()
+            if left <= 0 or not select.select([fd], [], [], left)[0]:
+                return _TIMEOUT
+        chunk = os.read(fd, min(_CHUNK, need - len(buf)))
+        if not chunk:
+            return None
+        buf += chunk
+        if size is None and len(buf) >= _LEN.size:
+            size = _LEN.unpack_from(buf)[0]
+            need = _LEN.size + size
+    return pickle.loads(memoryview(buf)[_LEN.size:])
+
+
+class BuildProcess:
+    """The client side: one child at a time, started on the first build."""
+
+    def __init__(self, timeout=BUILD_TIMEOUT_S):
+        self.timeout = timeout
+        self._proc = None
+        self.started = 0   # children started so far
+
+    @property
+    def pid(self):
+        """The running child's pid, or None."""
+        proc = self._proc
+        return proc.pid if proc is not None and proc.poll() is None else None
+
+    def _start(self):
+        root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+        env = dict(os.environ)
+        env['PYTHONPATH'] = os.pathsep.join(p for p in (root, env.get('PYTHONPATH')) if p)
+        self._proc = subprocess.Popen([sys.executable, '-m', __name__, str(os.getpid())], stdin=subprocess.PIPE,
+                                      stdout=subprocess.PIPE, env=env, close_fds=True)
+        self.started += 1
+        return self._proc
+
+    def build(self, source, caps=None, *, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn'):
+        """`build` in the child: (model, other warnings). Raises ValueError (the description),
+        BuildLost (the child died or timed out: killed; the next call starts another)."""
+        proc = self._proc
+        if proc is None or proc.poll() is not None:
+            proc = self._start()
+        try:
+            _send(proc.stdin.fileno(), (source, caps, joints, gravity, inertia))
+            answer = _receive(proc.stdout.fileno(), time.monotonic() + self.timeout, time.monotonic)
+        except OSError:   # the pipe broke: the child is gone
+            answer = None
+        if answer is _TIMEOUT:
+            self._end(proc, kill=True)
+            raise BuildLost(f'the model build process did not answer within {self.timeout:g} s and was killed')
+        if answer is None:   # end of its output: it ended
+            self._end(proc)
+            code = proc.returncode
+            why = f'signal {-code}' if code < 0 else f'exit status {code}'
+            raise BuildLost(f'the model build process ended ({why}) while building')
+        ok, value = answer
+        if not ok:
+            raise ValueError(value)
+        return value
+
+    def _end(self, proc, kill=False):
+        for f in (proc.stdin, proc.stdout):
+            try:
+                f.close()
+            except OSError:
+                pass
+        if kill:
+            proc.kill()
+        try:
+            proc.wait(timeout=1.0)   # one that just ended, or ends on end of input
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        if self._proc is proc:
+            self._proc = None
+
+    def stop(self):
+        """End the child (killed at once: what it builds is not needed any more)."""
+        proc = self._proc
+        if proc is not None:
+            self._end(proc, kill=True)
+
+
+def serve(parent=None):
+    """The child's loop: a request in, (True, (model, warnings)) or (False, error text) out."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        ctypes.CDLL(None).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    except (OSError, AttributeError):   # not Linux: end of input still ends the loop
+        pass
+    if parent is not None and os.getppid() != parent:   # the parent died before prctl
+        return
+    out = os.dup(1)
+    os.dup2(2, 1)   # stray prints go to stderr, never into the answers
+    while True:
+        request = _receive(0)
+        if request is None:
+            return
+        source, caps, joints, gravity, inertia = request
+        try:
+            answer = (True, build(source, caps, joints=joints, gravity=gravity, inertia=inertia))
+        except Exception as exc:  # noqa: BLE001 - any bad input: its reason goes back to the node
+            answer = (False, str(exc) or type(exc).__name__)
+        _send(out, answer)
+
+
+if __name__ == '__main__':
+    serve(int(sys.argv[1]) if len(sys.argv) > 1 else None)

@@ -1,0 +1,210 @@
+"""CDR, the serialized form of ROS messages (what a raw subscription delivers), read with the
+standard library and numpy; plain Python, no rclpy import. The one implementation of the
+primitives (encapsulation, alignment, counts, strings, array views) that the node's readers
+use: joint_states and the desired state here, whole trajectories in trajectory_cdr.py.
+
+Plain CDR (XCDR1, little or big endian: what rmw_fastrtps and rmw_cyclonedds send) is read;
+any other encapsulation raises Unsupported. Offsets are relative to the payload (after the
+4-byte encapsulation header); a value of n bytes is aligned to min(n, 8). Strings are a uint32
+length (the terminating NUL included) and the bytes; they decode as rclpy decodes them:
+UTF-8 with replacement characters, cut at the first NUL.
+
+Reading a JointState here instead of letting rclpy build a message object both costs less
+(no Python message, no per-element conversion) and keeps a malformed message off rclpy's
+deserializer, which logs every failure unthrottled.
+"""
+import struct
+from typing import NamedTuple
+
+import numpy as np
+
+_ORDER = {b'\x00\x01': '<', b'\x00\x00': '>'}
+_U32 = {'<': struct.Struct('<I'), '>': struct.Struct('>I')}
+_STAMP = {'<': struct.Struct('<iII'), '>': struct.Struct('>iII')}   # sec, nanosec, frame_id length
+_F8 = {'<': np.dtype('<f8'), '>': np.dtype('>f8')}
+
+
+class Unsupported(ValueError):
+    """A serialized message in an encoding this module does not read."""
+
+
+def align(pos, n):
+    return (pos + n - 1) & ~(n - 1)
+
+
+def truncated(what='message'):
+    return ValueError(f'serialized {what} is truncated')
+
+
+def stamp_ns(sec, nanosec):
+    """A builtin_interfaces Time (sec, nanosec) as integer nanoseconds: the one conversion."""
+    return sec * 1_000_000_000 + nanosec
+
+
+def stamp_parts(ns):
+    """(sec, nanosec) of integer nanoseconds (the inverse of stamp_ns)."""
+    return divmod(ns, 1_000_000_000)
+
+
+def _text(raw):
+    """A CDR string's bytes as rclpy decodes them (C string: up to the first NUL)."""
+    end = raw.find(b'\0')
+    return (raw if end < 0 else raw[:end]).decode('utf-8', 'replace')
+
+
+class Buffer:
+    """A serialized message: its byte order and payload length; reads at payload offsets."""
+
+    def __init__(self, buf, what='message'):
+        if len(buf) < 4:
+            raise truncated(what)
+        self.order = _ORDER.get(bytes(buf[:2]))
+        if self.order is None:
+            raise Unsupported(f'CDR encapsulation {bytes(buf[:2]).hex()} is not read here')
+        self.buf = buf
+        self.end = len(buf) - 4   # payload length
+        self.what = what
+
+    def u32(self, pos):
+        """The uint32 at payload offset pos."""
+        if pos + 4 > self.end:
+            raise truncated(self.what)
+        return _U32[self.order].unpack_from(self.buf, 4 + pos)[0]
+
+    def view(self, dtype, start, shape, strides):
+        """Array view of the payload from offset `start` (read-only on bytes, writable on arrays)."""
+        return np.ndarray(shape, dtype=self.order + dtype, buffer=self.buf, offset=4 + start, strides=strides)
+
+    def string(self, pos):
+        """(text, offset after it) of the string at payload offset pos (aligned here)."""
+        pos = align(pos, 4)
+        size = self.u32(pos)
+        pos += 4
+        if size > self.end - pos:
+            raise truncated(self.what)
+        return _text(bytes(self.buf[4 + pos:4 + pos + size])), pos + size
+
+    def strings(self, pos):
+        """(list of texts, offset after them) of the string sequence at payload offset pos."""
+        pos = align(pos, 4)
+        count = self.u32(pos)
+        pos += 4
+        if count > (self.end - pos) // 4:   # each string takes at least its length
+            raise truncated(self.what)
+        out = []
+        for _ in range(count):
+            text, pos = self.string(pos)
+            out.append(text)
+        return out, pos
+
+    def doubles(self, pos):
+        """(float64 array view, offset after it) of the float64 sequence at payload offset pos."""
+        pos = align(pos, 4)
+        count = self.u32(pos)
+        pos += 4
+        if count:
+            pos = align(pos, 8)
+        if count > (self.end - pos) // 8:
+            raise truncated(self.what)
+        return np.frombuffer(self.buf, _F8[self.order], count, 4 + pos), pos + 8 * count
+
+
+class JointStateSample(NamedTuple):
+    """One sensor_msgs/JointState as the node's decision core takes it: stamp in ns, the names
+    (a tuple, shared with the previous sample while the message's name list stays the same),
+    and read-only float64 arrays in message order (an absent array is empty)."""
+    stamp: int
+    names: tuple
+    position: np.ndarray
+    velocity: np.ndarray
+    effort: np.ndarray
+
+
+def sample_of(msg):
+    """The JointStateSample of a sensor_msgs/JointState message object (benchmarks and tools
+    that hold one; the node itself reads the serialized form, read_joint_state)."""
+    s = msg.header.stamp
+    arrays = [np.frombuffer(a, dtype=float) if hasattr(a, 'typecode') else np.array(a, dtype=float)
+              for a in (msg.position, msg.velocity, msg.effort)]
+    for a in arrays:
+        a.flags.writeable = False
+    return JointStateSample(stamp_ns(s.sec, s.nanosec), tuple(msg.name), *arrays)
+
+
+class JointStateDecoder:
+    """Serialized sensor_msgs/JointState -> JointStateSample. Keeps the last name list (and its
+    bytes), so that a stream naming the same joints decodes them once.
+
+    Layout: header {int32 sec, uint32 nanosec, string frame_id}, string[] name, float64[]
+    position, velocity, effort."""
+
+    def __init__(self):
+        self._names_raw = None
+        self._names = ()
+
+    def read(self, buf):
+        """The sample of `buf` (bytes). Raises ValueError for a malformed or truncated message
+        (Unsupported: another encoding)."""
+        b = Buffer(buf, 'joint_states')
+        if b.end < 16:
+            raise truncated('joint_states')
+        sec, nanosec, size = _STAMP[b.order].unpack_from(buf, 4)
+        pos = 12 + size
+        if size > b.end - 12:
+            raise truncated('joint_states')
+        names, pos = self._read_names(b, buf, align(pos, 4))
+        position, pos = b.doubles(pos)
+        velocity, pos = b.doubles(pos)
+        effort, pos = b.doubles(pos)
+        return JointStateSample(stamp_ns(sec, nanosec), names, position, velocity, effort)
+
+    def _read_names(self, b, buf, pos):
+        count = b.u32(pos)
+        raw = self._names_raw
+        if raw is not None and buf[4 + pos:4 + pos + len(raw)] == raw:   # the same names as last time
+            return self._names, pos + len(raw)
+        names, end = b.strings(pos)
+        self._names_raw = bytes(buf[4 + pos:4 + end]) if count else None
+        self._names = tuple(names)
+        return self._names, end
+
+
+class Point(NamedTuple):
+    """One trajectory_msgs/JointTrajectoryPoint's arrays (read-only views; effort not read)."""
+    positions: np.ndarray
+    velocities: np.ndarray
+    accelerations: np.ndarray
+
+
+def read_desired(buf, one=False):
+    """(joint_names, points) of a serialized trajectory_msgs/JointTrajectory, every point read.
+    one=True (a desired state, which has exactly one): a message with another number of points
+    is not read beyond its count, and `points` is then range(count) (the core refuses it by its
+    length). Raises ValueError for a malformed or truncated message (Unsupported: another
+    encoding).
+
+    Layout: header {int32 sec, uint32 nanosec, string frame_id}, string[] joint_names, then the
+    points: float64[] positions, velocities, accelerations, effort, time_from_start {int32, uint32}."""
+    b = Buffer(buf, 'trajectory')
+    if b.end < 12:
+        raise truncated('trajectory')
+    _, pos = b.string(8)
+    names, pos = b.strings(pos)
+    pos = align(pos, 4)
+    count = b.u32(pos)
+    pos += 4
+    if count > (b.end - pos) // 24:   # a point takes at least its four counts and the time
+        raise truncated('trajectory')
+    if one and count != 1:
+        return names, range(count)
+    points = []
+    for _ in range(count):
+        arrays = []
+        for _ in range(4):
+            a, pos = b.doubles(pos)
+            arrays.append(a)
+        pos = align(pos, 4) + 8
+        if pos > b.end:
+            raise truncated('trajectory')
+        points.append(Point(*arrays[:3]))
+    return names, points
