@@ -23,6 +23,8 @@ Publishes   <command_topic>   (std_msgs/Float64MultiArray, `joints` order), one 
                               the controller)
             ~/commanded_efforts (sensor_msgs/JointState, if publish_joint_state; input stamp)
             ~/external_torques, ~/collision: the momentum observer on the efforts (contact_topics.py)
+            ~/dynamics/{gravity,coriolis,mass_matrix,jacobian}: the terms listed in dynamics.publish
+                              (dynamics_topics.py, a per-sample feature: feature.py)
             /diagnostics      (diagnostic_msgs/DiagnosticArray, every diagnostics_period; global by
                               ROS convention, statuses named after the node's full name)
 Names: every other topic and service is relative or private, so `-r __ns:=/robot1` moves the
