@@ -1,7 +1,7 @@
 """The dynamics terms for other nodes (~/dynamics/*, dynamics_topics.py) over real DDS (own domain,
 conftest.py), against Pinocchio at the state sent: a Panda with its fingers locked (a mimic
 pair) and a payload on the hand, on a wall; the bundled arm for the rate, the refusals and the
-non-finite guard."""
+non-finite guard, and gravity from a topic with robot_compensates_gravity."""
 import glob
 import math
 import os
@@ -240,3 +240,26 @@ def test_start_up_refuses_bad_dynamics_parameters(arg, why):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert why in proc.stderr, proc.stderr[-2000:]
+
+
+def test_gravity_from_a_topic_and_its_scale_apply_and_robot_compensates_gravity_does_not_zero_g(ros):
+    from geometry_msgs.msg import Vector3Stamped
+    node = start_arm(ros, gravity_topic='/tilted_gravity', gravity_timeout=60.0, gravity_scale=0.5,
+                     robot_compensates_gravity=True, **{'dynamics.publish': ['gravity', 'coriolis'],
+                                                        'dynamics.rate': 0.0})
+    pub = ros.t.create_publisher(Vector3Stamped, '/tilted_gravity', 10)
+    wait_until(lambda: pub.get_subscription_count() >= 1, what='gravity subscriber')
+    tilted = (1.2, -0.7, -9.7)
+    msg = Vector3Stamped()
+    msg.vector.x, msg.vector.y, msg.vector.z = tilted
+    pub.publish(msg)
+    wait_until(lambda: np.allclose(node.core.model.gravity_vector, 0.5 * np.array(tilted)), what='topic gravity')
+    wait_publishers(ros, ('gravity', 'coriolis'))
+    state = arm_state(0, qd=np.linspace(-1.0, 1.0, 7))
+    send(ros, state)
+    wait_until(lambda: len(ros.dyn['gravity']) == 1 and len(ros.dyn['coriolis']) == 1, what='messages')
+    q, qd = np.asarray(state.position), np.asarray(state.velocity)
+    oracle = Oracle(open(default_urdf_path()).read(), joints=ARM_JOINTS, gravity=tuple(0.5 * np.array(tilted)))
+    close(ros.dyn['gravity'][0].effort, oracle.gravity(q))          # the model's g(q), not the (zero) command's
+    close(ros.dyn['coriolis'][0].effort, oracle.nonlinear(q, qd) - oracle.gravity(q))
+    assert np.abs(ros.dyn['gravity'][0].effort).max() > 1.0
