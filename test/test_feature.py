@@ -27,7 +27,7 @@ class Recorder(Feature):
         self.active = model is not None and settings['dynamics.rate'] > 0
 
     def on_sample(self, s):
-        self.samples.append((s.q.copy(), s.qd.copy(), s.effort.copy(), s.stamp, s.version))
+        self.samples.append((s.q.copy(), s.qd.copy(), s.effort.copy(), s.stamp, s.version, s.velocity.copy()))
         self.events.append(('info', 'recorder', f'sample {s.stamp}'))
 
     def report(self):
@@ -51,7 +51,8 @@ def test_features_get_each_accepted_sample_once_in_model_order():
     assert core.on_sample(s) is not None
     feats.feed(core, s, JOINTS)
     assert rec.configured == 2 and len(rec.samples) == 1
-    fq, fqd, fe, stamp, version = rec.samples[0]
+    fq, fqd, fe, stamp, version, fv = rec.samples[0]
+    assert np.isnan(fv[-1]) and np.array_equal(fv[:-1], fqd[:-1])   # as sent, in model order
     assert np.array_equal(fq, q) and stamp == 5 and version == core.model.version
     assert np.array_equal(fqd, [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 0.0])   # reversed back; NaN as 0
     assert np.array_equal(fe, np.arange(7.0))

@@ -24,29 +24,37 @@ import numpy as np
 class Accepted:
     """One accepted joint_states sample, after its command: q (validated positions, model order),
     stamp (ns, 0: none), the model that computed the command and its `version`, `names` (the
-    command layout), and on demand `qd` (model order; absent or non-finite entries are 0, as
-    the torque laws use them) and `effort` (model order, NaN where absent)."""
+    command layout), and on demand, in model order: `velocity` and `effort` as the message gave
+    them (NaN where absent: an observer pauses on them), and `qd` (the velocity with absent or
+    non-finite entries as 0, as the torque laws use it)."""
 
-    __slots__ = ('q', 'stamp', 'model', 'version', 'names', '_sample', '_idx', '_qd', '_effort')
+    __slots__ = ('q', 'stamp', 'model', 'version', 'names', '_sample', '_idx', '_velocity', '_qd', '_effort')
 
     def __init__(self, q, stamp, model, names, sample, idx):
         self.q, self.stamp, self.model, self.version, self.names = q, stamp, model, model.version, names
         self._sample, self._idx = sample, idx   # the message's arrays and their map to model order
-        self._qd = self._effort = None
+        self._velocity = self._qd = self._effort = None
+
+    def _mapped(self, values):
+        return np.asarray(values, dtype=float)[self._idx] if len(values) else np.full(len(self.q), np.nan)
+
+    @property
+    def velocity(self):
+        if self._velocity is None:
+            self._velocity = self._mapped(self._sample.velocity)
+        return self._velocity
 
     @property
     def qd(self):
         if self._qd is None:
-            v = self._sample.velocity
-            qd = np.asarray(v, dtype=float)[self._idx] if len(v) else np.zeros(len(self.q))
-            self._qd = np.where(np.isfinite(qd), qd, 0.0)
+            v = self.velocity
+            self._qd = np.where(np.isfinite(v), v, 0.0)
         return self._qd
 
     @property
     def effort(self):
         if self._effort is None:
-            e = self._sample.effort
-            self._effort = np.asarray(e, dtype=float)[self._idx] if len(e) else np.full(len(self.q), np.nan)
+            self._effort = self._mapped(self._sample.effort)
         return self._effort
 
 
