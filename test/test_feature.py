@@ -1,5 +1,5 @@
 """The per-sample feature interface (ros/feature.py) with a real Compensator, and the rate gate of
-the dynamics topics, without ROS messages on the wire."""
+the dynamics topics and their serialized message templates, without DDS."""
 import numpy as np
 import pytest
 
@@ -92,3 +92,28 @@ def test_rate_gate_keeps_the_average_rate_and_restarts_on_a_new_stream():
     assert gate.passes(10_000 * ms) and not gate.passes(10_001 * ms)   # after a gap: from there
     every = RateGate(0.0)
     assert all(every.passes(0) for _ in range(5))
+
+
+@pytest.mark.parametrize('names', [['joint1', 'j2é', 'a_longer_joint_name_3'], ['x'], []])
+def test_serialized_templates_read_back_as_the_messages(names):
+    pytest.importorskip('rclpy')
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray
+    from lie_dynamics.ros.dynamics_topics import joint_state_template, matrix_template
+    n = len(names)
+    rng = np.random.default_rng(1)
+    q, qd, e = rng.normal(size=(3, n))
+    t, stamp_at, slots = joint_state_template(names)
+    ns = 1_700_000_000 * 10 ** 9 + 123_456_789
+    msg = deserialize_message(t.fill(slots, (q, qd, e), stamp_at, ns), JointState)
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id) == (1_700_000_000, 123_456_789, '')
+    assert list(msg.name) == names
+    assert np.array_equal(msg.position, q) and np.array_equal(msg.velocity, qd) and np.array_equal(msg.effort, e)
+    A = rng.normal(size=(6, n))
+    t, slots = matrix_template('rows: vx,vy,vz,wx,wy,wz; frame: local; link: tool0', 'cols: ' + ','.join(names), 6, n)
+    msg = deserialize_message(t.fill(slots, (A,)), Float64MultiArray)
+    rows, cols = msg.layout.dim
+    assert (rows.label, rows.size, rows.stride) == ('rows: vx,vy,vz,wx,wy,wz; frame: local; link: tool0', 6, 6 * n)
+    assert (cols.label, cols.size, cols.stride, msg.layout.data_offset) == ('cols: ' + ','.join(names), n, n, 0)
+    assert np.array_equal(np.asarray(msg.data).reshape(6, n), A)

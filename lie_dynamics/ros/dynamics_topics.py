@@ -22,14 +22,13 @@ non-finite value is not published (one throttled log line). Rate limiting runs o
 stamps (the robot's clock: a replayed or simulated stream is thinned the same way), on the steady
 clock for unstamped states; a stamp that goes back restarts it.
 """
-import array
 import time
 
 import numpy as np
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64MultiArray
 
-from .cdr import stamp_parts
+from .cdr import Template
 from .diagnostics import clip
 from .feature import Feature
 
@@ -60,10 +59,27 @@ def check_link(settings, model):
                          f'{exc}') from None
 
 
-def matrix_layout(msg, rows_label, cols_label, rows, cols):
-    msg.layout.dim = [MultiArrayDimension(label=rows_label, size=rows, stride=rows * cols),
-                      MultiArrayDimension(label=cols_label, size=cols, stride=cols)]
-    msg.layout.data_offset = 0
+def joint_state_template(names):
+    """(Template, stamp offset, slots of position, velocity, effort) of a sensor_msgs/JointState
+    with these names and an empty frame_id."""
+    t = Template()
+    stamp_at = t.int32()
+    t.uint32()
+    t.string('')
+    t.strings(names)
+    return t, stamp_at, [t.doubles(len(names)) for _ in range(3)]
+
+
+def matrix_template(rows_label, cols_label, rows, cols):
+    """(Template, [data slot]) of a std_msgs/Float64MultiArray of rows x cols, row-major."""
+    t = Template()
+    t.uint32(2)
+    for label, size, stride in ((rows_label, rows, rows * cols), (cols_label, cols, cols)):
+        t.string(label)
+        t.uint32(size)
+        t.uint32(stride)
+    t.uint32(0)   # data_offset
+    return t, [t.doubles(rows * cols)]
 
 
 class RateGate:
@@ -104,7 +120,7 @@ class DynamicsTopics(Feature):
         self.published = {t: 0 for t in TOPICS}
         self.skipped = 0
         self._names = None
-        self._msgs = {}
+        self._templates = {}
 
     def check(self, settings, model):
         check_link(settings, model)
@@ -131,15 +147,16 @@ class DynamicsTopics(Feature):
         self._names = None  # labels and names are set again on the next sample
 
     def _label(self, names):
+        """The messages' serialized templates for this joint order (published as bytes, cdr.Template)."""
         self._names = names
         joined = ','.join(names)
         n = len(names)
-        self._msgs = {t: TOPICS[t][0]() for t in TOPICS}
-        for t in ('gravity', 'coriolis'):
-            self._msgs[t].name = names
-        matrix_layout(self._msgs['mass_matrix'], f'rows: {joined}', f'cols: {joined}', n, n)
-        matrix_layout(self._msgs['jacobian'], f"rows: {','.join(ROWS)}; frame: {self.frame}; link: {self.link}",
-                      f'cols: {joined}', 6, n)
+        js = joint_state_template(names)
+        self._templates = {
+            'gravity': js, 'coriolis': js,
+            'mass_matrix': matrix_template(f'rows: {joined}', f'cols: {joined}', n, n),
+            'jacobian': matrix_template(f"rows: {','.join(ROWS)}; frame: {self.frame}; link: {self.link}",
+                                        f'cols: {joined}', 6, n)}
 
     def on_sample(self, s):
         t = s.stamp if s.stamp else self._clock()
@@ -173,16 +190,13 @@ class DynamicsTopics(Feature):
             self._publish(term, value, s)
 
     def _publish(self, term, value, s):
-        msg = self._msgs[term]
-        data = array.array('d', np.ascontiguousarray(value, dtype=float).tobytes())
         if term in ('gravity', 'coriolis'):
-            msg.header.stamp.sec, msg.header.stamp.nanosec = stamp_parts(s.stamp)
-            msg.position = array.array('d', s.q.tobytes())
-            msg.velocity = array.array('d', s.qd.tobytes())
-            msg.effort = data
+            t, stamp_at, slots = self._templates[term]
+            data = t.fill(slots, (s.q, s.qd, value), stamp_at, s.stamp)
         else:
-            msg.data = data
-        self._pubs[term].publish(msg)
+            t, slots = self._templates[term]
+            data = t.fill(slots, (value,))
+        self._pubs[term].publish(data)
         self.published[term] += 1
 
     def report(self):
