@@ -4,7 +4,10 @@
 
 BEFORE_SRC is the root of another checkout (as for bench.ab, whose loader imports it as
 `lie_dynamics_before`). Both nodes run in one rclpy context, with real publishers (no DDS
-reader), on the bundled arm in gravity mode, with the observer on (its default) and off. Each
+reader), on the bundled arm in gravity mode, with the observer on (its default) and off, and
+this tree's node once more with all four dynamics topics at every state (dynamics.publish:
+gravity, coriolis, mass_matrix, jacobian; dynamics.rate: 0; the last row, against this tree
+with them off). Each
 one gets what its subscription delivers for the same serialized messages: a checkout whose
 node subscribes raw is given the bytes; one that subscribes typed is timed for rclpy's
 deserialization plus its callback, which is what its executor runs per message. Rounds are
@@ -46,6 +49,18 @@ def _takes_bytes(node_cls):
     return 'raw=True' in inspect.getsource(node_cls._start).split("'joint_states'")[1].split('\n')[0]
 
 
+def _timed(cls, name, ctx, msgs, nodes, params):
+    """A callable feeding this tree's node `name` the serialized messages round and round."""
+    node = cls(name, context=ctx, parameter_overrides=params)
+    nodes.append(node)
+    state = {'k': 0}
+
+    def fn():
+        node.on_joint_state(msgs[state['k'] % len(msgs)])
+        state['k'] += 1
+    return fn
+
+
 def run(before_src, rounds=31, quick=False):
     import rclpy
     from rclpy.parameter import Parameter
@@ -76,6 +91,10 @@ def run(before_src, rounds=31, quick=False):
                         node.on_joint_state(deserialize_message(msgs[state['k'] % len(msgs)], JointState))
                         state['k'] += 1
                 fns[(observer, label)] = fn
+        fns[('topics', 'after')] = _timed(DynamicsNode, 'callback_bench_topics', ctx, msgs, nodes, [
+            Parameter('urdf_path', value=default_urdf_path()), Parameter('stale_timeout', value=60.0),
+            Parameter('dynamics.publish', value=['gravity', 'coriolis', 'mass_matrix', 'jacobian']),
+            Parameter('dynamics.rate', value=0.0)])
         for fn in fns.values():   # warm-up: kernels, name maps
             for _ in range(50):
                 fn()
@@ -87,14 +106,16 @@ def run(before_src, rounds=31, quick=False):
         rclpy.shutdown(context=ctx)
     del before
     rows = []
-    for observer in (True, False):
-        b, a = times[(observer, 'before')], times[(observer, 'after')]
+    for observer in (True, False, 'topics'):
+        b, a = (times[(True, 'after')], times[('topics', 'after')]) if observer == 'topics' else \
+            (times[(observer, 'before')], times[(observer, 'after')])
         ratios = a / b
         rows.append({'observer': observer, 'before_us': float(np.median(b) * 1e6),
                      'after_us': float(np.median(a) * 1e6),
                      'ratio_median': float(np.median(ratios)), 'ratio_p10': float(np.percentile(ratios, 10)),
                      'ratio_p90': float(np.percentile(ratios, 90)),
-                     'accepted': (accepted[(observer, 'before')], accepted[(observer, 'after')])})
+                     'accepted': (accepted[(True, 'after')] if observer == 'topics' else accepted[(observer, 'before')],
+                                  accepted[(observer, 'after')])})
     return rows
 
 
@@ -102,7 +123,9 @@ def markdown(rows):
     lines = ['| observer | before µs/msg | after µs/msg | after/before (median, p10-p90 of rounds) | accepted |',
              '|---|---|---|---|---|']
     for r in rows:
-        lines.append(f"| {'on' if r['observer'] else 'off'} | {r['before_us']:.1f} | {r['after_us']:.1f} | "
+        what = ('on; before = this tree, after = the same + 4 dynamics topics at every state'
+                if r['observer'] == 'topics' else 'on' if r['observer'] else 'off')
+        lines.append(f"| {what} | {r['before_us']:.1f} | {r['after_us']:.1f} | "
                      f"{r['ratio_median']:.3f} ({r['ratio_p10']:.3f}-{r['ratio_p90']:.3f}) | {r['accepted']} |")
     return '\n'.join(lines)
 

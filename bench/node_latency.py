@@ -1,7 +1,7 @@
 """joint_states -> effort command latency of the dynamics node, beside a bare echo node.
 
     .venv/bin/python -m bench.node_latency [--seconds 5] [--rates 1000,2000] [--rounds 2]
-                                           [--soak MINUTES] [--out DIR]
+                                           [--soak MINUTES] [--dynamics-topics] [--out DIR]
 
 A driver (this process) publishes sensor_msgs/JointState for the bundled 7-DoF arm at a fixed
 rate and times each std_msgs/Float64MultiArray reply. The node under test runs in its own
@@ -14,7 +14,9 @@ Replies are matched to requests by value (the echo returns q, the dynamics node 
 which the driver precomputes), so drops and reordering are counted, not guessed. Candidates
 run in interleaved rounds at each rate; per candidate: p50/p99/p99.9/max, the share of replies
 later than one period, drops and the node's CPU (% of one core, from /proc). --soak runs the
-dynamics node alone at the first rate for MINUTES and reports the RSS slope and drops. Writes
+dynamics node alone at the first rate for MINUTES and reports the RSS slope and drops.
+--dynamics-topics adds a candidate: the dynamics node (events) publishing its four dynamics topics
+(gravity, coriolis, mass_matrix, jacobian) at every state (dynamics.rate 0), nobody subscribed. Writes
 node_latency.md/.csv/.json and a latency histogram (node_latency.png) to --out.
 This is a benchmark, not a test: numbers depend on the machine and its load; compare the
 ratios to the echo nodes measured in the same run. Every node runs with its production defaults
@@ -251,6 +253,9 @@ def callback_cost(model, Q):
 CANDIDATES = (('echo, default executor', 'echo', 'single_threaded'), ('echo, events', 'echo', 'events'),
               ('dynamics, events', 'dynamics', 'events'), ('dynamics, default executor', 'dynamics', 'single_threaded'))
 PEER, CHOSEN = CANDIDATES[0][0], CANDIDATES[2][0]
+# --dynamics-topics: the chosen node again, with every dynamics term published at every state
+TOPICS_CANDIDATE = ('dynamics + 4 topics at every state, events', 'dynamics', 'events',
+                    {'dynamics.publish': '[gravity,coriolis,mass_matrix,jacobian]', 'dynamics.rate': '0.0'})
 # Warm-up before the clock starts, in the same stream as the measurement: longer than ramp_time
 # (0.2 s by default: the node blends its first commands in after start-up and after stale input).
 WARMUP_S = 0.5
@@ -266,13 +271,14 @@ def summarize(lat_s, drops, rate, cpu):
                 cpu_pct=float(cpu) if cpu is not None else float('nan'))
 
 
-def measure(driver, Q, keys, rate, seconds, node_cpu, rounds):
-    """Interleaved rounds of every candidate at `rate`: {label: (latencies, drops, cpu %)}."""
+def measure(driver, Q, keys, rate, seconds, node_cpu, rounds, candidates=CANDIDATES):
+    """Interleaved rounds of every candidate (label, kind, executor[, params]) at `rate`:
+    {label: (latencies, drops, cpu %)}."""
     N, W = int(seconds * rate), int(WARMUP_S * rate)
-    out = {label: [[], 0, [], 0] for label, _, _ in CANDIDATES}
+    out = {c[0]: [[], 0, [], 0] for c in candidates}
     for _ in range(rounds):
-        for label, kind, executor in CANDIDATES:
-            proc = start(kind, node_cpu, executor=executor)
+        for label, kind, executor, *params in candidates:
+            proc = start(kind, node_cpu, params=params[0] if params else None, executor=executor)
             try:
                 driver.wait_ready(Q[0].tolist())
                 c0, t0 = cpu_seconds(proc), time.perf_counter()
@@ -413,6 +419,8 @@ def parse(argv):
                     help='also run the dynamics node alone for MINUTES: RSS slope and drops')
     ap.add_argument('--no-pin', action='store_true',
                     help='do not pin the driver to CPU 0 and the node under test to CPU 1')
+    ap.add_argument('--dynamics-topics', action='store_true',
+                    help='add the dynamics node publishing its four dynamics topics at every state')
     ap.add_argument('--out', default=os.path.join(ROOT, 'bench', 'out'), help='output folder')
     ap.add_argument('--echo-node', action='store_true', help=argparse.SUPPRESS)
     return ap.parse_args(argv)
@@ -450,7 +458,8 @@ def measure_all(args):
     rows, hist, soak_result = [], {}, None
     try:
         for rate in rates:
-            res = measure(driver, Q, keys, rate, args.seconds, node_cpu, args.rounds)
+            res = measure(driver, Q, keys, rate, args.seconds, node_cpu, args.rounds,
+                          CANDIDATES + ((TOPICS_CANDIDATE,) if args.dynamics_topics else ()))
             peer = summarize(*res[PEER][:2], rate, res[PEER][2])
             for label, (lat, drops, cpu, blended) in res.items():
                 r = dict(rate=rate, node=label, **summarize(lat, drops, rate, cpu), blended=blended)

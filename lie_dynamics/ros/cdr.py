@@ -1,7 +1,8 @@
 """CDR, the serialized form of ROS messages (what a raw subscription delivers), read with the
 standard library and numpy; plain Python, no rclpy import. The one implementation of the
 primitives (encapsulation, alignment, counts, strings, array views) that the node's readers
-use: joint_states and the desired state here, whole trajectories in trajectory_cdr.py.
+use: joint_states and the desired state here, whole trajectories in trajectory_cdr.py; and
+`Template`, the writer of fixed-shape messages (the dynamics topics).
 
 Plain CDR (XCDR1, little or big endian: what rmw_fastrtps and rmw_cyclonedds send) is read;
 any other encapsulation raises Unsupported. Offsets are relative to the payload (after the
@@ -208,3 +209,52 @@ def read_desired(buf, one=False):
             raise truncated('trajectory')
         points.append(Point(*arrays[:3]))
     return names, points
+
+
+class Template:
+    """A serialized message (little-endian plain CDR) whose shape is fixed: written once with
+    zeros, then each message is a copy with its stamp and double arrays put in place (the dynamics
+    topics publish at up to the joint_states rate: a copy costs less than rclpy's conversion and
+    serialization of a message object, measured by bench.node_callback). Built by the `int32`,
+    `uint32`, `string`, `strings` and `doubles` calls in the message's field order; `doubles(n)`
+    returns its slot for `fill`."""
+
+    def __init__(self):
+        self.buf = bytearray(b'\x00\x01\x00\x00')   # CDR_LE encapsulation; offsets count after it
+
+    def _put(self, data, alignment):
+        pos = align(len(self.buf) - 4, alignment)
+        self.buf += b'\0' * (pos - (len(self.buf) - 4)) + data
+        return pos + 4
+
+    def int32(self, v=0):
+        return self._put(struct.pack('<i', v), 4)
+
+    def uint32(self, v=0):
+        return self._put(struct.pack('<I', v), 4)
+
+    def string(self, text):
+        raw = text.encode('utf-8') + b'\0'
+        self.uint32(len(raw))
+        self._put(raw, 1)
+
+    def strings(self, texts):
+        self.uint32(len(texts))
+        for t in texts:
+            self.string(t)
+
+    def doubles(self, n):
+        """A sequence<double> of n zeros; returns its slot (start, end) in the buffer."""
+        self.uint32(n)
+        start = self._put(b'\0' * (8 * n), 8 if n else 1)
+        return start, start + 8 * n
+
+    def fill(self, slots, arrays, stamp_at=None, stamp=0):
+        """The message: this template with each array (n float64) in its slot, and a
+        builtin_interfaces/Time of `stamp` (ns) at offset `stamp_at`."""
+        out = bytearray(self.buf)
+        for (a, b), x in zip(slots, arrays, strict=True):
+            out[a:b] = np.ascontiguousarray(x, dtype='<f8').tobytes()
+        if stamp_at is not None:
+            struct.pack_into('<iI', out, stamp_at, *stamp_parts(stamp))
+        return bytes(out)

@@ -23,6 +23,8 @@ Publishes   <command_topic>   (std_msgs/Float64MultiArray, `joints` order), one 
                               the controller)
             ~/commanded_efforts (sensor_msgs/JointState, if publish_joint_state; input stamp)
             ~/external_torques, ~/collision: the momentum observer on the efforts (contact_topics.py)
+            ~/dynamics/{gravity,coriolis,mass_matrix,jacobian}: the terms listed in dynamics.publish
+                              (dynamics_topics.py, a per-sample feature: feature.py)
             /diagnostics      (diagnostic_msgs/DiagnosticArray, every diagnostics_period; global by
                               ROS convention, statuses named after the node's full name)
 Names: every other topic and service is relative or private, so `-r __ns:=/robot1` moves the
@@ -62,6 +64,8 @@ from .cdr import JointStateDecoder, read_desired, sample_of, stamp_parts
 from .compensator import Compensator, Throttle
 from .contact import check_settings
 from .contact_topics import ContactTopics
+from .dynamics_topics import DynamicsTopics
+from .feature import Features
 from .gravity_payload import GravityPayload
 from .diagnostics import DIAG_TEXT_MAX, LOG_TEXT_MAX, clip
 from .params import HELP_DESCRIPTION, HELP_EXAMPLE, PARAMS, SPECS, check_value, help_rows
@@ -131,6 +135,7 @@ class DynamicsNode(Node):
     def __init__(self, node_name='dynamics_node', **kwargs):
         super().__init__(node_name, **kwargs)
         self._bg = self._gp = None
+        self._features = Features()
         try:
             self._construct()
         except BaseException:
@@ -193,6 +198,10 @@ class DynamicsNode(Node):
                                         clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._set_js_publisher(values['publish_joint_state'])
         self._contact = ContactTopics(self, NO_PUB_EVENTS)  # external torques, collisions
+        # per-sample features (feature.py): the node feeds each accepted sample to the active ones
+        self._features = Features([DynamicsTopics(
+            lambda msg_type, topic, depth: self.create_publisher(msg_type, topic, depth,
+                                                                 event_callbacks=NO_PUB_EVENTS))])
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -205,6 +214,8 @@ class DynamicsNode(Node):
                 break
         self._adopt_layout()
         check_settings(self.core.settings, len(self.core.layout) if self.core.layout else None)  # exit 2
+        self._features.check(self.core.settings, self.core.model)  # exit 2
+        self._features.sync(self.core)
         self._drain_events()
         if self.core.model is None:
             topic = self.resolve_topic_name('robot_description')
@@ -265,7 +276,9 @@ class DynamicsNode(Node):
             self._contact.observe(core, sample, self._out_names)  # after the command: never delays it
             if self._gp.ident.recording is not None:  # ~/identify_payload records (after the command)
                 self._gp.ident.add(core, sample.velocity, sample.effort, sample.stamp)
-            if core.events or self._contact.monitor.events:
+            features = self._features
+            features.feed(core, sample, self._out_names)
+            if core.events or self._contact.monitor.events or features.has_events:
                 self._drain_events()
             core.record_compute_time(time.perf_counter() - t0)
 
@@ -333,6 +346,8 @@ class DynamicsNode(Node):
     def _drain_events(self):
         events, self.core.events = self.core.events + self._contact.monitor.events, []
         self._contact.monitor.events = []
+        if self._features.has_events:
+            events += self._features.drain()
         for severity, key, text in events:
             self.log_event(severity, key, text)
 
@@ -369,6 +384,7 @@ class DynamicsNode(Node):
     def _publish_diagnostics(self):
         with self.lock:
             level, message, values = self._gp.report(*self._contact.monitor.report(*self.core.diagnostics()))
+            values = values + self._features.report()
             m = self.core.model
         # /diagnostics is shared by every namespace: the status names the node's namespace too
         st = DiagnosticStatus(level=bytes([level]), name=f"{self.get_fully_qualified_name().lstrip('/')}: "
@@ -417,6 +433,7 @@ class DynamicsNode(Node):
         plan = self.core.plan(rest)
         check_settings(plan.settings, len(self.core.layout) if self.core.layout else None)
         self._gp.check(plan.settings)
+        self._features.check(plan.settings, self.core.model)
         s, core = plan.settings, self.core
         load = None
         for key, kind in SOURCES:
@@ -462,6 +479,7 @@ class DynamicsNode(Node):
                 self._timer.timer_period_ns = int(period * 1e9)
             if 'publish_joint_state' in changes:
                 self._set_js_publisher(self.core.settings['publish_joint_state'])
+            self._features.sync(self.core)  # publishers made here, not on the control path
             self._drain_events()
 
     @_guarded

@@ -21,6 +21,9 @@ EFFORT_CONVENTIONS = ('total', 'gravity_removed', 'none')
 IDENTIFY_MODES = ('dynamic', 'static')
 # Which robot descriptions may replace the running model.
 DESCRIPTION_UPDATES = ('same_robot', 'any', 'none')
+# The dynamics topics (dynamics_topics.py) and the Jacobian frames (as Model.jacobian's).
+DYNAMICS_TERMS = ('gravity', 'coriolis', 'mass_matrix', 'jacobian')
+JACOBIAN_FRAMES = ('world_aligned', 'local', 'world')
 
 # kinds: 'bool', 'integer', 'double', 'string', 'double_array', 'string_array'
 
@@ -34,6 +37,11 @@ class ParamSpec:
     live: bool               # False: read-only after start-up
     range: Optional[Tuple[float, float]] = None   # inclusive, integers and doubles
     constraints: str = ''
+    choices: Tuple[str, ...] = ()   # strings: the accepted values; string arrays: of each entry
+
+    def __post_init__(self):
+        if self.choices and not self.constraints:  # what `ros2 param describe` shows
+            object.__setattr__(self, 'constraints', ' or '.join(self.choices))
 
 
 PARAMS = (
@@ -60,7 +68,7 @@ PARAMS = (
               'M(q_d) qdd_d + C(q_d, qd_d) qd_d + g(q_d) + friction(qd_d) + Kp e + Kd de. computed_torque: '
               'M(q) (qdd_d + Kp e + Kd de) + C(q, qd) qd + g(q) + friction(qd). pd: Kp e + Kd de only. '
               'e = q_d - q, de = qd_d - qd. Without a fresh desired state: gravity at the measured state.',
-              True, constraints=' or '.join(MODES)),
+              True, choices=MODES),
     ParamSpec('kp', 'double_array', [0.0],
               'Position gains of feedforward / computed_torque / pd (computed_torque: 1/s^2, else N m/rad); '
               'one value: every joint, or one per controlled joint in `joints` order.', True,
@@ -95,17 +103,17 @@ PARAMS = (
               (0.005, 60.0)),
     ParamSpec('stale_action', 'string', 'hold_gravity_at_last_state',
               'On stale input publish once: gravity torques at the last valid state '
-              '(hold_gravity_at_last_state) or zeros (zero).', True, constraints=' or '.join(STALE_ACTIONS)),
+              '(hold_gravity_at_last_state) or zeros (zero).', True, choices=STALE_ACTIONS),
     ParamSpec('inertia_policy', 'string', 'warn',
               'Physically inconsistent link inertias in the description (see load_urdf). warn: use them as '
               'written, one log line per link and a WARN in the diagnostics. strict: reject the description '
               '(the previous model keeps running). repair: replace them by consistent ones, log before/after. '
-              'Setting it reloads the current description.', True, constraints=' or '.join(INERTIA_POLICIES)),
+              'Setting it reloads the current description.', True, choices=INERTIA_POLICIES),
     ParamSpec('description_update', 'string', 'same_robot',
               'Which robot descriptions may replace the running model (topic, parameters, ~/reload_model). '
               'same_robot: the same robot name and controlled joints; any: any description with the controlled '
               'joints; none: the first model stays, updates are refused. What changed (masses, limits) is logged.',
-              True, constraints=' or '.join(DESCRIPTION_UPDATES)),
+              True, choices=DESCRIPTION_UPDATES),
     ParamSpec('max_description_bytes', 'integer', 2_000_000,
               'Largest robot description accepted (UTF-8 bytes, or file size); larger ones are refused unread.',
               True, (1_000, 1_000_000_000)),
@@ -151,7 +159,7 @@ PARAMS = (
     ParamSpec('identify.mode', 'string', 'dynamic',
               'dynamic: the arm moves, qdd is a smoothing derivative of the recorded qd (mass, CoM and inertia as '
               'far as the motion excites them); static: only samples at rest (mass and CoM).', True,
-              constraints=' or '.join(IDENTIFY_MODES)),
+              choices=IDENTIFY_MODES),
     ParamSpec('identify.max_residual_ratio', 'double', 0.3,
               'An identification whose residual RMS exceeds this fraction of the payload torque RMS is refused.',
               True, (0.0, 1.0)),
@@ -166,12 +174,27 @@ PARAMS = (
     ParamSpec('measured_effort', 'string', 'total',
               'What joint_states effort holds. total: the motor torque, gravity included (ros2_control effort '
               'interfaces, most drives); gravity_removed: motor torque minus the gravity torques (g(q) is added '
-              'back); none: no usable effort, the observer is off.', True, constraints=' or '.join(EFFORT_CONVENTIONS)),
+              'back); none: no usable effort, the observer is off.', True, choices=EFFORT_CONVENTIONS),
     ParamSpec('collision.threshold', 'double_array', [10.0],
               'Collision when |external torque| exceeds this, N m (or N): one value for every joint, or one per '
               'controlled joint.', True, constraints='1 or n finite doubles > 0'),
     ParamSpec('collision.hold_time', 'double', 0.01,
               'Seconds a threshold crossing (and its end) must last before ~/collision changes.', True, (0.0, 10.0)),
+    # dynamics terms for other nodes (dynamics_topics.py)
+    ParamSpec('dynamics.publish', 'string_array', None,
+              'Dynamics terms published on ~/dynamics/<term> after each command: gravity (g(q)), coriolis '
+              '(C(q, qd) qd), mass_matrix (M(q)), jacobian (of dynamics.link). Empty: off.', True,
+              constraints='a subset of ' + ', '.join(DYNAMICS_TERMS), choices=DYNAMICS_TERMS),
+    ParamSpec('dynamics.rate', 'double', 100.0,
+              'Most dynamics messages per second, by the joint_states stamps (steady clock for unstamped '
+              'states); 0: one per accepted state.', True, (0.0, 100_000.0)),
+    ParamSpec('dynamics.link', 'string', '',
+              'Link of ~/dynamics/jacobian. Empty: the tip of the controlled chain (the last URDF link on the '
+              'last body of the model).', True),
+    ParamSpec('dynamics.jacobian_frame', 'string', 'world_aligned',
+              'Frame of ~/dynamics/jacobian, as Model.jacobian: world_aligned (link origin velocity and angular '
+              'velocity in root axes), local (the same in link axes), world (spatial twist).', True,
+              choices=JACOBIAN_FRAMES),
 )
 
 SPECS = {p.name: p for p in PARAMS}
@@ -207,18 +230,8 @@ def check_value(name, value):
     if spec.kind == 'string':
         if not isinstance(value, str):
             raise ValueError(f'{name} must be a string')
-        if name == 'stale_action' and value not in STALE_ACTIONS:
-            raise ValueError(f'stale_action must be one of {list(STALE_ACTIONS)}, got {_shown(value)}')
-        if name == 'measured_effort' and value not in EFFORT_CONVENTIONS:
-            raise ValueError(f'measured_effort must be one of {list(EFFORT_CONVENTIONS)}, got {_shown(value)}')
-        if name == 'identify.mode' and value not in IDENTIFY_MODES:
-            raise ValueError(f'identify.mode must be one of {list(IDENTIFY_MODES)}, got {_shown(value)}')
-        if name == 'mode' and value not in MODES:
-            raise ValueError(f'mode must be one of {list(MODES)}, got {_shown(value)}')
-        if name == 'inertia_policy' and value not in INERTIA_POLICIES:
-            raise ValueError(f'inertia_policy must be one of {list(INERTIA_POLICIES)}, got {_shown(value)}')
-        if name == 'description_update' and value not in DESCRIPTION_UPDATES:
-            raise ValueError(f'description_update must be one of {list(DESCRIPTION_UPDATES)}, got {_shown(value)}')
+        if spec.choices and value not in spec.choices:
+            raise ValueError(f'{name} must be one of {list(spec.choices)}, got {_shown(value)}')
         if name in ('command_topic', 'desired_topic') and not value.strip():
             raise ValueError(f'{name} must not be empty')
         return value
@@ -245,6 +258,9 @@ def check_value(name, value):
             raise ValueError(f'{name} must be a list of non-empty strings')
         if len(set(vals)) != len(vals):
             raise ValueError(f'{name} lists a name twice: {_shown(vals)}')
+        bad = [v for v in vals if spec.choices and v not in spec.choices]
+        if bad:
+            raise ValueError(f'{name}: unknown {_shown(bad[0])}, use a subset of {list(spec.choices)}')
         return vals
     vals = _finite_list(value, name)
     if name == 'gravity':

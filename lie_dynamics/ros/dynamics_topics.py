@@ -1,0 +1,210 @@
+"""The dynamics node's dynamics terms for other nodes, a per-sample feature (feature.py).
+
+Publishes, after the command of an accepted joint_states sample, at most `dynamics.rate`
+times a second (0: every accepted state), the terms listed in `dynamics.publish`:
+
+    ~/dynamics/gravity      sensor_msgs/JointState: effort = g(q); position, velocity = the state
+                            (unavailable velocities as 0, as the laws use them); name = the joint
+                            order; header.stamp = the state's
+    ~/dynamics/coriolis     sensor_msgs/JointState: effort = C(q, qd) qd (RNEA at qdd = 0 without
+                            gravity: cheaper than forming C), otherwise as gravity
+    ~/dynamics/mass_matrix  std_msgs/Float64MultiArray: M(q), n x n row-major;
+                            layout.dim[0] = ('rows: j1,j2,...', n, n*n), dim[1] = ('cols: j1,...', n, n)
+    ~/dynamics/jacobian     std_msgs/Float64MultiArray: J(q) of dynamics.link in
+                            dynamics.jacobian_frame, 6 x n row-major (rows linear then angular);
+                            dim[0] = ('rows: vx,vy,vz,wx,wy,wz; frame: <frame>; link: <link>', 6, 6n),
+                            dim[1] = ('cols: j1,...', n, n)
+
+Every term is of the node's current model, so the payload, the gravity (parameter, scale or
+topic) and the locked joints' measured values apply as for the command; robot_compensates_gravity
+does not zero g(q) here (it changes what is commanded, not the robot's dynamics). A term with a
+non-finite value is not published (one throttled log line). Rate limiting runs on the states'
+stamps (the robot's clock: a replayed or simulated stream is thinned the same way), on the steady
+clock for unstamped states; a stamp that goes back restarts it.
+"""
+import time
+
+import numpy as np
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from .cdr import Template
+from .diagnostics import clip
+from .feature import Feature
+
+TOPICS = {'gravity': (JointState, '~/dynamics/gravity'), 'coriolis': (JointState, '~/dynamics/coriolis'),
+          'mass_matrix': (Float64MultiArray, '~/dynamics/mass_matrix'),
+          'jacobian': (Float64MultiArray, '~/dynamics/jacobian')}
+ROWS = ('vx', 'vy', 'vz', 'wx', 'wy', 'wz')
+DEPTH = 10
+
+
+def tip_link(model):
+    """The default Jacobian link: the last link (URDF order) carried by the model's last body,
+    the end of the controlled chain of a serial arm."""
+    last = model.nb - 1
+    links = [name for name, (b, _) in model.link_frames.items() if b == last]
+    return links[-1]
+
+
+def check_link(settings, model):
+    """dynamics.link against `model` (None: not loaded yet, nothing to check). Raises ValueError."""
+    link = settings['dynamics.link']
+    if not link or model is None:
+        return
+    try:
+        model.jacobian(np.zeros(model.n), link, settings['dynamics.jacobian_frame'])
+    except ValueError as exc:
+        raise ValueError(f"dynamics.link '{clip(link, 80)}' cannot be used with robot '{model.name}': "
+                         f'{exc}') from None
+
+
+def joint_state_template(names):
+    """(Template, stamp offset, slots of position, velocity, effort) of a sensor_msgs/JointState
+    with these names and an empty frame_id."""
+    t = Template()
+    stamp_at = t.int32()
+    t.uint32()
+    t.string('')
+    t.strings(names)
+    return t, stamp_at, [t.doubles(len(names)) for _ in range(3)]
+
+
+def matrix_template(rows_label, cols_label, rows, cols):
+    """(Template, [data slot]) of a std_msgs/Float64MultiArray of rows x cols, row-major."""
+    t = Template()
+    t.uint32(2)
+    for label, size, stride in ((rows_label, rows, rows * cols), (cols_label, cols, cols)):
+        t.string(label)
+        t.uint32(size)
+        t.uint32(stride)
+    t.uint32(0)   # data_offset
+    return t, [t.doubles(rows * cols)]
+
+
+class RateGate:
+    """At most `rate` passes a second by ns times (0: every call). The first time passes; a
+    time that goes back (a new stream) passes and restarts the count."""
+
+    def __init__(self, rate=0.0):
+        self.period = int(round(1e9 / rate)) if rate > 0 else 0
+        self.next = None
+
+    def passes(self, t):
+        if self.period == 0:
+            return True
+        nxt = self.next
+        if nxt is not None and nxt - self.period <= t < nxt:
+            return False
+        # on schedule: the next slot; late by more than a period or a new stream: from t
+        self.next = nxt + self.period if nxt is not None and nxt <= t < nxt + self.period else t + self.period
+        return True
+
+
+class DynamicsTopics(Feature):
+    """dynamics.* settings -> the ~/dynamics/* topics. create_publisher(msg_type, topic, depth):
+    the node's (publishers are made when a term is first switched on, then kept)."""
+
+    name = 'dynamics'
+
+    def __init__(self, create_publisher, clock=time.monotonic_ns):
+        super().__init__()
+        self._create = create_publisher
+        self._clock = clock
+        self._pubs = {}
+        self.terms = ()
+        self.link = self.frame = ''
+        self.rate = None
+        self.gate = RateGate()
+        self._stamped = None
+        self.published = {t: 0 for t in TOPICS}
+        self.skipped = 0
+        self._names = None
+        self._templates = {}
+
+    def check(self, settings, model):
+        check_link(settings, model)
+
+    def configure(self, settings, model):
+        terms = tuple(t for t in TOPICS if t in settings['dynamics.publish'])
+        self.frame = settings['dynamics.jacobian_frame']
+        self.link = ''
+        if model is not None and 'jacobian' in terms:
+            try:
+                check_link(settings, model)
+                self.link = settings['dynamics.link'] or tip_link(model)
+            except ValueError as exc:  # a new description without that link: the rest goes on
+                self.events.append(('error', 'dynamics:link', f'~/dynamics/jacobian off: {exc}'))
+                terms = tuple(t for t in terms if t != 'jacobian')
+        for t in terms:
+            if t not in self._pubs:
+                self._pubs[t] = self._create(TOPICS[t][0], TOPICS[t][1], DEPTH)
+        if settings['dynamics.rate'] != self.rate:
+            self.rate = settings['dynamics.rate']
+            self.gate = RateGate(self.rate)
+        self.terms = terms
+        self.active = bool(terms) and model is not None
+        self._names = None  # labels and names are set again on the next sample
+
+    def _label(self, names):
+        """The messages' serialized templates for this joint order (published as bytes, cdr.Template)."""
+        self._names = names
+        joined = ','.join(names)
+        n = len(names)
+        js = joint_state_template(names)
+        self._templates = {
+            'gravity': js, 'coriolis': js,
+            'mass_matrix': matrix_template(f'rows: {joined}', f'cols: {joined}', n, n),
+            'jacobian': matrix_template(f"rows: {','.join(ROWS)}; frame: {self.frame}; link: {self.link}",
+                                        f'cols: {joined}', 6, n)}
+
+    def on_sample(self, s):
+        t = s.stamp if s.stamp else self._clock()
+        if bool(s.stamp) != self._stamped:  # another time base: a new stream
+            self._stamped = bool(s.stamp)
+            self.gate.next = None
+        if not self.gate.passes(t):
+            return
+        if s.names is not self._names:
+            self._label(s.names)
+        model, q = s.model, s.q
+        for term in self.terms:
+            try:
+                if term == 'gravity':
+                    value = model.gravity(q)
+                elif term == 'coriolis':
+                    value = model.coriolis_term(q, s.qd)
+                elif term == 'mass_matrix':
+                    value = model.mass_matrix(q)
+                else:
+                    value = model.jacobian(q, self.link, self.frame)
+            except (ValueError, ArithmeticError) as exc:
+                value, why = None, f'{type(exc).__name__}: {exc}'
+            else:
+                why = 'non-finite values'
+            if value is None or not np.isfinite(value).all():
+                self.skipped += 1
+                self.events.append(('warn', f'dynamics:{term}', clip(
+                    f'~/dynamics/{term} not published for the state at stamp {s.stamp * 1e-9:.9f} s: {why}', 300)))
+                continue
+            self._publish(term, value, s)
+
+    def _publish(self, term, value, s):
+        if term in ('gravity', 'coriolis'):
+            t, stamp_at, slots = self._templates[term]
+            data = t.fill(slots, (s.q, s.qd, value), stamp_at, s.stamp)
+        else:
+            t, slots = self._templates[term]
+            data = t.fill(slots, (value,))
+        self._pubs[term].publish(data)
+        self.published[term] += 1
+
+    def report(self):
+        if not self.active:
+            return [('dynamics_topics', 'off')]
+        rate = f'{1e9 / self.gate.period:g} Hz' if self.gate.period else 'every state'
+        out = [('dynamics_topics', f"{', '.join(self.terms)} ({rate})")]
+        if 'jacobian' in self.terms:
+            out.append(('dynamics_jacobian', f'{self.link} ({self.frame})'))
+        out.append(('dynamics_skipped_count', str(self.skipped)))
+        return out
