@@ -12,7 +12,6 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-from rcl_interfaces.msg import Log  # noqa: E402
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from rclpy.serialization import serialize_message  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
@@ -146,8 +145,6 @@ def serialized(n):
 
 
 def test_logs_and_diagnostics_stay_bounded_under_spam(ros):
-    lines = []
-    ros.t.create_subscription(Log, '/rosout', lambda m: m.name == 'dynamics_node' and lines.append(m.msg), DEEP)
     node = ros.start(robot_description=ARM, diagnostics_period=0.2)
     pub = ros.t.create_publisher(JointTrajectory, '/dynamics_node/trajectory_in', 10)
     desired = ros.t.create_publisher(JointTrajectory, '/dynamics_node/desired', 10)
@@ -156,7 +153,7 @@ def test_logs_and_diagnostics_stay_bounded_under_spam(ros):
     wait_until(lambda: pub.get_subscription_count() >= 1 and desired.get_subscription_count() >= 1, what='discovery')
     ros.send(JOINTS, Q)
     time.sleep(2 * LOG_THROTTLE_S)   # start-up lines are out of the way
-    lines.clear()
+    n0 = len(ros.logs)   # the node's /rosout lines, read with rosout's own QoS (test_node.Harness)
     many = [f'n{i}' for i in range(10_000)]
     bad_traj = bytes(serialize_message(JointTrajectory(joint_names=JOINTS, points=[
         JointTrajectoryPoint(positions=[0.0] * 6)])))
@@ -177,12 +174,15 @@ def test_logs_and_diagnostics_stay_bounded_under_spam(ros):
             ros.publish(JOINTS + [JOINTS[0]], [0.0] * 8)
         time.sleep(0.005)
     wait_until(lambda: all(f.done() for f in futures), what='service answers')
+    # what was held back is counted: in a later line of its class, or once its period is over
+    # (a loaded machine can squeeze the node's share of the spam into one period)
+    wait_until(lambda: any('more like this' in line for line in ros.logs[n0:]), what='a count of held lines')
     time.sleep(0.5)
+    lines = ros.logs[n0:]
     elapsed = time.monotonic() - t0
     classes = 12   # problem classes the spam touches (enable, description, trajectory, desired, joint_states...)
     assert len(lines) <= classes * (elapsed / LOG_THROTTLE_S + 1), (len(lines), elapsed, lines)
     assert all(len(line) <= LOG_TEXT_MAX + 80 for line in lines)
-    assert any("more like this" in line for line in lines)   # what was held back is counted
     assert node.core.count.rejected > 0 and len(node.core.last_error) <= DIAG_TEXT_MAX
     wait_until(lambda: ros.diag is not None and len(ros.diag_values().get('last_error', '')) > 0, what='diagnostics')
     assert all(len(kv.value) <= DIAG_TEXT_MAX for kv in ros.diag.values) and len(ros.diag.message) <= DIAG_TEXT_MAX

@@ -346,6 +346,29 @@ def test_problem_keys_and_throttle_counts_held_lines():
     assert len(t._last) <= 1001
 
 
+def test_throttle_reports_what_it_held_once_the_period_is_over():
+    clock = Clock()
+    t = Throttle(2.0, clock)
+    assert t.check('a', payload='a0') == 0 and t.check('b', payload='b0') == 0
+    for k in range(1, 4):   # a burst shorter than the period, and nothing of class 'a' after it
+        clock.t += 0.1
+        assert t.check('a', payload=f'a{k}') is None
+    assert t.due() == []   # the period is not over yet
+    clock.t += 1.8
+    assert t.due() == [('a3', 2)] and t.due() == []   # the newest held line stands for the 2 others
+    assert t.check('a', payload='a4') is None   # the reported line opened a new period
+    clock.t += 2.0
+    assert t.check('a') == 1 and t.due() == []
+    assert t.check('b') == 0 and t.check('b', payload='b1') is None
+    assert t.due(float('inf')) == [('b1', 0)]   # at shutdown: whatever its period
+    for k in range(5000):   # many keys expire while one has lines held back: its count is kept
+        t.check(f'k{k}')
+        if k == 0:
+            assert t.check('k0', payload='k0 again') is None
+        clock.t += 0.01
+    assert len(t._last) <= 1002 and ('k0 again', 0) in t.due()
+
+
 def test_ramp_offsets_never_carry_nonfinite_values():
     r = Ramp(1.0)
     r.last = np.array([1.0, 2.0])

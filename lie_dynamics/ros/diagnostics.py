@@ -3,6 +3,7 @@ per-period diagnostics status (level, message, key/value list) and the bounds on
 that ends up in the log or on /diagnostics.
 """
 import re
+import threading
 import time
 
 # diagnostic_msgs/DiagnosticStatus levels
@@ -46,29 +47,53 @@ def names_text(names, shown=NAMES_SHOWN):
 
 
 class Throttle:
-    """At most one `ready(key)` per `period` seconds for each key."""
+    """At most one line per `period` seconds for each key (problem class). What is held back is
+    counted and reported: with the next line of its class let through, or by due() once the
+    period is over, whichever comes first (a burst shorter than the period is not left unsaid)."""
 
     def __init__(self, period=1.0, clock=time.monotonic):
         self.period = period
         self.clock = clock
         self._last = {}
-        self._held = {}   # key -> lines held back since the last one let through
+        self._held = {}   # key -> [count, newest payload] of the lines held back since the last one let through
+        self._lock = threading.Lock()   # lines come from the executor and from helper threads
 
-    def check(self, key, now=None):
-        """None when a line for `key` is held back now, else how many were held back before it."""
+    def check(self, key, now=None, payload=None):
+        """None when a line for `key` is held back now (its `payload` kept for due()), else how many
+        were held back before it."""
         now = self.clock() if now is None else now
-        last = self._last.get(key)
-        if last is not None and now - last < self.period:
-            self._held[key] = self._held.get(key, 0) + 1
-            return None
-        if len(self._last) > 1000:  # bounded whatever the keys: forget the expired ones
-            self._last = {k: t for k, t in self._last.items() if now - t < self.period}
-            self._held = {k: c for k, c in self._held.items() if k in self._last}
-        self._last[key] = now
-        return self._held.pop(key, 0)
+        with self._lock:
+            last = self._last.get(key)
+            if last is not None and now - last < self.period:
+                held = self._held.setdefault(key, [0, None])
+                held[0] += 1
+                held[1] = payload
+                return None
+            if len(self._last) > 1000:  # bounded whatever the keys: forget the expired ones already reported
+                self._last = {k: t for k, t in self._last.items() if now - t < self.period or k in self._held}
+            self._last[key] = now
+            held = self._held.pop(key, None)
+            return 0 if held is None else held[0]
 
     def ready(self, key, now=None):
         return self.check(key, now) is not None
+
+    def due(self, now=None):
+        """[(payload, n)] for each key whose period is over with lines held back: the newest held
+        line, let through now (it opens the key's next period), and how many others it stands for."""
+        now = self.clock() if now is None else now
+        with self._lock:
+            out = []
+            for key in [k for k in self._held if now - self._last[k] >= self.period]:
+                count, payload = self._held.pop(key)
+                self._last[key] = now
+                out.append((payload, count - 1))
+            return out
+
+
+def held_text(text, n, period):
+    """A log line that stands for n more held back by a Throttle of `period` s."""
+    return f'{text} ({n} more like this in the last {period:g} s)' if n else text
 
 
 class Counters:

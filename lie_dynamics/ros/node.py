@@ -36,8 +36,9 @@ Services    ~/set_enabled (std_srvs/SetBool), ~/reload_model (std_srvs/Trigger);
 
 Timing: the watchdog and diagnostics timer runs on the steady clock (with use_sim_time a
 stopped /clock must not stop the safety timer); stamps of published messages are ROS time.
-Logging: at most one line per problem class every LOG_THROTTLE_S seconds (followed by how
-many were held back), every line at most LOG_TEXT_MAX characters.
+Logging: at most one line per problem class every LOG_THROTTLE_S seconds; what is held back is
+counted in the class's next line, or by the timer once the period is over (or at shutdown);
+every line at most LOG_TEXT_MAX characters.
 """
 import array
 import sys
@@ -67,7 +68,7 @@ from .contact_topics import ContactTopics
 from .dynamics_topics import DynamicsTopics
 from .feature import Features
 from .gravity_payload import GravityPayload
-from .diagnostics import DIAG_TEXT_MAX, LOG_TEXT_MAX, clip
+from .diagnostics import DIAG_TEXT_MAX, LOG_TEXT_MAX, clip, held_text
 from .params import HELP_DESCRIPTION, HELP_EXAMPLE, PARAMS, SPECS, check_value, help_rows
 from .run import node_parser, run
 from .sources import Sources, source_label
@@ -234,6 +235,8 @@ class DynamicsNode(Node):
 
     def destroy_node(self):
         self._stop_workers()
+        if self._bg is not None:   # lines still held back are said before the node goes
+            self._log_held(float('inf'))
         return super().destroy_node()
 
     # ------------------------------------------------------------------ model
@@ -328,11 +331,18 @@ class DynamicsNode(Node):
     def log_event(self, severity, key, text):
         """One log line, at most one per `key` (the problem class) every LOG_THROTTLE_S s."""
         if key is not None:
-            held = self._throttle.check(key)
+            held = self._throttle.check(key, payload=(severity, text))
             if held is None:
                 return
-            if held:
-                text = f'{text} ({held} more like this in the last {LOG_THROTTLE_S:g} s)'
+            text = held_text(text, held, LOG_THROTTLE_S)
+        self._emit(severity, text)
+
+    def _log_held(self, now=None):
+        """Classes whose period ended with lines held back: their newest line, with how many more."""
+        for (severity, text), more in self._throttle.due(now):
+            self._emit(severity, held_text(text, more, LOG_THROTTLE_S))
+
+    def _emit(self, severity, text):
         text = clip(text, LOG_TEXT_MAX)
         log = self.get_logger()
         # one call site per severity: rclpy's logger refuses to change it per call site
@@ -360,6 +370,7 @@ class DynamicsNode(Node):
             self._publish_optional(self.core.tick())
             if self.core.events:
                 self._drain_events()
+        self._log_held()
         now = time.monotonic()
         if now >= self._next_diag:
             self._next_diag = max(self._next_diag + self._diag_period, now)
