@@ -196,11 +196,13 @@ def _event(driver, name, start, done, timeout):
     time.sleep(0.2)
     t1 = time.monotonic()
     busy, replies = driver.gap(t0, t1)
-    sent = driver.sent - sent0
+    sent1 = driver.sent
+    sent = sent1 - sent0
     time.sleep(t1 - t0)
-    quiet, _ = driver.gap(t1, 2 * t1 - t0)
+    quiet, quiet_replies = driver.gap(t1, 2 * t1 - t0)
     return {'event': name, 'quiet_gap_ms': quiet * 1e3, 'event_gap_ms': busy * 1e3, 'widened_ms': (busy - quiet) * 1e3,
-            'replies': replies, 'sent': sent, 'event_s': t_done - t0}
+            'replies': replies, 'sent': sent, 'event_s': t_done - t0,
+            'quiet_replies': quiet_replies, 'quiet_sent': driver.sent - sent1}
 
 
 def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):

@@ -395,7 +395,7 @@ def test_services_enable_and_reload(ros, chain, tmp_path):
     model = ros.node.core.model
     res = ros.call(Trigger, '/dynamics_node/reload_model', Trigger.Request())
     assert res.success and 'loading' in res.message, res.message
-    wait_until(lambda: ros.node.core.model is not model, what='reloaded model')
+    wait_until(lambda: ros.node.core.model is not model, timeout=MODEL_TIMEOUT, what='reloaded model')
     np.testing.assert_allclose(ros.send(ctrl, q), Oracle(heavier, joints=ctrl).gravity(q), atol=TOL, rtol=0)
     path.write_text('<robot name="broken"><link name=')
     res = ros.call(Trigger, '/dynamics_node/reload_model', Trigger.Request())

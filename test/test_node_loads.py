@@ -145,7 +145,9 @@ def test_reload_service_during_loads_answers_with_the_old_model(ros):
 
 @pytest.mark.parametrize('raised', [False, True])
 def test_replies_keep_flowing_during_heavy_loads(raised):
-    """Measured from another process streaming joint_states at 500 Hz (bench.node_loads): a
+    """Measured from another process streaming joint_states at 500 Hz (bench.node_loads): replies
+    keep coming during each load (at least half the share the quiet stretch after it got: a loaded
+    machine drops states whatever the node does); a
     description at the caps (folded into the arm, and a chain built in full) and 20 reloads open
     no gap between replies as long as stale_timeout (0.1 s) that the equally long quiet stretch
     after them did not have too (this machine's own scheduling). Not a speed benchmark: a
@@ -155,7 +157,8 @@ def test_replies_keep_flowing_during_heavy_loads(raised):
     from bench.node_loads import run
     rows = run(raised=raised)
     assert [r['event'] for r in rows][2:] == ['20 reloads', '100,000-point trajectory']
-    for r in rows:
-        assert r['replies'] > 0.5 * r['sent'], r
+    for r in rows:   # at least half the share of states answered that the quiet stretch after it got
+        quiet_share = r['quiet_replies'] / max(1, r['quiet_sent'])   # (1 on a quiet machine)
+        assert r['replies'] > 0.5 * quiet_share * r['sent'], r
     for r in rows[:3]:
         assert r['event_gap_ms'] < max(100.0, 2 * r['quiet_gap_ms']), r
