@@ -17,6 +17,8 @@ import tempfile
 import time
 import zlib
 
+import pytest
+
 from lie_dynamics.ros.domains import reserve_domains
 
 
@@ -49,3 +51,13 @@ def _ros_test_environment():
 
 
 _ros_test_environment()
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_configure(config):
+    """tmp_path folders of this run under a base of its own, removed when the run ends (pytest's
+    default base, <temp dir>/pytest-of-<user>, outlives every run). Workers of pytest-xdist get
+    folders inside the controller's base."""
+    if config.option.basetemp is None and not hasattr(config, 'workerinput'):
+        config.option.basetemp = tempfile.mkdtemp(prefix='lie_dynamics_pytest_')
+        config.add_cleanup(lambda: shutil.rmtree(config.option.basetemp, ignore_errors=True))

@@ -146,11 +146,17 @@ class Harness:
     def publish_processed(self, names, position, velocity=(), effort=()):
         """Publish one joint_states message and wait until the node has taken it (joint_states
         keeps only the newest message: a second one sent at once could replace it)."""
+        return self.publish_msg_processed(JointState(
+            name=list(names), position=[float(x) for x in position], velocity=[float(x) for x in velocity],
+            effort=[float(x) for x in effort]))
+
+    def publish_msg_processed(self, msg):
+        """publish_processed for a ready JointState message."""
         r0 = self.node.core.count.received
         # joint_states is best effort: right after start-up, while the reader's side of discovery
         # completes (seconds on a loaded machine), a message can be lost. Send it again then.
         for _ in range(15):
-            self.publish(names, position, velocity, effort)
+            self.js_pub.publish(msg)
             try:
                 return wait_until(lambda: self.node.core.count.received > r0, timeout=2.0)
             except AssertionError:

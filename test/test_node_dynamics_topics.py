@@ -57,15 +57,7 @@ def stamped(names, q, qd, ns):
 def send(ros, msg):
     """Publish one joint_states message and wait until the node took it (re-sent if lost while
     discovery completes)."""
-    node = ros.node
-    r0 = node.core.count.received
-    for _ in range(15):
-        ros.js_pub.publish(msg)
-        try:
-            return wait_until(lambda: node.core.count.received > r0, timeout=2.0)
-        except AssertionError:
-            continue
-    raise AssertionError('joint_states not processed')
+    return ros.publish_msg_processed(msg)
 
 
 def stamp_ns(msg):

@@ -43,18 +43,10 @@ def xml():
 def send_stamped(ros, q, qd, effort, t):
     """Publish one stamped joint_states message and wait until the node has taken it (sent again
     if best-effort delivery lost it)."""
-    node = ros.node
     msg = JointState(name=JOINTS, position=[float(x) for x in q], velocity=[float(x) for x in qd],
                      effort=[float(x) for x in effort])
     msg.header.stamp.sec, msg.header.stamp.nanosec = int(t), int(round((t - int(t)) * 1e9))
-    r0 = node.core.count.received
-    for _ in range(15):
-        ros.js_pub.publish(msg)
-        try:
-            return wait_until(lambda: node.core.count.received > r0, timeout=2.0)
-        except AssertionError:
-            continue
-    raise AssertionError('joint_states not processed')
+    return ros.publish_msg_processed(msg)
 
 
 def call_async(ros, srv_type, name, request):
