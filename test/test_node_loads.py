@@ -143,6 +143,21 @@ def test_reload_service_during_loads_answers_with_the_old_model(ros):
     assert len(node.core.model.link_frames) == 11 and node.core.model_info == 'parameter robot_description'
 
 
+def test_a_description_repeated_on_the_topic_keeps_the_running_model(ros):
+    """robot_state_publisher repeating the file the node started from: the model object stays (a
+    rebuild would only replace it, which ends a payload recording); it becomes the source; a
+    different description on the topic still loads."""
+    node = ros.start(urdf_path=os.path.join(ROOT, 'config', 'arm7.urdf'))
+    model = node.core.model
+    ros.desc_pub.publish(String(data=ARM))
+    wait_until(lambda: node._sources.current == ('topic', ARM), what='the topic as the source')
+    assert node.core.model is model and node.core.loading == ''
+    np.testing.assert_allclose(ros.send(JOINTS, Q), model.gravity(Q), atol=1e-12)
+    ros.desc_pub.publish(String(data=heavier(ARM, 2.0)))
+    wait_until(lambda: node.core.model is not model, timeout=60, what='the heavier model')
+    np.testing.assert_allclose(ros.send(JOINTS, Q), 2.0 * model.gravity(Q), rtol=1e-9, atol=1e-9)
+
+
 @pytest.mark.parametrize('raised', [False, True])
 def test_replies_keep_flowing_during_heavy_loads(raised):
     """Measured from another process streaming joint_states at 500 Hz (bench.node_loads): replies

@@ -29,7 +29,7 @@ import functools
 import os
 import sys
 
-from .build_process import BuildProcess, build
+from .build_process import BuildProcess, build, read_description
 from .diagnostics import clip
 from .messages import Rejected
 from .models import warm_up
@@ -83,6 +83,7 @@ class Background:
         self.deserialize = deserialize
         self.worker = Worker('lie_dynamics_loader')
         self.process = BuildProcess()   # its child starts with the first load after start-up
+        self.running_xml = None         # the description text of the running model
 
     # ------------------------------------------------------------------ robot descriptions
     def precheck(self, kind, text, settings=None):
@@ -112,6 +113,7 @@ class Background:
         s = core.settings
         source, label = open_source(kind, text)
         caps = (kind == 'file', s['max_description_bytes'], s['max_description_links'])
+        xml = read_description(source, caps) if kind == 'file' else text   # what a repeat is compared with
         builder = functools.partial(self.process.build if remote else build, caps=caps)
         try:
             with short_switch_interval():
@@ -121,11 +123,18 @@ class Background:
         finally:
             if not remote and len(source) > TRIM_BYTES:
                 release_memory()
-        return plan
+        return plan, xml
 
-    def request(self, kind, text, inertia=None, settings=None):
+    def request(self, kind, text, inertia=None, settings=None, skip_identical=False):
         """Load a description in the background (it replaces a load still waiting). Returns
-        None, or the reason it is refused at once (also logged and kept for the diagnostics)."""
+        None, or the reason it is refused at once (also logged and kept for the diagnostics).
+        skip_identical: the text of the running model's description only becomes its source (a
+        robot_description topic repeating the file the node started from): rebuilding the same
+        model would only replace the model object, which ends a payload recording."""
+        if (skip_identical and inertia is None and text == self.running_xml and self.core.model is not None
+                and self.worker.busy('model') is None):   # (a load under way: the newest still loads last)
+            self.sources.current = (kind, text)
+            return None
         label = source_label(kind, text)
         try:
             err = self.precheck(kind, text, settings)
@@ -148,12 +157,14 @@ class Background:
             err = str(exc) or type(exc).__name__
         return self.core.note_description_error(f'{label}: {err}')
 
-    def _install(self, tag, plan, error):
+    def _install(self, tag, built, error):
         kind, text, label = tag
         if error is None:
             try:
+                plan, xml = built
                 self.core.apply(plan)
                 self.sources.current = (kind, text)
+                self.running_xml = xml
                 return None
             except ValueError as exc:  # the state moved while it loaded and the model no longer fits
                 error = exc

@@ -253,7 +253,7 @@ class DynamicsNode(Node):
     def _on_description(self, msg):
         with self.lock:
             self._sources.topic_xml = msg.data
-            self._bg.request('topic', msg.data)
+            self._bg.request('topic', msg.data, skip_identical=True)
             self._drain_events()
 
     # ------------------------------------------------------------------ hot path
