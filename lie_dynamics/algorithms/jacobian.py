@@ -106,17 +106,16 @@ def jacobian_dot_times_qd(model, q, qd, link, frame='world_aligned', point=None,
 
 
 def _single(model, kind, link, frame):
-    """(spec, X as an array, float kernel or None, its arguments after the states, outputs,
-    shape) for one state of a link frame, or False (a link no controlled joint moves, no
-    kernel); cached per version. The native kernel is looked up per call (runtime.native:
-    use_native switches it per model)."""
+    """(native kernel or None, X as an array, float kernel or None, its arguments after the
+    states, outputs, shape) for one state of a link frame, or False (a link no controlled joint
+    moves, no kernel); cached per version (runtime.use_native starts a new one)."""
     b, _, X, _ = target(model, link, frame, None)
     if b < 0 or X is None:
         return False
     spec = traced.spec(kind, frame, b)
     k = runtime.single(model, spec)
     n = model.n
-    return (spec, np.array(X), k[0] if k else None, (X,) + tuple(k[1]) if k else None,
+    return (runtime.native(model, spec), np.array(X), k[0] if k else None, (X,) + tuple(k[1]) if k else None,
             6 * n if kind == 'jacobian' else 6, (6, n) if kind == 'jacobian' else (6,))
 
 
@@ -124,7 +123,7 @@ def _call(model, kind, states, link, frame, point, mode):
     if mode is None and point is None and type(link) is str:   # one state of a link frame: the hot path
         k = runtime.derived(model, (kind, link, frame), lambda: _single(model, kind, link, frame))
         if k:
-            nk = runtime.native(model, k[0])
+            nk = k[0]
             if nk is not None:   # takes (n,) float64 arrays, or declines (None)
                 r = nk(*states, k[1])
                 if r is not None:
