@@ -10,6 +10,7 @@ import pytest
 
 from bench import __main__ as bench_main
 from bench import core
+from lie_dynamics.codegen import native
 
 PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
 CSV_COLUMNS = {
@@ -78,10 +79,12 @@ def test_robots_benchmark_compares_the_two_pandas(tmp_path):
 def test_jacobian_section_runs_every_frame_beside_pinocchio(tmp_path):
     assert bench_main.main(['--quick', '--only', 'jacobian', '--out', str(tmp_path)]) == 0
     cols, rows = _rows(os.path.join(str(tmp_path), 'jacobian.csv'))
-    assert cols == ['robot', 'n', 'call', 'frame', 'N', 'ours_us', 'pin_us', 'ratio_median', 'ratio_p10', 'ratio_p90']
+    assert cols == ['robot', 'n', 'call', 'frame', 'N', 'ours_us', 'pin_us', 'ratio_median', 'ratio_p10', 'ratio_p90',
+                    'python_us', 'python_ratio_median', 'native']
     assert {(r['call'], r['frame']) for r in rows if r['N'] == '1'} == \
         {(c, f) for c in ('jacobian', 'J̇q̇') for f in ('world_aligned', 'local', 'world')}
-    assert all(float(r['ratio_median']) > 0 for r in rows)
+    assert all(float(r['ratio_median']) > 0 and float(r['python_ratio_median']) > 0 for r in rows)
+    assert all(r['native'] == str(native.module() is not None) for r in rows)   # the C kernels where they build
 
 
 def test_core_benchmark_still_runs(tmp_path):

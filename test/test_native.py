@@ -1,6 +1,7 @@
 """The native backend (codegen/native.py): C kernels equal to the Python kernels and Pinocchio, on
 every kernel family; run-time parameters without recompiling; the switch and the fallback; the
-disk cache (corrupted files, concurrent compilers); the GIL released in batches; out= buffers."""
+disk cache (corrupted files, concurrent compilers); the GIL released in batches; out= buffers;
+the frame Jacobians and J̇q̇ (X, the link frame and point, given per state)."""
 import glob
 import os
 import subprocess
@@ -14,11 +15,13 @@ import numpy as np
 import pytest
 
 from lie_dynamics import load_urdf
+from lie_dynamics.algorithms import jacobian as jac
 from lie_dynamics.codegen import native, runtime
 from lie_dynamics.codegen.traced import aba as t_aba
 from lie_dynamics.codegen.traced import cholesky as t_chol
 from lie_dynamics.codegen.traced import crba as t_crba
 from lie_dynamics.codegen.traced import derivatives as t_der
+from lie_dynamics.codegen.traced import jacobian as t_jac
 from lie_dynamics.codegen.traced import regressor as t_reg
 from lie_dynamics.codegen.traced import rnea as t_rnea
 from oracle import Oracle
@@ -131,6 +134,65 @@ def test_native_against_pinocchio(name):
         assert _rel(C[i], 0.5 * rdv) <= TOL or name == 'mixed_types'   # 1/2 dtau/dqd
         assert _rel(Minv[i], np.linalg.inv(Mr)) <= 1e-10
         assert _rel(Y[i] @ pi, ref) <= TOL
+
+
+@pytest.mark.parametrize('name', ['arm7'] + REAL)
+def test_jacobians_against_the_python_kernels_and_pinocchio(name):
+    xml = _xml(name)
+    model = _load(xml)
+    oracle = Oracle(xml, joints=model.joint_names)
+    q, qd, _ = _states(model, 5, seed=7)
+    links = [ln for ln, (b, _) in model.link_frames.items() if b >= 0][-2:]
+    for link in links:
+        b = model.link_frames[link][0]
+        for point in (None, [0.05, -0.1, 0.2]):
+            for frame in t_jac.FRAMES:
+                for kind, fn, args in (('jacobian', model.jacobian, (q,)),
+                                       ('jacobian_dot', model.jacobian_dot_times_qd, (q, qd))):
+                    assert runtime.native(model, t_jac.spec(kind, frame, b)) is not None, (kind, frame)
+                    py = getattr(jac, 'jacobian' if kind == 'jacobian' else 'jacobian_dot_times_qd')(
+                        model, *args, link, frame, point, mode='loop')
+                    batch = fn(*args, link, frame, point)
+                    assert _rel(batch, py) <= TOL, (link, frame, kind)
+                    for i in (0, 4):
+                        one = fn(*(a[i] for a in args), link, frame, point)
+                        assert one.shape == py[i].shape and _rel(one, py[i]) <= TOL
+                        if kind == 'jacobian':
+                            ref = oracle.frame_jacobian(q[i], link, frame, point)
+                        else:
+                            ref = oracle.frame_classical_acceleration(q[i], qd[i], 0 * qd[i], link, frame, point)
+                        assert _rel(one, ref) <= TOL and _rel(batch[i], ref) <= TOL, (link, frame, kind)
+
+
+def test_jacobians_compile_to_c_and_fall_back(tmp_path, monkeypatch):
+    """A fresh cache: the first calls compile the six kernels of a link (three frames, J and J̇q̇);
+    with the native backend off, the same results from the Python kernels."""
+    monkeypatch.setenv('LIE_DYNAMICS_CACHE_DIR', str(tmp_path / 'cache'))
+    runtime.clear()
+    model = _load(_xml('arm7'))
+    q, qd, _ = _states(model, 3, seed=8)
+    before = native.compile_count()
+    got = [(model.jacobian(q[0], 'tool0', f), model.jacobian_dot_times_qd(q, qd, 'tool0', f, [0.1, 0.0, 0.0]))
+           for f in t_jac.FRAMES]
+    assert native.compile_count() == before + 6
+    monkeypatch.setenv('LIE_DYNAMICS_NATIVE', '0')
+    off = _load(_xml('arm7'))
+    b = off.link_frames['tool0'][0]
+    assert runtime.native(off, t_jac.spec('jacobian', 'local', b)) is None
+    for f, (J, a) in zip(t_jac.FRAMES, got, strict=True):
+        assert _rel(off.jacobian(q[0], 'tool0', f), J) <= TOL
+        assert _rel(off.jacobian_dot_times_qd(q, qd, 'tool0', f, [0.1, 0.0, 0.0]), a) <= TOL
+    with pytest.raises(ValueError, match='unknown link'):
+        model.jacobian(q[0], 'no_such_link')
+    monkeypatch.delenv('LIE_DYNAMICS_NATIVE')
+    for bad, match in ((q[0][:-1], 'q must have shape'), (np.full(model.n, np.nan), 'non-finite')):
+        with pytest.raises(ValueError, match=match):
+            model.jacobian(bad, 'tool0')
+    with pytest.raises(ValueError, match='qd has 1 states'):
+        model.jacobian_dot_times_qd(q, qd[0], 'tool0')
+    with pytest.raises(ValueError, match='point must have shape'):
+        model.jacobian(q, 'tool0', point=[0.0, 1.0])
+    runtime.clear()
 
 
 def test_parameters_change_without_recompiling():

@@ -33,8 +33,10 @@ joint moves (fixed to the root, or on a part of the tree the model dropped) has 
 Jacobian and drift.
 
 `jacobian` and `jacobian_dot_times_qd` validate once (state, link, frame, point), then run the
-generated kernel (codegen/traced/jacobian.py, one per body and frame) or the vectorised
-reference below, as codegen.runtime.route says (THRESHOLDS['jacobian']).
+generated kernel (codegen/traced/jacobian.py, one per body and frame): its C form where the
+native backend has it (runtime.native; one state or a batch, X given once per state), else
+the Python kernel or the vectorised reference below, as codegen.runtime.route says
+(THRESHOLDS['jacobian']).
 """
 import difflib
 
@@ -92,8 +94,8 @@ def target(model, link, frame, point):
 def jacobian(model, q, link, frame='world_aligned', point=None, mode=None):
     """The 6 x n frame Jacobian of `link` (or of `point`, in the link frame): (6, n) for q (n,),
     (N, 6, n) for q (N, n). Rows (vx vy vz wx wy wz); frames and conventions in the module
-    docstring. mode: None (route decides), 'loop' / 'rows' (the generated kernel, None when the
-    model has none) or 'vectorized' (the reference)."""
+    docstring. mode: None (the native kernel, else route decides), 'loop' / 'rows' (the Python
+    kernel, None when the model has none) or 'vectorized' (the reference)."""
     return _call(model, 'jacobian', (q,), link, frame, point, mode)
 
 
@@ -104,41 +106,63 @@ def jacobian_dot_times_qd(model, q, qd, link, frame='world_aligned', point=None,
 
 
 def _single(model, kind, link, frame):
-    """(float kernel, its arguments after the states, outputs, shape) for one state of a link
-    frame, or False (route, no kernel, a link no controlled joint moves); cached per version."""
+    """(native kernel or None, X as an array, float kernel or None, its arguments after the
+    states, outputs, shape) for one state of a link frame, or False (a link no controlled joint
+    moves, no kernel); cached per version (runtime.use_native starts a new one)."""
     b, _, X, _ = target(model, link, frame, None)
-    k = runtime.single(model, traced.spec(kind, frame, b)) if b >= 0 and X is not None else False
-    if not k:
+    if b < 0 or X is None:
         return False
+    spec = traced.spec(kind, frame, b)
+    k = runtime.single(model, spec)
     n = model.n
-    return k[0], (X,) + tuple(k[1]), 6 * n if kind == 'jacobian' else 6, (6, n) if kind == 'jacobian' else (6,)
+    return (runtime.native(model, spec), np.array(X), k[0] if k else None, (X,) + tuple(k[1]) if k else None,
+            6 * n if kind == 'jacobian' else 6, (6, n) if kind == 'jacobian' else (6,))
 
 
 def _call(model, kind, states, link, frame, point, mode):
     if mode is None and point is None and type(link) is str:   # one state of a link frame: the hot path
         k = runtime.derived(model, (kind, link, frame), lambda: _single(model, kind, link, frame))
         if k:
-            lists = runtime.fast_states(model.n, *states)
-            if lists is not None:
-                return np.fromiter(k[0](*lists, *k[1]), float, k[2]).reshape(k[3])
+            nk = k[0]
+            if nk is not None:   # takes (n,) float64 arrays, or declines (None)
+                r = nk(*states, k[1])
+                if r is not None:
+                    return r
+            elif k[2] is not None:
+                lists = runtime.fast_states(model.n, *states)
+                if lists is not None:
+                    return np.fromiter(k[2](*lists, *k[3]), float, k[4]).reshape(k[5])
     if mode not in MODES:
         raise ValueError(f'mode must be one of {MODES}, got {mode!r}')
     b, T, X, p = target(model, link, frame, point)
     n = model.n
     shape = (6, n) if kind == 'jacobian' else (6,)
+    nk = None
     if b >= 0 and X is not None and mode is None:
-        lists = runtime.fast_states(n, *states)
-        if lists is not None:
-            k = runtime.single(model, traced.spec(kind, frame, b))
-            if k:
-                return np.fromiter(k[0](*lists, X, *k[1]), float, 6 * n if kind == 'jacobian' else 6).reshape(shape)
+        spec = traced.spec(kind, frame, b)
+        nk = runtime.native(model, spec)
+        if nk is not None:
+            r = nk(*states, np.array(X))
+            if r is not None:
+                return r
+        else:
+            lists = runtime.fast_states(n, *states)
+            if lists is not None:
+                k = runtime.single(model, spec)
+                if k:
+                    return np.fromiter(k[0](*lists, X, *k[1]), float, 6 * n if kind == 'jacobian' else 6) \
+                        .reshape(shape)
     single = np.ndim(states[0]) == 1
     arrays = model.check_states(**dict(zip(('q', 'qd'), states)))
     N = len(arrays[0])
     if b < 0:
         out = np.zeros((N,) + shape)
     else:
-        out = _evaluate(model, kind, frame, b, T, X, p, arrays, mode)
+        out = None
+        if nk is not None:   # validated states; X the same for every state
+            out = nk(*[np.ascontiguousarray(a) for a in arrays], np.tile(np.array(X), (N, 1)))
+        if out is None:
+            out = _evaluate(model, kind, frame, b, T, X, p, arrays, mode)
         if out is None:
             return None
         out = out.reshape((N,) + shape)

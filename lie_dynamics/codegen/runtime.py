@@ -333,7 +333,7 @@ def use_native(model, on=True):
     for comparisons in one process; LIE_DYNAMICS_NATIVE=0 switches them off everywhere)."""
     s = _slot(model)
     s.structure['native_off'] = not on
-    s.natives = {}
+    s.natives, s.values = {}, {}   # values: derived entries that hold a bound native kernel
 
 
 def _bind_native(model, spec):

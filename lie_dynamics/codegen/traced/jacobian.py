@@ -143,6 +143,7 @@ def spec(kind, frame, body):
     key = (kind, frame, body)
     s = _SPECS.get(key)
     if s is None:
+        shape = (lambda m: ((6, m.n), None)) if kind == 'jacobian' else (lambda m: ((6,), None))
         s = _SPECS.setdefault(key, Spec(f'{kind}_{frame}_b{body}', lambda fr: build(fr, kind, frame, body),
-                                        ('offsets',), 'jacobian'))
+                                        ('offsets',), 'jacobian', result=shape))
     return s
