@@ -125,7 +125,10 @@ class BuildProcess:
         """`build` in the child: (model, other warnings). Raises ValueError (the description),
         BuildLost (the child died or timed out: killed; the next call starts another)."""
         proc = self._proc
-        if proc is None or proc.poll() is not None:
+        if proc is not None and proc.poll() is not None:
+            self._end(proc)   # it ended between builds: close its pipes before the next child
+            proc = None
+        if proc is None:
             proc = self._start()
         try:
             _send(proc.stdin.fileno(), (source, caps, joints, gravity, inertia))
