@@ -4,7 +4,6 @@ and the next load starts a new one, nothing outlives the node, and replies keep 
 heavy loads (the node as its own process, measured from another one)."""
 import os
 import pickle
-import re
 import signal
 import time
 
@@ -22,15 +21,9 @@ from lie_dynamics.ros.build_process import BuildLost, BuildProcess  # noqa: E402
 from lie_dynamics.ros.node import LOG_THROTTLE_S  # noqa: E402
 from test_node import Harness, wait_until  # noqa: E402
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-ARM = open(os.path.join(ROOT, 'config', 'arm7.urdf')).read()
-JOINTS = [f'joint{i}' for i in range(1, 8)]
-Q = np.array([0.1, 0.5, -0.2, 1.2, 0.3, 0.8, 0.1])
+from test_node_robustness import ARM, JOINTS, Q, ROOT, heavier  # noqa: E402
+
 BIG = {'max_description_links': 5000, 'max_description_bytes': 20_000_000}
-
-
-def heavier(xml, factor):
-    return re.sub(r'<mass value="([^"]*)"', lambda m: f'<mass value="{factor * float(m.group(1))!r}"', xml)
 
 
 @pytest.fixture

@@ -33,15 +33,7 @@ def _head(buf):
     b = Buffer(buf, 'trajectory')
     pos = 8                              # header.stamp
     pos += 4 + b.u32(pos)                # header.frame_id
-    pos = _align(pos, 4)
-    count = b.u32(pos)
-    pos += 4
-    if count > (b.end - pos) // 4:
-        raise truncated('trajectory')
-    names = []
-    for _ in range(count):
-        text, pos = b.string(pos)
-        names.append(text)
+    names, pos = b.strings(pos)
     pos = _align(pos, 4)
     return b, names, b.u32(pos), pos + 4
 
@@ -118,16 +110,9 @@ def _walk(b, p0, n):
     pos = p0
     for i in range(n):
         for f in FIELDS:
-            pos = _align(pos, 4)
-            c = b.u32(pos)
-            pos += 4
-            if c:
-                pos = _align(pos, 8)
-            if c > (b.end - pos) // 8:
-                raise truncated('trajectory')
+            values, pos = b.doubles(pos)
             if f != 'effort':
-                rows[f].append(b.view('f8', pos, (c,), (8,)))
-            pos += 8 * c
+                rows[f].append(values)
         pos = _align(pos, 4)
         if pos + 8 > b.end:
             raise truncated('trajectory')
