@@ -54,8 +54,8 @@ def fill_bench(quick=False):
     import pinocchio as pin
 
     from lie_dynamics import load_urdf
-    from lie_dynamics.ros.compensator import Compensator
-    from lie_dynamics.ros.trajectory_msgs import set_point_efforts, trajectory_message
+    from lie_dynamics.ros.core.compensator import Compensator
+    from lie_dynamics.ros.trajectories.trajectory_msgs import set_point_efforts, trajectory_message
     from lie_dynamics.trajectory import fill_trajectory_efforts
 
     xml = open(ARM).read()
@@ -139,7 +139,7 @@ def callback_cost(model, Q, desired, mode):
     """Decision logic + torque law in-process per joint_states message (no DDS): median, p99 in us."""
     import array
 
-    from lie_dynamics.ros.compensator import Compensator
+    from lie_dynamics.ros.core.compensator import Compensator
     from trajectory_msgs.msg import JointTrajectoryPoint
     c = Compensator({'joints': nl.JOINTS, 'friction.viscous': [0.0], 'friction.coulomb': [0.0], 'mode': mode,
                      'kp': [1.0], 'desired_timeout': 60.0})

@@ -40,7 +40,7 @@ CMD = '/effort_controller/commands'
 
 
 def ros_env():
-    from lie_dynamics.ros.domains import reserve_domains
+    from lie_dynamics.sim.domains import reserve_domains
 
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     if 'ROS_DOMAIN_ID' not in os.environ:  # a domain no test run or other benchmark uses
@@ -236,7 +236,7 @@ def callback_cost(model, Q):
     """In-process cost of the node's decision logic per message (no DDS): median, p99 in us."""
     import array
 
-    from lie_dynamics.ros.compensator import Compensator
+    from lie_dynamics.ros.core.compensator import Compensator
     c = Compensator({'joints': JOINTS, 'friction.viscous': [0.0], 'friction.coulomb': [0.0]})
     c.set_model(model)
     rows = [array.array('d', q) for q in Q[:2000]]

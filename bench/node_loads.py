@@ -85,7 +85,7 @@ def serialized_trajectory(n):
     from rclpy.serialization import serialize_message
     from trajectory_msgs.msg import JointTrajectory
 
-    from lie_dynamics.ros import trajectory_cdr as cdr
+    from lie_dynamics.ros.trajectories import trajectory_cdr as cdr
     head = bytes(serialize_message(JointTrajectory(joint_names=JOINTS)))
     prefix = head[:-4] + n.to_bytes(4, 'little')
     k = np.arange(n)
@@ -211,7 +211,7 @@ def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):
     from std_msgs.msg import String
     from std_srvs.srv import Trigger
 
-    from lie_dynamics.ros.domains import reserve_domains
+    from lie_dynamics.sim.domains import reserve_domains
     tmp = tempfile.mkdtemp(prefix='lie_dynamics_node_loads_')
     env = dict(os.environ, ROS_LOG_DIR=os.path.join(tmp, 'log'))
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')

@@ -30,7 +30,7 @@ from bench.common import HERE, savefig, setup_matplotlib, time_interleaved, writ
 from lie_dynamics import default_urdf_path, load_urdf
 from lie_dynamics.algorithms.observer import MomentumObserver
 from lie_dynamics.laws import clamp, effort_limits, feedforward_law, make_friction
-from lie_dynamics.ros.contact import Debounce
+from lie_dynamics.ros.features.contact import Debounce
 from lie_dynamics.sim import contact_demo
 from lie_dynamics.sim.arm import ArmSim
 from lie_dynamics.sim.demo import AMPLITUDE, FREQUENCY, HOME, KD, KP

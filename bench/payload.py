@@ -2,7 +2,7 @@
 
     python -m bench.payload [--quick] [--out DIR]
 
-The node's pipeline without ROS (lie_dynamics.ros.payload_service): the bundled arm carries the
+The node's pipeline without ROS (lie_dynamics.ros.features.payload_service): the bundled arm carries the
 demo's load (2 kg on tool0, CoM off the axis, full inertia) along the identification excitation
 trajectory; joint_states at RATE Hz with efforts = inverse dynamics of the loaded arm + white
 torque noise of standard deviation sigma, pushed through the node's bounded Recording (at most
@@ -35,7 +35,7 @@ MAX_RATIO = 0.3
 def one(model, mode, sigma, duration, seed):
     """Errors of one identification (None where refused) and what the fit said."""
     from lie_dynamics.algorithms.identification import excitation_trajectory
-    from lie_dynamics.ros.payload_service import Recording, fit
+    from lie_dynamics.ros.features.payload_service import Recording, fit
     t, q, qd, qdd = excitation_trajectory(model, duration=duration, rate=RATE, seed=seed)
     if mode == 'static':
         qd, qdd = np.zeros_like(qd), np.zeros_like(qdd)

@@ -1,6 +1,6 @@
 """Torque laws, friction compensation and the effort clamp, in plain numpy (no ROS).
 
-One place for each formula: the dynamics node's decision logic (lie_dynamics.ros.compensator:
+One place for each formula: the dynamics node's decision logic (lie_dynamics.ros.core.compensator:
 streaming commands, the stale action, trajectory efforts) and the trajectory fill
 (lie_dynamics.trajectory) call these functions; nothing else computes a law, friction or a clamp.
 

@@ -4,7 +4,7 @@ ROS 2 environment for tests that start rclpy (set at import, before any `rclpy.i
 a private log/home directory, discovery limited to this machine, and DDS domains of our own
 per pytest-xdist worker, so parallel workers and other runs on the machine do not see each
 other's topics. Each domain is reserved with a lock file held for the worker's lifetime
-(lie_dynamics.ros.domains): two test runs on one machine (a developer's and CI's, say) can never
+(lie_dynamics.sim.domains): two test runs on one machine (a developer's and CI's, say) can never
 share a domain, which once let one run's demo processes command the other's simulated arm.
 The log/home directory is removed when the process ends, SIGTERM included (domains.py removes its
 lock files then too).
@@ -19,7 +19,7 @@ import zlib
 
 import pytest
 
-from lie_dynamics.ros.domains import reserve_domains
+from lie_dynamics.sim.domains import reserve_domains
 
 
 def _interrupt(*_):

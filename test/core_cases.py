@@ -1,8 +1,8 @@
-"""Shared pieces of the tests of the node's decision logic without ROS (lie_dynamics.ros.compensator)."""
+"""Shared pieces of the tests of the node's decision logic without ROS (lie_dynamics.ros.core.compensator)."""
 import re
 
 from lie_dynamics import load_urdf
-from lie_dynamics.ros.compensator import Compensator
+from lie_dynamics.ros.core.compensator import Compensator
 
 
 class Clock:

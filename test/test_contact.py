@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from lie_dynamics import default_urdf_path, load_urdf
-from lie_dynamics.ros.contact import (MAX_GAP_S, ContactMonitor, Debounce, check_settings, motor_torque,
+from lie_dynamics.ros.features.contact import (MAX_GAP_S, ContactMonitor, Debounce, check_settings, motor_torque,
                                       thresholds)
-from lie_dynamics.ros.diagnostics import OK, WARN
-from lie_dynamics.ros.params import check_value, defaults
+from lie_dynamics.ros.core.diagnostics import OK, WARN
+from lie_dynamics.ros.core.params import check_value, defaults
 from oracle import Oracle
 
 XML = open(default_urdf_path()).read()
@@ -232,3 +232,9 @@ def test_a_stream_that_starts_at_stamp_zero_switches_time_base_quietly(model, or
             assert np.all(r == 0)
     np.testing.assert_allclose(r, step, atol=1e-3)
     assert mon.resets == 0 and mon.effort_unavailable == 0 and not mon.events
+
+
+def test_motor_torque_keeps_its_documented_path():
+    """docs/node.md names lie_dynamics.ros.contact.motor_torque: the same function as the observer's."""
+    from lie_dynamics.ros.contact import motor_torque as public
+    assert public is motor_torque

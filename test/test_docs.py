@@ -6,7 +6,7 @@ import re
 import subprocess
 import sys
 
-from lie_dynamics.ros.params import PARAMS
+from lie_dynamics.ros.core.params import PARAMS
 from lie_dynamics.sim.demo import scenarios
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

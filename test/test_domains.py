@@ -1,4 +1,4 @@
-"""DDS-domain reservation (lie_dynamics.ros.domains): exclusive across processes, and nothing left
+"""DDS-domain reservation (lie_dynamics.sim.domains): exclusive across processes, and nothing left
 in the temp dir once the processes that reserved domains have ended. Each process here gets a
 private TMPDIR, so the check sees only the files these processes made."""
 import os
@@ -7,7 +7,7 @@ import sys
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RESERVE = ('import os, sys, tempfile\n'
-           'from lie_dynamics.ros.domains import reserve_domains\n'
+           'from lie_dynamics.sim.domains import reserve_domains\n'
            'print(*reserve_domains(int(sys.argv[1]), 0), flush=True)\n'
            'print(*sorted(os.listdir(tempfile.gettempdir())), flush=True)\n'
            'sys.stdin.read()  # hold them until told\n')

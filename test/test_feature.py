@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from lie_dynamics import default_urdf_path
-from lie_dynamics.ros.cdr import JointStateSample
-from lie_dynamics.ros.compensator import Compensator
-from lie_dynamics.ros.feature import Feature, Features
+from lie_dynamics.ros.core.cdr import JointStateSample
+from lie_dynamics.ros.core.compensator import Compensator
+from lie_dynamics.ros.features.base import Feature, Features
 
 JOINTS = [f'joint{i}' for i in range(1, 8)]
 
@@ -78,7 +78,7 @@ def test_features_get_each_accepted_sample_once_in_model_order():
 
 def test_rate_gate_keeps_the_average_rate_and_restarts_on_a_new_stream():
     pytest.importorskip('rclpy')
-    from lie_dynamics.ros.dynamics_topics import RateGate
+    from lie_dynamics.ros.features.dynamics_topics import RateGate
     ms = 1_000_000
     gate = RateGate(100.0)
     passed = [k for k in range(100) if gate.passes(k * ms)]
@@ -100,7 +100,7 @@ def test_serialized_templates_read_back_as_the_messages(names):
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray
-    from lie_dynamics.ros.dynamics_topics import joint_state_template, matrix_template
+    from lie_dynamics.ros.features.dynamics_topics import joint_state_template, matrix_template
     n = len(names)
     rng = np.random.default_rng(1)
     q, qd, e = rng.normal(size=(3, n))

@@ -13,7 +13,7 @@ from std_msgs.msg import String  # noqa: E402
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
 
 from lie_dynamics import load_urdf  # noqa: E402
-from lie_dynamics.ros.trajectory_msgs import trajectory_arrays, trajectory_message  # noqa: E402
+from lie_dynamics.ros.trajectories.trajectory_msgs import trajectory_arrays, trajectory_message  # noqa: E402
 from oracle import Oracle  # noqa: E402
 from robots import random_urdf  # noqa: E402
 from test_node import TOL, Harness, big_limits, throttled, wait_until  # noqa: E402

@@ -1,5 +1,5 @@
 """Feedforward / computed-torque / PD laws, the desired-state stream and trajectory effort fill
-in the node's decision logic without ROS (lie_dynamics.ros.compensator), checked against Pinocchio."""
+in the node's decision logic without ROS (lie_dynamics.ros.core.compensator), checked against Pinocchio."""
 import math
 from types import SimpleNamespace as NS
 
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from lie_dynamics import load_urdf
-from lie_dynamics.ros.compensator import OK, WARN, Compensator
-from lie_dynamics.ros.params import check_value
-from lie_dynamics.ros.trajectory_msgs import set_point_efforts, trajectory_arrays, trajectory_message
+from lie_dynamics.ros.core.compensator import OK, WARN, Compensator
+from lie_dynamics.ros.core.params import check_value
+from lie_dynamics.ros.trajectories.trajectory_msgs import set_point_efforts, trajectory_arrays, trajectory_message
 from oracle import Oracle
 from core_cases import Clock, big_limits, make
 from robots import random_urdf

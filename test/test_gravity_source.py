@@ -5,8 +5,8 @@ import pytest
 
 from lie_dynamics import default_urdf_path, load_urdf
 from lie_dynamics.laws import LAWS
-from lie_dynamics.ros.compensator import Compensator
-from lie_dynamics.ros.gravity_source import GRAVITY_NORM_MAX, GravitySource, check_vector
+from lie_dynamics.ros.core.compensator import Compensator
+from lie_dynamics.ros.features.gravity_source import GRAVITY_NORM_MAX, GravitySource, check_vector
 
 
 class Clock:
@@ -107,7 +107,7 @@ def test_robot_compensates_gravity_in_the_compensator():
 
 
 def test_trajectory_efforts_leave_gravity_out_too():
-    from lie_dynamics.ros.trajectory_msgs import trajectory_message
+    from lie_dynamics.ros.trajectories.trajectory_msgs import trajectory_message
     core = Compensator({'robot_compensates_gravity': True, 'friction.viscous': [0.0], 'friction.coulomb': [0.0]})
     core.set_model(load_urdf(default_urdf_path()))
     flat = load_urdf(default_urdf_path(), gravity=(0, 0, 0))

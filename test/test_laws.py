@@ -12,8 +12,8 @@ from lie_dynamics import load_urdf
 from lie_dynamics.laws import (COULOMB_VELOCITY_EPSILON, LAWS, MODES, EffortLimits, Friction, add_friction, clamp,
                                computed_torque_law, effort_limits, feedback, feedforward_law, friction_torque,
                                gravity_law, make_friction, pd_law, torque, uses_velocity)
-from lie_dynamics.ros.compensator import Compensator
-from lie_dynamics.ros.params import defaults
+from lie_dynamics.ros.core.compensator import Compensator
+from lie_dynamics.ros.core.params import defaults
 from lie_dynamics.trajectory import fill_trajectory_efforts
 from core_cases import Clock, big_limits, make
 from test_feedforward_core import point

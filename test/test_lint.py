@@ -56,7 +56,7 @@ def test_math_core_imports_no_ros_package():
     names = _ros_free_modules()
     core = [n for n in names if n.split('.')[1:2] not in (['ros'], ['sim'])]
     assert len(core) >= 30 and 'lie_dynamics.algorithms.rnea' in core and 'lie_dynamics.laws' in core, core
-    assert {'lie_dynamics.ros.compensator', 'lie_dynamics.ros.params'} <= set(names)
+    assert {'lie_dynamics.ros.core.compensator', 'lie_dynamics.ros.core.params'} <= set(names)
     code = ('import importlib, sys\n'
             'for name in sys.argv[1:]:\n'
             '    importlib.import_module(name)\n'

@@ -1,4 +1,4 @@
-"""Decision logic of the dynamics node without ROS: lie_dynamics.ros.compensator / params."""
+"""Decision logic of the dynamics node without ROS: lie_dynamics.ros.core.compensator / params."""
 import math
 import re
 import warnings
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from lie_dynamics import load_urdf
-from lie_dynamics.ros.compensator import (DIAG_TEXT_MAX, ERROR, INERTIA_LOG_LINES, INERTIA_TEXT_MAX, OK, WARN,
+from lie_dynamics.ros.core.compensator import (DIAG_TEXT_MAX, ERROR, INERTIA_LOG_LINES, INERTIA_TEXT_MAX, OK, WARN,
     Compensator, Throttle)
-from lie_dynamics.ros.params import PARAMS, check_value, defaults
+from lie_dynamics.ros.core.params import PARAMS, check_value, defaults
 from oracle import Oracle
 from core_cases import Clock, big_limits, make
 from robots import random_urdf

@@ -19,7 +19,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 
 from lie_dynamics import default_urdf_path, load_urdf  # noqa: E402
-from lie_dynamics.ros.dynamics_topics import tip_link  # noqa: E402
+from lie_dynamics.ros.features.dynamics_topics import tip_link  # noqa: E402
 from oracle import Oracle  # noqa: E402
 from robots import with_payload  # noqa: E402
 from test_node import Harness, wait_until  # noqa: E402

@@ -1,4 +1,4 @@
-"""Model builds in the build process (lie_dynamics.ros.build_process): models pickle whole, a
+"""Model builds in the build process (lie_dynamics.ros.loading.build_process): models pickle whole, a
 build process that dies or hangs is reported once while the running model keeps answering
 and the next load starts a new one, nothing outlives the node, and replies keep flowing during
 heavy loads (the node as its own process, measured from another one)."""
@@ -17,7 +17,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 
 from bench.node_loads import folded_description  # noqa: E402
 from lie_dynamics import load_urdf  # noqa: E402
-from lie_dynamics.ros.build_process import BuildLost, BuildProcess  # noqa: E402
+from lie_dynamics.ros.loading.build_process import BuildLost, BuildProcess  # noqa: E402
 from lie_dynamics.ros.node import LOG_THROTTLE_S  # noqa: E402
 from test_node import Harness, wait_until  # noqa: E402
 

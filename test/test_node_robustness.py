@@ -19,8 +19,8 @@ from std_srvs.srv import SetBool, Trigger  # noqa: E402
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
 
 from lie_dynamics import load_urdf  # noqa: E402
-from lie_dynamics.ros import trajectory_cdr as cdr  # noqa: E402
-from lie_dynamics.ros.diagnostics import DIAG_TEXT_MAX, LOG_TEXT_MAX  # noqa: E402
+from lie_dynamics.ros.trajectories import trajectory_cdr as cdr  # noqa: E402
+from lie_dynamics.ros.core.diagnostics import DIAG_TEXT_MAX, LOG_TEXT_MAX  # noqa: E402
 from lie_dynamics.ros.node import LOG_THROTTLE_S, SERVICE_QUEUE  # noqa: E402
 from test_node import TIMEOUT, Harness, wait_until  # noqa: E402
 

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from lie_dynamics import load_urdf
-from lie_dynamics.ros.compensator import DIAG_TEXT_MAX, Compensator, Throttle
-from lie_dynamics.ros.diagnostics import names_text, problem_key
-from lie_dynamics.ros.params import check_value, defaults
-from lie_dynamics.ros.ramp import Ramp
-from lie_dynamics.ros.worker import Worker
+from lie_dynamics.ros.core.compensator import DIAG_TEXT_MAX, Compensator, Throttle
+from lie_dynamics.ros.core.diagnostics import names_text, problem_key
+from lie_dynamics.ros.core.params import check_value, defaults
+from lie_dynamics.ros.core.ramp import Ramp
+from lie_dynamics.ros.loading.worker import Worker
 from oracle import Oracle
 from core_cases import Clock, big_limits, make
 from robots import random_urdf

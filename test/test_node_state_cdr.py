@@ -1,4 +1,4 @@
-"""The serialized joint_states and desired-state readers (lie_dynamics.ros.cdr) against rclpy's
+"""The serialized joint_states and desired-state readers (lie_dynamics.ros.core.cdr) against rclpy's
 deserialization: bit-identical values for valid messages (random and edge cases), the same
 accept/refuse outcome for damaged ones, and a node flooded with garbage on both topics that
 logs a bounded number of lines and keeps answering the valid states in between."""
@@ -23,8 +23,8 @@ from std_msgs.msg import Float64MultiArray  # noqa: E402
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
 
 from lie_dynamics import load_urdf  # noqa: E402
-from lie_dynamics.ros import cdr  # noqa: E402
-from lie_dynamics.ros.compensator import Compensator  # noqa: E402
+from lie_dynamics.ros.core import cdr  # noqa: E402
+from lie_dynamics.ros.core.compensator import Compensator  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ARM_PATH = os.path.join(ROOT, 'config', 'arm7.urdf')

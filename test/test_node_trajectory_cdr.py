@@ -1,4 +1,4 @@
-"""The serialized-trajectory reader and writer (lie_dynamics.ros.trajectory_cdr) against rclpy's
+"""The serialized-trajectory reader and writer (lie_dynamics.ros.trajectories.trajectory_cdr) against rclpy's
 own serialization: same arrays, same refusals, a written message that deserializes to the input
 with the efforts set."""
 import itertools
@@ -12,8 +12,8 @@ from builtin_interfaces.msg import Duration  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
 
-from lie_dynamics.ros import trajectory_cdr as cdr  # noqa: E402
-from lie_dynamics.ros.trajectory_msgs import trajectory_arrays  # noqa: E402
+from lie_dynamics.ros.trajectories import trajectory_cdr as cdr  # noqa: E402
+from lie_dynamics.ros.trajectories.trajectory_msgs import trajectory_arrays  # noqa: E402
 
 
 def message(rng, k, n, vel, acc, effort=None, frame='map'):

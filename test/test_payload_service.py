@@ -6,9 +6,9 @@ import pytest
 
 from lie_dynamics import default_urdf_path, load_urdf
 from lie_dynamics.algorithms.identification import excitation_trajectory
-from lie_dynamics.ros.compensator import Compensator
-from lie_dynamics.ros.payload_service import (MAX_SAMPLES, Identification, Recording, check_payload_request, fit,
-                                              smooth_derivative)
+from lie_dynamics.ros.core.compensator import Compensator
+from lie_dynamics.ros.features.payload_service import (MAX_SAMPLES, Identification, Recording,
+                                                       check_payload_request, fit, smooth_derivative)
 
 MASS, COM, INERTIA = 1.3, [0.01, -0.02, 0.05], [3e-3, 1e-4, 0.0, 4e-3, -2e-4, 2e-3]
 
@@ -183,7 +183,7 @@ def test_benchmark_runs_and_errors_follow_the_noise(tmp_path):
 
 
 def test_recording_that_never_covers_its_duration_is_abandoned(monkeypatch):
-    from lie_dynamics.ros import payload_service
+    from lie_dynamics.ros.features import payload_service
     monkeypatch.setattr(payload_service, 'WALL_EXTRA', 0.0)   # wall limit: 5 x 0.1 s
     core = Compensator({'identify.duration': 0.1, 'identify.link': 'hand'})
     core.set_model(load_urdf(default_urdf_path()))

@@ -1,0 +1,11 @@
+"""The dynamics node. This folder is its rclpy shell (`node.py`, `run.py`); the parts below it are
+plain Python (no rclpy import) and testable without ROS:
+
+    core/          the decision core: one sample per joint_states message (cdr), the settings and
+                   parameter table (params, settings), the torque command with its ramp, watchdog
+                   and diagnostics (compensator)
+    features/      per-sample features behind one interface (base.Feature): the dynamics topics,
+                   the momentum observer and collision flag, the gravity source, payload services
+    loading/       robot descriptions: sources, the update policy, the build process, the loader thread
+    trajectories/  ~/trajectory_in -> ~/trajectory_out: serialized trajectories and their effort fill
+"""

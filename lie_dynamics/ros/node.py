@@ -60,18 +60,18 @@ from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 from trajectory_msgs.msg import JointTrajectory
 
-from .background import Background
-from .cdr import JointStateDecoder, read_desired, sample_of, stamp_parts
-from .compensator import Compensator, Throttle
-from .contact import check_settings
-from .contact_topics import ContactTopics
-from .dynamics_topics import DynamicsTopics
-from .feature import Features
-from .gravity_payload import GravityPayload
-from .diagnostics import DIAG_TEXT_MAX, LOG_TEXT_MAX, clip, held_text
-from .params import HELP_DESCRIPTION, HELP_EXAMPLE, PARAMS, SPECS, check_value, help_rows
+from .loading.background import Background
+from .core.cdr import JointStateDecoder, read_desired, sample_of, stamp_parts
+from .core.compensator import Compensator, Throttle
+from .features.contact import check_settings
+from .features.contact_topics import ContactTopics
+from .features.dynamics_topics import DynamicsTopics
+from .features.base import Features
+from .features.gravity_payload import GravityPayload
+from .core.diagnostics import DIAG_TEXT_MAX, LOG_TEXT_MAX, clip, held_text
+from .core.params import HELP_DESCRIPTION, HELP_EXAMPLE, PARAMS, SPECS, check_value, help_rows
 from .run import node_parser, run
-from .sources import Sources, source_label
+from .loading.sources import Sources, source_label
 
 # As robot_state_publisher publishes it: a late subscriber must also be transient local.
 DESCRIPTION_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,

@@ -37,7 +37,7 @@ import numpy as np
 
 from .. import default_urdf_path
 from ..cli import ros_array
-from ..ros.domains import reserve_domains
+from .domains import reserve_domains
 from . import contact_demo, payload_demo
 from .trajectory_source import desired_state
 from ..model.urdf import load_urdf

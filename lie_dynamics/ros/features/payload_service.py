@@ -21,12 +21,12 @@ import time
 
 import numpy as np
 
-from ..algorithms.payload import identify_payload
-from ..laws import friction_torque
-from ..model.inertia import RTOL, violations
-from .diagnostics import DIAG_TEXT_MAX, clip
+from ...algorithms.payload import identify_payload
+from ...laws import friction_torque
+from ...model.inertia import RTOL, violations
+from ..core.diagnostics import DIAG_TEXT_MAX, clip
 from .contact import effort_convention, motor_torque
-from .params import IDENTIFY_MODES
+from ..core.params import IDENTIFY_MODES
 
 __all__ = ['IDENTIFY_MODES', 'Identification', 'Recording', 'check_payload_request', 'fit', 'prepare',
            'smooth_derivative']

@@ -35,17 +35,17 @@ import warnings
 
 import numpy as np
 
-from ..laws import LAWS, clamp, gravity_law, uses_velocity
-from .build_process import build
+from ...laws import LAWS, clamp, gravity_law, uses_velocity
+from ..loading.build_process import build
 from .diagnostics import (DIAG_TEXT_MAX, ERROR, INERTIA_LOG_LINES, INERTIA_TEXT_MAX, OK, WARN, Counters, Throttle,
                           Window, clip, names_text, report)
 from .messages import JointStateReader, NameMap, Rejected, read_desired
-from .models import model_changes, update_refusal
+from ..loading.models import model_changes, update_refusal
 from .params import check_value, defaults
 from .ramp import Ramp
 from .settings import (BLEND_KEYS, PAYLOAD_KEYS, Plan, check_payload_pair, derive, gains, payload_link,
                        place_payload)
-from .trajectories import TrajectoryInput
+from ..trajectories.fill import TrajectoryInput
 from .watchdog import Watchdog
 
 # OK/WARN/ERROR, Throttle and the text bounds live in diagnostics.py; offered here as well.

@@ -26,7 +26,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_srvs.srv import Trigger
 
-from .diagnostics import DIAG_TEXT_MAX, clip
+from ..core.diagnostics import DIAG_TEXT_MAX, clip
 from .gravity_source import GravitySource
 from .payload_service import Identification, check_identify_link, check_payload_request, fit
 

@@ -16,7 +16,7 @@ then the doubles, aligned to 8 when there are any) and time_from_start {int32, u
 """
 import numpy as np
 
-from .cdr import Buffer, Unsupported, align as _align, truncated
+from ..core.cdr import Buffer, Unsupported, align as _align, truncated
 from .trajectory_msgs import block
 
 __all__ = ['FIELDS', 'Unsupported', 'head', 'read', 'arrays', 'write']

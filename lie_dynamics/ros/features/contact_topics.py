@@ -10,7 +10,7 @@ import array
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
-from .cdr import stamp_parts
+from ..core.cdr import stamp_parts
 from .contact import ContactMonitor
 
 

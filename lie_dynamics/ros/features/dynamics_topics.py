@@ -28,9 +28,9 @@ import numpy as np
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from .cdr import Template
-from .diagnostics import clip
-from .feature import Feature
+from ..core.cdr import Template
+from ..core.diagnostics import clip
+from .base import Feature
 
 TOPICS = {'gravity': (JointState, '~/dynamics/gravity'), 'coriolis': (JointState, '~/dynamics/coriolis'),
           'mass_matrix': (Float64MultiArray, '~/dynamics/mass_matrix'),

@@ -30,12 +30,12 @@ import os
 import sys
 
 from .build_process import BuildProcess, build, read_description
-from .diagnostics import clip
-from .messages import Rejected
+from ..core.diagnostics import clip
+from ..core.messages import Rejected
 from .models import warm_up
 from .sources import open_source, resolve_path, source_label
-from .trajectory_cdr import Unsupported, arrays, head, read, write
-from .trajectory_msgs import set_point_efforts, trajectory_arrays
+from ..trajectories.trajectory_cdr import Unsupported, arrays, head, read, write
+from ..trajectories.trajectory_msgs import set_point_efforts, trajectory_arrays
 from .worker import Worker
 
 

@@ -3,7 +3,7 @@
 Parsing a description and building its model is seconds of pure Python for a large robot; in
 the node's process it would hold the interpreter lock that the control path needs (a
 5,000-link description stalled replies by 120-133 ms). `BuildProcess` runs it in a child
-interpreter instead (`python -m lie_dynamics.ros.build_process`, started with exec: no fork of
+interpreter instead (`python -m lie_dynamics.ros.loading.build_process`, started with exec: no fork of
 a process with DDS threads), speaking pickle over a pipe: the request is the description text
 or path with the caps and the build options, the answer the finished Model (it pickles its
 constant data; kernels are generated where it is used) and the warnings to re-issue, or the
@@ -26,7 +26,8 @@ import sys
 import time
 import warnings
 
-from .. import InertiaWarning, load_urdf
+from ... import InertiaWarning, load_urdf
+from ... import SOURCE_ROOT
 
 BUILD_TIMEOUT_S = 120.0   # a build that takes longer is taken for hung (a 5,000-link chain: ~3 s)
 _LEN = struct.Struct('<Q')
@@ -113,7 +114,7 @@ class BuildProcess:
         return proc.pid if proc is not None and proc.poll() is None else None
 
     def _start(self):
-        root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+        root = SOURCE_ROOT
         env = dict(os.environ)
         env['PYTHONPATH'] = os.pathsep.join(p for p in (root, env.get('PYTHONPATH')) if p)
         self._proc = subprocess.Popen([sys.executable, '-m', __name__, str(os.getpid())], stdin=subprocess.PIPE,

@@ -4,7 +4,7 @@ warm-up that moves code generation off the control path.
 """
 import numpy as np
 
-from .diagnostics import clip, names_text
+from ..core.diagnostics import clip, names_text
 
 
 def update_refusal(policy, running, new):

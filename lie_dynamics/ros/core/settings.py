@@ -6,7 +6,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from ..laws import effort_limits, make_friction
+from ...laws import effort_limits, make_friction
 from .diagnostics import clip
 
 PAYLOAD_KEYS = ('payload.link', 'payload.mass', 'payload.com', 'payload.inertia')

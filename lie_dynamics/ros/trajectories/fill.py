@@ -13,10 +13,10 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from ..laws import add_friction, clamp
-from ..trajectory import fill_trajectory_efforts
-from .diagnostics import DIAG_TEXT_MAX, clip, names_text, problem_key
-from .messages import Rejected
+from ...laws import add_friction, clamp
+from ...trajectory import fill_trajectory_efforts
+from ..core.diagnostics import DIAG_TEXT_MAX, clip, names_text, problem_key
+from ..core.messages import Rejected
 from .trajectory_msgs import trajectory_arrays
 
 

@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from .diagnostics import clip
+from ..core.diagnostics import clip
 
 # A gravity vector longer than this (m/s^2, 3 g) is a units or frame error, not a tilted base.
 GRAVITY_NORM_MAX = 30.0

@@ -6,6 +6,7 @@ through the ament index). `Sources` remembers the source of the running model an
 topic message, and picks what ~/reload_model and an inertia_policy change reload.
 """
 import os
+from ... import SOURCE_ROOT
 
 
 def resolve_path(path):
@@ -22,7 +23,7 @@ def resolve_path(path):
     except Exception:  # package or ament index unknown: try the source tree below
         pass
     if pkg == 'lie_dynamics':
-        candidate = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), rel)
+        candidate = os.path.join(SOURCE_ROOT, rel)
         if os.path.exists(candidate):
             return candidate
     raise ValueError(f'cannot resolve {path!r} (package not found in AMENT_PREFIX_PATH)')

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from typing import Optional, Tuple
 
 # MODES: the torque laws (lie_dynamics.laws). Every mode but `gravity` needs the desired-state stream.
-from ..laws import COULOMB_VELOCITY_EPSILON, MODES
+from ...laws import COULOMB_VELOCITY_EPSILON, MODES
 from .diagnostics import clip
 
 STALE_ACTIONS = ('hold_gravity_at_last_state', 'zero')

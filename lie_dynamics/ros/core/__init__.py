@@ -1,0 +1,1 @@
+"""The decision core of the dynamics node, in plain Python (no rclpy import)."""
