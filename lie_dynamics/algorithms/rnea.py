@@ -58,7 +58,7 @@ def _inverse_dynamics(model, arrs, N, wrenches, with_gravity):
     else:
         spec = traced.INVERSE_DYNAMICS_WRENCH if with_gravity else _ID_WRENCH_NO_GRAVITY
         arrs = arrs + [runtime.frames(model).wrench_params(fext).reshape(N, 6 * model.nb)]
-    tau = runtime.run(model, spec, arrs, out=np.empty((N, model.n)))
+    tau = runtime.run(model, spec, arrs, c_order=True)
     return _vectorized(model, np.array(arrs[:3]), fext, with_gravity) if tau is None else tau
 
 
@@ -76,7 +76,7 @@ def gravity(model, q, out=None):
         return tau
     (a,), single = model.validate(('q',), (q,))
     runtime.check_out(out, a.shape[1:] if single else a.shape)
-    tau = runtime.run(model, traced.GRAVITY, [a], out=np.empty(a.shape))
+    tau = runtime.run(model, traced.GRAVITY, [a], c_order=True)
     if tau is None:
         tau = _gravity_vectorized(model, a)
     return runtime.deliver(tau[0] if single else tau, out)

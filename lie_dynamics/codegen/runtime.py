@@ -7,10 +7,13 @@ at run time (inertias and payloads, gravity, locked-joint values) enters the ker
 parameter lists, cached per model until the model's version changes (every setter bumps it).
 
 A kernel is described by a `Spec` (its traced form lives in codegen/traced/): how to build
-it from the model's Frames, which parameter lists follow the per-state arguments, and which
-entry of THRESHOLDS says when it runs. `route` is the one dispatch decision: the float
-kernel (one state, or a small batch state by state), the kernel on numpy rows (a large
-batch), or None: the algorithm's vectorised reference.
+it from the model's Frames, which parameter lists follow the per-state arguments, which
+entry of THRESHOLDS says when it runs and how its outputs are accepted; per structure it is
+one kernel.Kernel. `route` is the one dispatch decision: the float kernel (one state, or a
+small batch state by state), the kernel on numpy rows (a large batch), or None: the
+algorithm's vectorised reference. Every algorithm entry point runs `fast` (the call as
+given), then, when it declines, Model.validate once and `run` (native, route, kernel,
+accept), then its reference.
 """
 import collections
 import contextlib
@@ -295,46 +298,50 @@ class _Single:
     """`fast` without a native kernel: one state given as (k,) float64 arrays or sequences of
     k numbers (k per argument list) with a finite sum, through the float kernel; None for
     anything else, `out` given, a kernel that raised or outputs that fail `accepts`."""
-    __slots__ = ('bound', 'widths', 'n_state', 'shape', 'm', 'rtol', 'packer', 'size')
+    __slots__ = ('function', 'params', 'widths', 'n_state', 'shape', 'm', 'rtol', 'packer', 'size', 'kind')
 
     def __init__(self, model, spec, b):
         k = b.kernel
-        self.bound, self.widths, self.n_state = b, k.widths[:k.n_state], k.n_state
+        self.function, self.params, self.widths, self.n_state = b.function, b.params, k.widths, k.n_state
         self.shape, self.m, self.rtol = _result(model, spec, k.n_out)
         self.packer, self.size = k.packer, (k.scatter[1] if k.scatter else None)
+        # what becomes of the outputs: 0 all as a vector, 1 a matrix, 2 scattered, 3 pivots to test
+        self.kind = 2 if k.packer else 3 if self.rtol is not None else 1 if len(self.shape) > 1 else 0
 
     def __call__(self, *args):
-        if len(args) != self.n_state:
-            if len(args) != self.n_state + 1 or args[-1] is not None:
-                return None
-            args = args[:-1]
-        lists = _float_lists(self.widths, args)
+        ns = self.n_state
+        if len(args) != ns and (len(args) != ns + 1 or args[ns] is not None):
+            return None
+        lists = _float_lists(self.widths, args, ns)
         if lists is None:
             return None
-        b = self.bound
         try:
-            vals = b.function(*lists, *b.params)
+            vals = self.function(*lists, *self.params)
         except (ValueError, ZeroDivisionError, OverflowError):   # sqrt of a negative pivot, a zero pivot
             return None
-        if self.packer is not None:
+        kind = self.kind
+        if kind == 0:
+            return np.array(vals)
+        if kind == 1:
+            return np.fromiter(vals, float, self.m).reshape(self.shape)
+        if kind == 2:
             out = np.empty(self.size)
             self.packer.pack_into(out, 0, *vals)
             return out.reshape(self.shape)
-        if self.rtol is not None:
-            if not accepts(vals, self.m, self.rtol):
-                return None
-            vals = vals[:self.m]
-        if len(self.shape) == 1:
-            return np.array(vals)
+        if not accepts(vals, self.m, self.rtol):
+            return None
         return np.fromiter(vals, float, self.m).reshape(self.shape)
 
 
-def _float_lists(widths, xs):
-    """Float lists of one state's arguments: (k,) float64 arrays or sequences of k numbers, k
-    from widths, whose sum is finite; else None (the caller then validates in full)."""
+def _float_lists(widths, xs, count):
+    """Float lists of the first `count` of one state's arguments xs: (k,) float64 arrays or
+    sequences of k numbers, k from widths, whose sum is finite; else None (the caller then
+    validates in full)."""
     out = []
     s = 0.0
-    for x, n in zip(xs, widths, strict=True):
+    for i in range(count):
+        x = xs[i]
+        n = widths[i]
         if type(x) is _ND:
             if x.shape != (n,) or x.dtype != _F64:
                 return None
@@ -439,21 +446,23 @@ def _evaluate(b, spec, arrays, mode, out=None):
         return None
 
 
-def run(model, spec, arrays, mode=None, native_first=True, out=None):
+def run(model, spec, arrays, mode=None, native_first=True, c_order=False):
     """The full path after validation: spec's kernel on validated (N, k_i) per-state arrays,
     in the kernel's order. Its C form first (mode None and native_first), else the float
     ('loop') or rows kernel where route (or the forced mode) says so, its outputs accepted
     as Spec.result says and scattered into place (Kernel.scatter). Returns (N, values of one
-    state's result); `out` (N, n_out) receives the rows kernel's outputs. None: no kernel,
-    the vectorised reference is faster, or the outputs failed the check (the reference then
-    reports it)."""
+    state's result); c_order: the rows kernel writes a C-ordered array (else it returns the
+    transpose of a state-last one). None: no kernel, the vectorised reference is faster, or
+    the outputs failed the check (the reference then reports it)."""
     N = len(arrays[0])
     if mode is None and native_first:
         nk = native(model, spec)
         if nk is not None:
-            r = nk(*[np.ascontiguousarray(a) for a in arrays])
+            r = nk(*arrays)
+            if r is None and not all(a.flags.c_contiguous for a in arrays):
+                r = nk(*[np.ascontiguousarray(a) for a in arrays])
             if r is not None:
-                return r.reshape(N, -1)
+                return r if r.ndim == 2 else r.reshape(N, -1)
     mode = check_mode(mode) or route(model, spec.limits, N)
     b = _bind(_slot(model), model, spec) if mode else False
     if not b:
@@ -461,7 +470,7 @@ def run(model, spec, arrays, mode=None, native_first=True, out=None):
     k = b.kernel
     if k.scatter is not None:
         return _scattered(b, spec, arrays, mode)
-    vals = _evaluate(b, spec, arrays, mode, out)
+    vals = _evaluate(b, spec, arrays, mode, np.empty((N, k.n_out)) if c_order and mode == 'rows' else None)
     if vals is None:
         return None
     _, m, rtol = _result(model, spec, k.n_out)
@@ -529,7 +538,7 @@ _NO_ERRSTATE = contextlib.nullcontext()
 
 def is_fast_single(x, n):
     """One (n,) float64 array or sequence of n numbers with a finite sum as a float list, or None."""
-    lists = _float_lists((n,), (x,))
+    lists = _float_lists((n,), (x,), 1)
     return lists[0] if lists else None
 
 
