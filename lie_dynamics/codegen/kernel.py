@@ -77,14 +77,15 @@ class Kernel:
     runner (runtime.run_rows). `python()` builds the Python forms, False when the structure
     has no such kernel (the traced form returned None).
     """
-    __slots__ = ('name', 'frames', 'structure', '_build', '_trace', '_lock', 'supported', 'function', 'source',
-                 'rows_source', 'nreg', '_rows', 'n_out', 'roles', 'widths', 'n_state', 'scatter', 'packer', 'pool',
-                 'layout', '_native')
+    __slots__ = ('name', 'frames', 'structure', '_build', '_trace', '_lock', '_native_lock', 'supported',
+                 'function', 'source', 'rows_source', 'nreg', '_rows', 'n_out', 'roles', 'widths', 'n_state',
+                 'scatter', 'packer', 'pool', 'layout', '_native')
 
     def __init__(self, build, name, frames=None, structure=None):
         """build() -> Trace or None; traced on first need."""
         self.name, self.frames, self.structure, self._build = name, frames, structure, build
-        self._trace, self._lock, self.supported = None, threading.Lock(), None
+        # two locks: a C compile (seconds) never holds up a thread that needs the Python forms
+        self._trace, self._lock, self._native_lock, self.supported = None, threading.Lock(), threading.Lock(), None
         self.function = self.source = self.rows_source = self.nreg = self._rows = None
         self.n_out = self.roles = self.widths = self.n_state = self.scatter = self.packer = None
         self.pool, self.layout, self._native = [], None, None
@@ -149,7 +150,7 @@ class Kernel:
         if lib is None:
             if self.structure is None:
                 return None
-            with self._lock:
+            with self._native_lock:
                 lib = self._native
                 if lib is None:
                     lib = self._native = _native.library(self.structure, self.name, self._render_c) or False
