@@ -95,6 +95,7 @@ def test_kernel_frame_choice_does_not_change_results(name):
     derivatives, with and without wrenches (covariance of the formulas)."""
     import math
     from lie_dynamics.codegen import runtime
+    from lie_dynamics.codegen.kernel import Kernel
     from lie_dynamics.codegen.traced import derivatives as traced
     model, oracle = case(name)
     q, qd, qdd = states(model, 3, seed=17)
@@ -107,8 +108,8 @@ def test_kernel_frame_choice_does_not_change_results(name):
     centres = sorted({0, fr.nb // 2, fr.nb - 1})
     with_wrench = []
     for centre in centres:
-        fn, _ = traced.build_inverse_dynamics_derivatives(fr, False, center=centre)
-        fw, _ = traced.build_inverse_dynamics_derivatives(fr, True, center=centre)
+        fn = Kernel.of(traced.build_inverse_dynamics_derivatives(fr, False, center=centre)).function
+        fw = Kernel.of(traced.build_inverse_dynamics_derivatives(fr, True, center=centre)).function
         out = np.array([fn(a.tolist(), b.tolist(), c.tolist(), P, A0, E0, sin=math.sin, cos=math.cos)
                         for a, b, c in zip(q, qd, qdd, strict=True)]).reshape(-1, 2, n, n)
         assert rel_err(out[:, 0], ref[0], floor) < 1e-8 and rel_err(out[:, 1], ref[1], floor) < 1e-8
@@ -151,7 +152,8 @@ def test_codegen_tracer_folds_and_matches_float_evaluation():
     """The tracer behind the generated kernels: folding, cancellation, float and row evaluation."""
     import math
 
-    from lie_dynamics.codegen import algebra, render, runtime, tracer
+    from lie_dynamics.codegen import algebra, runtime, tracer
+    from lie_dynamics.codegen.kernel import Kernel, Trace
     g = tracer.Graph()
     x, y = g.input('x'), g.input('y')
     assert (x - x) == 0.0 and 0.0 * x == 0.0 and (x + 0.0).terms == x.terms and (x - 2.0 * x).terms == (-x).terms
@@ -161,10 +163,11 @@ def test_codegen_tracer_folds_and_matches_float_evaluation():
         return (-a, b, a * a - b * b, math.sin(a) * b + 2.0 / (a * a + 1.0), math.sqrt(b * b + 1.0))
 
     outs = list(z) + [g.sin(x) * y + 2.0 * g.inv(x * x + 1.0), g.sqrt(y * y + 1.0)]
-    fn, _ = render.kernel(g, 'k', [('A', ['x', 'y'])], outs)
+    k = Kernel.of(Trace(g, 'k', [('A', ['x', 'y'])], outs))
+    assert k.roles == ('state',) and k.widths == (2,) and k.n_out == 5
     for a, b in [(0.3, -1.2), (2.0, 0.5)]:
-        assert np.allclose(fn([a, b], sin=math.sin, cos=math.cos, sqrt=math.sqrt), direct(a, b), rtol=1e-15)
-    rows = runtime.run_rows(fn, [np.array([[0.3, -1.2], [2.0, 0.5]])], 5)
+        assert np.allclose(k.function([a, b], sin=math.sin, cos=math.cos, sqrt=math.sqrt), direct(a, b), rtol=1e-15)
+    rows = runtime.run_rows(k, [np.array([[0.3, -1.2], [2.0, 0.5]])])
     assert np.allclose(rows, [direct(0.3, -1.2), direct(2.0, 0.5)], rtol=1e-15)
 
 
@@ -174,6 +177,7 @@ def test_codegen_rows_rendering_registers_and_parameters():
     import math
 
     from lie_dynamics.codegen import render, runtime, tracer
+    from lie_dynamics.codegen.kernel import Kernel, Trace
     g = tracer.Graph()
     a, b = g.input('a'), g.input('b')            # per state
     p, k = g.input('p'), g.input('k')            # parameters
@@ -182,14 +186,15 @@ def test_codegen_rows_rendering_registers_and_parameters():
         s = g.cos(s * p + b) * (1.5 + 0.1 * i) - a * k
     pk = p * k + 2.0                             # parameters only
     outs = [s, pk * a - 3.0 * b, g.inv(pk), g.sqrt(a * a + k * k), -(a - 2.0 * b) + pk]
-    fn, _ = render.kernel(g, 'k', [('X', ['a', 'b']), render.Params('P', ['p', 'k'])], outs)
-    assert fn.nreg < 10 and 'u' in fn.rows_source      # registers reused; a hoisted parameter value
-    for line in fn.rows_source.splitlines():
+    kern = Kernel.of(Trace(g, 'k', [('X', ['a', 'b']), render.Params('P', ['p', 'k'])], outs))
+    assert kern.roles == ('state', 'param') and kern.n_state == 1
+    assert kern.nreg < 10 and 'u' in kern.rows_source      # registers reused; a hoisted parameter value
+    for line in kern.rows_source.splitlines():
         if 'out=' in line:                       # the target is not read by the same ufunc
             target = line.split('out=')[1].rstrip(')')
             assert target not in line.split('(', 1)[1].split('out=')[0]
     X = np.random.default_rng(0).uniform(-1, 1, (11, 2))
     P = [0.7, -1.3]
-    ref = np.array([fn(list(x), P, sin=math.sin, cos=math.cos, sqrt=math.sqrt) for x in X])
+    ref = np.array([kern.function(list(x), P, sin=math.sin, cos=math.cos, sqrt=math.sqrt) for x in X])
     for chunk in (None, 4):
-        assert np.allclose(runtime.run_rows(fn, [X, P], len(outs), chunk=chunk), ref, rtol=1e-14, atol=1e-14)
+        assert np.allclose(runtime.run_rows(kern, [X, P], chunk=chunk), ref, rtol=1e-14, atol=1e-14)

@@ -72,9 +72,10 @@ def _states(model, N, seed=0):
 def _python_outputs(model, spec, arrays):
     """The Python float kernel's outputs (N, n_out) for the same per-state arrays."""
     vals = runtime.evaluate(model, spec, arrays, 'loop')
-    if spec.scatter is None:
+    scatter = runtime.kernel(model, spec).scatter
+    if scatter is None:
         return vals
-    idx, size = spec.scatter(runtime.kernel(model, spec))
+    idx, size = scatter
     full = np.zeros((len(vals), size))
     full[:, idx] = vals
     return full
@@ -90,10 +91,10 @@ def test_every_family_equals_the_python_kernels(name):
             assert nk is None
             continue
         if nk is None:   # only a kernel above the size cap of the C compiler stays Python
-            g, _, outputs = spec.build(runtime.frames(model))[0].trace
-            assert len(g.live(outputs)[1]) > runtime.THRESHOLDS['native_nodes'], spec.name
+            t = spec.build(runtime.frames(model))
+            assert len(t.graph.live(t.outputs)[1]) > runtime.THRESHOLDS['native_nodes'], spec.name
             continue
-        k = len(runtime._native_library(model, spec).widths)
+        k = runtime.kernel(model, spec).n_state
         args = [q, qd, qdd][:k]
         ref = _python_outputs(model, spec, args)
         batch = nk(*args)

@@ -30,7 +30,7 @@ its outputs pass the positive-definiteness test), else the vectorised reference.
 import numpy as np
 
 from . import crba, rnea
-from .cholesky import PD_RTOL, cho_solve, cholesky, kernel_accepts
+from .cholesky import PD_RTOL, cho_solve, cholesky
 from ..codegen import runtime
 from ..codegen.traced import aba as traced_aba
 from ..codegen.traced import cholesky as traced_cholesky
@@ -52,25 +52,14 @@ def forward_dynamics(model, q, qd, tau, wrenches=None, method='cholesky', out=No
     """
     if method not in METHODS:
         raise ValueError(f"unknown forward dynamics method {method!r}: use one of {METHODS}")
-    nk = None
-    if not wrenches:
-        nk = runtime.native(model, traced_aba.ABA if method == 'aba' else traced_cholesky.FORWARD_DYNAMICS)
-        if nk is not None:
-            qdd = nk(q, qd, tau, out)
-            if qdd is not None:
-                return qdd
-        elif out is None:
-            lists = runtime.fast_states(model.n, q, qd, tau)
-            if lists is not None:
-                qdd = _single(model, lists, method)
-                if qdd is not None:
-                    return qdd
-    single = np.ndim(q) == 1
-    q, qd, tau = model.check_states(q=q, qd=qd, tau=tau)
+    if not wrenches:   # the common case first: the kernel takes it or declines (None)
+        qdd = runtime.fast(model, traced_aba.ABA if method == 'aba' else traced_cholesky.FORWARD_DYNAMICS)(
+            q, qd, tau, out)
+        if qdd is not None:
+            return qdd
+    (q, qd, tau), single = model.validate(('q', 'qd', 'tau'), (q, qd, tau))
     runtime.check_out(out, q.shape[1:] if single else q.shape)
-    qdd = nk(q, qd, tau) if nk is not None else None   # inputs that were not contiguous float64 arrays
-    if qdd is None:
-        qdd = _forward_dynamics(model, q, qd, tau, wrenches, method)
+    qdd = _forward_dynamics(model, q, qd, tau, wrenches, method)
     return runtime.deliver(qdd[0] if single else qdd, out)
 
 
@@ -84,32 +73,18 @@ def _forward_dynamics(model, q, qd, tau, wrenches, method):
         if out is None:   # no kernel, a batch size where the vectorised form is faster, or a failed check
             out = _aba_vectorized(model, q, qd, tau, fext)
     else:
-        out = None if wrenches else _cholesky_kernel(model, q, qd, tau)
+        out = None if wrenches else runtime.run(model, traced_cholesky.FORWARD_DYNAMICS, [q, qd, tau])
         if out is None:
             out = _cholesky_vectorized(model, q, qd, tau, wrenches)
     return out
-
-
-def _single(model, lists, method):
-    """One state (float lists) through the float kernel; None when there is none or its
-    outputs fail the positive-definiteness test (the caller then reports it)."""
-    b = runtime.single(model, traced_aba.ABA if method == 'aba' else traced_cholesky.FORWARD_DYNAMICS)
-    if not b:
-        return None
-    try:
-        vals = b[0](*lists, *b[1])
-    except (ValueError, ZeroDivisionError, OverflowError):   # sqrt of a negative pivot, a zero pivot
-        return None
-    n = model.n
-    return np.array(vals[:n]) if (_aba_accepts if method == 'aba' else kernel_accepts)(vals, n) else None
 
 
 # ---------------------------------------------------------------------------- Cholesky
 def forward_dynamics_vectorized(model, q, qd, tau, wrenches=None):
     """forward_dynamics(..., method='cholesky') without its generated kernel: M and h by their
     own dispatch (crba.mass_matrix, rnea.inverse_dynamics), then a batched factorisation."""
-    single = np.ndim(q) == 1
-    out = _cholesky_vectorized(model, *model.check_states(q=q, qd=qd, tau=tau), wrenches)
+    (q, qd, tau), single = model.validate(('q', 'qd', 'tau'), (q, qd, tau))
+    out = _cholesky_vectorized(model, q, qd, tau, wrenches)
     return out[0] if single else out
 
 
@@ -120,64 +95,35 @@ def _cholesky_vectorized(model, q, qd, tau, wrenches):
 
 
 def forward_dynamics_kernel(model, q, qd, tau, mode=None):
-    """forward_dynamics(..., method='cholesky') from the generated kernel: mode 'loop'
+    """forward_dynamics(..., method='cholesky') from the generated Python kernel: mode 'loop'
     (Python floats, state by state), 'rows' (numpy rows) or None (as route decides). None
     when there is no kernel or a mass matrix fails the positive-definiteness test."""
-    single = np.ndim(q) == 1
-    out = _cholesky_kernel(model, *model.check_states(q=q, qd=qd, tau=tau), mode)
+    (q, qd, tau), single = model.validate(('q', 'qd', 'tau'), (q, qd, tau))
+    out = runtime.run(model, traced_cholesky.FORWARD_DYNAMICS, [q, qd, tau], mode, native_first=False)
     return out if out is None or not single else out[0]
-
-
-def _cholesky_kernel(model, q, qd, tau, mode=None):
-    vals = runtime.dispatch(model, traced_cholesky.FORWARD_DYNAMICS, [q, qd, tau], mode)
-    n = model.n
-    return vals[:, :n] if vals is not None and kernel_accepts(vals, n) else None
 
 
 # ---------------------------------------------------------------------------- ABA
 def aba_kernel(model, q, qd, tau, wrenches=None, mode=None):
     """forward_dynamics(..., method='aba') from the generated kernel: mode 'loop', 'rows' or
-    None (as route decides). None when there is no kernel (too many bodies, mimic joints,
-    screws other than unit revolute / prismatic axes) or an articulated inertia fails the
-    check (the vectorised form then raises)."""
-    single = np.ndim(q) == 1
-    q, qd, tau = model.check_states(q=q, qd=qd, tau=tau)
+    None (the native kernel, else as route decides). None when there is no kernel (too many
+    bodies, mimic joints, screws other than unit revolute / prismatic axes) or an
+    articulated inertia fails the check (the vectorised form then raises)."""
+    (q, qd, tau), single = model.validate(('q', 'qd', 'tau'), (q, qd, tau))
     out = _aba_kernel(model, q, qd, tau, external_body_wrenches(model, wrenches, len(q)), mode)
     return out if out is None or not single else out[0]
 
 
 def _aba_kernel(model, q, qd, tau, fext, mode=None):
-    spec = traced_aba.ABA if fext is None else traced_aba.ABA_WRENCH
-    nk = runtime.native(model, spec) if mode is None else None
-    if nk is not None:
-        extra = [] if fext is None else [traced_aba.native_wrenches(model, fext)]
-        qdd = nk(*[np.ascontiguousarray(a) for a in [q, qd, tau] + extra])
-        if qdd is not None:
-            return qdd
-    mode = runtime.check_mode(mode) or runtime.route(model, 'aba', len(q))
-    k = runtime.kernel(model, spec) if mode else None
-    if k is None:
-        return None
-    arrays = [q, qd, tau] + ([] if fext is None else [traced_aba.wrenches(k, fext)])
-    vals = runtime.evaluate(model, spec, arrays, mode)
-    n = model.n
-    return vals[:, :n] if vals is not None and _aba_accepts(vals, n) else None
-
-
-def _aba_accepts(vals, n):
-    """ABA kernel outputs (qdd, then per joint D_i and its scale, traced/aba.py) for one state
-    (a tuple) or a batch: a finite result and every D_i above PD_RTOL times its scale."""
-    if isinstance(vals, np.ndarray):
-        return bool(np.all(np.isfinite(vals[:, :n])) and np.all(vals[:, n:2 * n] > PD_RTOL * vals[:, 2 * n:]))
-    s = sum(vals[:n])
-    return s - s == 0.0 and all(d > PD_RTOL * m for d, m in zip(vals[n:2 * n], vals[2 * n:], strict=True))
+    if fext is None:
+        return runtime.run(model, traced_aba.ABA, [q, qd, tau], mode)
+    return runtime.run(model, traced_aba.ABA_WRENCH, [q, qd, tau, traced_aba.wrenches(model, fext)], mode)
 
 
 def aba_vectorized(model, q, qd, tau, wrenches=None):
     """forward_dynamics(..., method='aba') by the vectorised form only (numpy over the bodies
     of one depth and over states), whatever the model and batch size."""
-    single = np.ndim(q) == 1
-    q, qd, tau = model.check_states(q=q, qd=qd, tau=tau)
+    (q, qd, tau), single = model.validate(('q', 'qd', 'tau'), (q, qd, tau))
     out = _aba_vectorized(model, q, qd, tau, external_body_wrenches(model, wrenches, len(q)))
     return out[0] if single else out
 

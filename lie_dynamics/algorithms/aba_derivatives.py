@@ -16,7 +16,7 @@ the positive-definiteness test), else the vectorised reference.
 import numpy as np
 
 from . import crba, rnea
-from .cholesky import cho_solve, cholesky, kernel_accepts
+from .cholesky import cho_solve, cholesky
 from ..codegen import runtime
 from ..codegen.traced import derivatives as traced
 from .rnea_derivatives import inverse_dynamics_derivatives
@@ -29,59 +29,41 @@ def forward_dynamics_derivatives(model, q, qd, tau, wrenches=None):
     (Pinocchio's computeABADerivatives: ddq_dq, ddq_dv, Minv).
     """
     n = model.n
-    nk = None if wrenches else runtime.native(model, traced.FORWARD_DYNAMICS_DERIVATIVES)
-    if nk is not None:
-        out = nk(q, qd, tau)
+    if not wrenches:   # the common case first: the kernel takes it or declines (None)
+        out = runtime.fast(model, traced.FORWARD_DYNAMICS_DERIVATIVES)(q, qd, tau)
         if out is not None:
             out = out.reshape(out.shape[:-1] + (3, n, n))
             return out[..., 0, :, :], out[..., 1, :, :], out[..., 2, :, :]
-    elif not wrenches:
-        lists = runtime.fast_states(n, q, qd, tau)
-        b = runtime.single(model, traced.FORWARD_DYNAMICS_DERIVATIVES) if lists is not None else False
-        if b:
-            try:
-                vals = b[0](*lists, *b[1])
-            except (ValueError, ZeroDivisionError, OverflowError):   # sqrt of a negative pivot, a zero pivot
-                vals = None
-            if vals is not None and kernel_accepts(vals, 3 * n * n):
-                out = np.fromiter(vals[:3 * n * n], float, 3 * n * n).reshape(3, n, n)
-                return out[0], out[1], out[2]
-    single = np.ndim(q) == 1
-    q, qd, tau = model.check_states(q=q, qd=qd, tau=tau)
-    out = nk(q, qd, tau) if nk is not None else None
-    if out is not None:
-        out = out.reshape(len(q), 3, n, n)
-        out = out[:, 0], out[:, 1], out[:, 2]
-    elif not wrenches:
-        out = _kernel(model, q, qd, tau)
+    (q, qd, tau), single = model.validate(('q', 'qd', 'tau'), (q, qd, tau))
+    out = None if wrenches else _kernel(model, q, qd, tau)
     if out is not None:
         return tuple(o[0] for o in out) if single else out
     return _vectorized(model, q, qd, tau, wrenches, single)
 
 
 def forward_dynamics_derivatives_kernel(model, q, qd, tau, mode=None):
-    """forward_dynamics_derivatives (no wrenches) from the generated kernel: mode 'loop'
+    """forward_dynamics_derivatives (no wrenches) from the generated Python kernel: mode 'loop'
     (Python floats, state by state), 'rows' (numpy rows) or None (as route decides). None
     when there is no kernel or a mass matrix fails the positive-definiteness test."""
-    single = np.ndim(q) == 1
-    out = _kernel(model, *model.check_states(q=q, qd=qd, tau=tau), mode)
+    (q, qd, tau), single = model.validate(('q', 'qd', 'tau'), (q, qd, tau))
+    out = _kernel(model, q, qd, tau, mode, native_first=False)
     return out if out is None or not single else tuple(o[0] for o in out)
 
 
-def _kernel(model, q, qd, tau, mode=None):
-    vals = runtime.dispatch(model, traced.FORWARD_DYNAMICS_DERIVATIVES, [q, qd, tau], mode)
-    n = model.n
-    if vals is None or not kernel_accepts(vals, 3 * n * n):
+def _kernel(model, q, qd, tau, mode=None, native_first=True):
+    vals = runtime.run(model, traced.FORWARD_DYNAMICS_DERIVATIVES, [q, qd, tau], mode, native_first)
+    if vals is None:
         return None
-    out = vals[:, :3 * n * n].reshape(len(q), 3, n, n)
+    n = model.n
+    out = vals.reshape(len(q), 3, n, n)
     return out[:, 0], out[:, 1], out[:, 2]
 
 
 def forward_dynamics_derivatives_vectorized(model, q, qd, tau, wrenches=None):
     """forward_dynamics_derivatives without its generated kernel: M, h and the derivatives of
     inverse dynamics by their own dispatch, then batched Cholesky solves."""
-    single = np.ndim(q) == 1
-    return _vectorized(model, *model.check_states(q=q, qd=qd, tau=tau), wrenches, single)
+    (q, qd, tau), single = model.validate(('q', 'qd', 'tau'), (q, qd, tau))
+    return _vectorized(model, q, qd, tau, wrenches, single)
 
 
 def _vectorized(model, q, qd, tau, wrenches, single):

@@ -1,5 +1,6 @@
 """Dense Cholesky factorisation and solves for batches of mass matrices, with the positive
-definiteness test shared by every forward-dynamics path (the generated kernels' pivots too)."""
+definiteness test shared by every forward-dynamics path (the generated kernels' pivots too:
+their Spec.result gives PD_RTOL to codegen.runtime.accepts)."""
 import numpy as np
 
 from ..spatial import transpose
@@ -55,16 +56,3 @@ def cho_solve(L, B):
     else:
         X = np.linalg.solve(transpose(L), np.linalg.solve(L, B))
     return X[..., 0] if vec else X
-
-
-def kernel_accepts(vals, n_out):
-    """Outputs of a Cholesky kernel (traced/cholesky.py: n_out results, then the pivots and
-    diag(M), n each) for one state (a tuple) or a batch (N, k): a finite result and every
-    pivot above PD_RTOL times its diagonal entry."""
-    if isinstance(vals, np.ndarray):
-        n = (vals.shape[1] - n_out) // 2
-        piv, diag = vals[:, n_out:n_out + n], vals[:, n_out + n:]
-        return bool(np.all(np.isfinite(vals[:, :n_out])) and np.all(piv > PD_RTOL * diag))
-    n = (len(vals) - n_out) // 2
-    s = sum(vals[:n_out])
-    return s - s == 0.0 and all(p > PD_RTOL * d for p, d in zip(vals[n_out:n_out + n], vals[n_out + n:], strict=True))

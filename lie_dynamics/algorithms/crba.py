@@ -36,35 +36,23 @@ def _crba(model, x):
 def mass_matrix(model, q, out=None):
     """M(q) by the composite rigid body algorithm. q: (n,) or (N, n) -> (n, n) or (N, n, n).
     out: optional float64 array of the result's shape, written and returned."""
+    M = runtime.fast(model, traced.MASS_MATRIX)(q, out)
+    if M is not None:
+        return M
     n = model.n
-    nk = runtime.native(model, traced.MASS_MATRIX)
-    if nk is not None:
-        M = nk(q, out)
-        if M is not None:
-            return M
-    elif out is None:
-        x = runtime.is_fast_single(q, n)
-        if x is not None:
-            b = runtime.single(model, traced.MASS_MATRIX)
-            if b:
-                return np.array(b[0](x, *b[1])).reshape(n, n)
-    single = np.ndim(q) == 1
-    q = model.check_batch('q', q)
+    (q,), single = model.validate(('q',), (q,))
     runtime.check_out(out, (n, n) if single else (len(q), n, n))
-    M = nk(q) if nk is not None else None
-    if M is None:
-        vals = runtime.dispatch(model, traced.MASS_MATRIX, [q])
-        M = mass_matrix_vectorized(model, q) if vals is None else vals.reshape(len(q), n, n)
+    vals = runtime.run(model, traced.MASS_MATRIX, [q])
+    M = mass_matrix_vectorized(model, q) if vals is None else vals.reshape(len(q), n, n)
     return runtime.deliver(M[0] if single else M, out)
 
 
 def mass_matrix_kernel(model, q, mode=None):
-    """M(q) from the generated kernel: mode 'loop' (Python floats, state by state), 'rows'
-    (numpy rows) or None (as route decides). None without a kernel (or where route says the
-    vectorised form is faster)."""
-    single = np.ndim(q) == 1
-    q = model.check_batch('q', q)
-    vals = runtime.dispatch(model, traced.MASS_MATRIX, [q], mode)
+    """M(q) from the generated Python kernel: mode 'loop' (Python floats, state by state),
+    'rows' (numpy rows) or None (as route decides). None without a kernel (or where route
+    says the vectorised form is faster)."""
+    (q,), single = model.validate(('q',), (q,))
+    vals = runtime.run(model, traced.MASS_MATRIX, [q], mode, native_first=False)
     if vals is None:
         return None
     M = vals.reshape(len(q), model.n, model.n)

@@ -105,64 +105,35 @@ def jacobian_dot_times_qd(model, q, qd, link, frame='world_aligned', point=None,
     return _call(model, 'jacobian_dot', (q, qd), link, frame, point, mode)
 
 
-def _single(model, kind, link, frame):
-    """(native kernel or None, X as an array, float kernel or None, its arguments after the
-    states, outputs, shape) for one state of a link frame, or False (a link no controlled joint
-    moves, no kernel); cached per version (runtime.use_native starts a new one)."""
+def _kernel_of(model, kind, link, frame):
+    """(spec, X as an array) of a link frame's kernel, or False (a link no controlled joint
+    moves, no kernel); cached per version."""
     b, _, X, _ = target(model, link, frame, None)
-    if b < 0 or X is None:
-        return False
-    spec = traced.spec(kind, frame, b)
-    k = runtime.single(model, spec)
-    n = model.n
-    return (runtime.native(model, spec), np.array(X), k[0] if k else None, (X,) + tuple(k[1]) if k else None,
-            6 * n if kind == 'jacobian' else 6, (6, n) if kind == 'jacobian' else (6,))
+    return (traced.spec(kind, frame, b), np.array(X)) if b >= 0 and X is not None else False
 
 
 def _call(model, kind, states, link, frame, point, mode):
     if mode is None and point is None and type(link) is str:   # one state of a link frame: the hot path
-        k = runtime.derived(model, (kind, link, frame), lambda: _single(model, kind, link, frame))
+        k = runtime.derived(model, (kind, link, frame), lambda: _kernel_of(model, kind, link, frame))
         if k:
-            nk = k[0]
-            if nk is not None:   # takes (n,) float64 arrays, or declines (None)
-                r = nk(*states, k[1])
-                if r is not None:
-                    return r
-            elif k[2] is not None:
-                lists = runtime.fast_states(model.n, *states)
-                if lists is not None:
-                    return np.fromiter(k[2](*lists, *k[3]), float, k[4]).reshape(k[5])
+            r = runtime.fast(model, k[0])(*states, k[1])
+            if r is not None:
+                return r
     if mode not in MODES:
         raise ValueError(f'mode must be one of {MODES}, got {mode!r}')
     b, T, X, p = target(model, link, frame, point)
     n = model.n
     shape = (6, n) if kind == 'jacobian' else (6,)
-    nk = None
-    if b >= 0 and X is not None and mode is None:
-        spec = traced.spec(kind, frame, b)
-        nk = runtime.native(model, spec)
-        if nk is not None:
-            r = nk(*states, np.array(X))
-            if r is not None:
-                return r
-        else:
-            lists = runtime.fast_states(n, *states)
-            if lists is not None:
-                k = runtime.single(model, spec)
-                if k:
-                    return np.fromiter(k[0](*lists, X, *k[1]), float, 6 * n if kind == 'jacobian' else 6) \
-                        .reshape(shape)
-    single = np.ndim(states[0]) == 1
-    arrays = model.check_states(**dict(zip(('q', 'qd'), states)))
+    if b >= 0 and X is not None and mode is None and point is not None:   # the frame at a point: X given here
+        r = runtime.fast(model, traced.spec(kind, frame, b))(*states, np.array(X))
+        if r is not None:
+            return r
+    arrays, single = model.validate(('q', 'qd')[:len(states)], states)
     N = len(arrays[0])
     if b < 0:
         out = np.zeros((N,) + shape)
     else:
-        out = None
-        if nk is not None:   # validated states; X the same for every state
-            out = nk(*[np.ascontiguousarray(a) for a in arrays], np.tile(np.array(X), (N, 1)))
-        if out is None:
-            out = _evaluate(model, kind, frame, b, T, X, p, arrays, mode)
+        out = _evaluate(model, kind, frame, b, T, X, p, arrays, mode)
         if out is None:
             return None
         out = out.reshape((N,) + shape)
@@ -170,13 +141,14 @@ def _call(model, kind, states, link, frame, point, mode):
 
 
 def _evaluate(model, kind, frame, b, T, X, p, arrays, mode):
+    """On validated (N, n) arrays: the kernel (its C form first when mode is None), else, for
+    mode None or 'vectorized', the reference; X the same for every state."""
     N = len(arrays[0])
     if mode != 'vectorized':
-        spec = traced.spec(kind, frame, b)
-        run = mode or runtime.route(model, 'jacobian', N)
         vals = None
-        if run and X is not None:
-            vals = runtime.evaluate(model, spec, arrays + [np.broadcast_to(np.array(X), (N, 12))], run)
+        if X is not None:
+            X = np.broadcast_to(np.array(X), (N, 12))
+            vals = runtime.run(model, traced.spec(kind, frame, b), arrays + [X], mode)
         if vals is not None or mode is not None:
             return vals
     out = np.empty((N, 6, model.n) if kind == 'jacobian' else (N, 6))

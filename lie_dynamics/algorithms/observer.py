@@ -38,23 +38,11 @@ def generalized_momentum(model, q, qd):
     one state (n,) or a batch (N, n): the generated kernel (trace_momentum) where the model
     has one, else the matrices. Raises ValueError naming a bad argument."""
     n = model.n
-    nk = runtime.native(model, traced.MOMENTUM)
-    if nk is not None:
-        out = nk(q, qd)
-        if out is not None:
-            return out[..., :n], out[..., n:]
-    else:
-        lists = runtime.fast_states(n, q, qd)
-        if lists is not None:
-            b = runtime.single(model, traced.MOMENTUM)
-            if b:
-                out = b[0](*lists, *b[1])
-                return np.array(out[:n]), np.array(out[n:])
-    single = np.ndim(q) == 1
-    q, qd = model.check_states(q=q, qd=qd)
-    out = nk(q, qd) if nk is not None else None
-    if out is None:
-        out = runtime.dispatch(model, traced.MOMENTUM, [q, qd])
+    out = runtime.fast(model, traced.MOMENTUM)(q, qd)
+    if out is not None:
+        return out[..., :n], out[..., n:]
+    (q, qd), single = model.validate(('q', 'qd'), (q, qd))
+    out = runtime.run(model, traced.MOMENTUM, [q, qd])
     if out is None:
         p = np.einsum('...ij,...j->...i', model.mass_matrix(q), qd)
         c = np.einsum('...ji,...j->...i', model.coriolis_matrix(q, qd, method='recursive'), qd)

@@ -115,23 +115,11 @@ def regressor(model, q, qd, qdd):
     order, parameters as PARAMETER_NAMES (Pinocchio's computeJointTorqueRegressor layout).
     Gravity (as set on the model) is included.
     """
-    nk = runtime.native(model, traced.REGRESSOR)
-    if nk is not None:
-        Y = nk(q, qd, qdd)
-        if Y is not None:
-            return Y
-    else:
-        lists = runtime.fast_states(model.n, q, qd, qdd)
-        b = runtime.single(model, traced.REGRESSOR) if lists is not None else False
-        if b:
-            out = np.empty((model.n, 10 * model.nb))
-            b[2].extras[1].pack_into(out, 0, *b[0](*lists, *b[1]))
-            return out
-    single = np.ndim(q) == 1
-    q, qd, qdd = model.check_states(q=q, qd=qd, qdd=qdd)
-    Y = nk(q, qd, qdd) if nk is not None else None
-    if Y is None:
-        Y = _kernel(model, q, qd, qdd)
+    Y = runtime.fast(model, traced.REGRESSOR)(q, qd, qdd)
+    if Y is not None:
+        return Y
+    (q, qd, qdd), single = model.validate(('q', 'qd', 'qdd'), (q, qd, qdd))
+    Y = _kernel(model, q, qd, qdd)
     if Y is None:
         Y = _vectorized(model, q, qd, qdd)
     return Y[0] if single else Y
@@ -139,8 +127,8 @@ def regressor(model, q, qd, qdd):
 
 def regressor_vectorized(model, q, qd, qdd):
     """regressor() by the vectorised form (numpy over bodies and states), any model."""
-    single = np.ndim(q) == 1
-    Y = _vectorized(model, *model.check_states(q=q, qd=qd, qdd=qdd))
+    (q, qd, qdd), single = model.validate(('q', 'qd', 'qdd'), (q, qd, qdd))
+    Y = _vectorized(model, q, qd, qdd)
     return Y[0] if single else Y
 
 
@@ -160,34 +148,16 @@ def _vectorized(model, q, qd, qdd):
 
 
 def regressor_kernel(model, q, qd, qdd, mode=None):
-    """regressor() from the generated kernel: mode 'loop' (Python floats, state by state),
-    'rows' (numpy rows over the states) or None (as route decides; then also None where the
-    vectorised form is faster). None when the model has no kernel (screws that are not plain
-    URDF joints, or more (body, ancestor) pairs than THRESHOLDS allows)."""
-    single = np.ndim(q) == 1
-    q, qd, qdd = model.check_states(q=q, qd=qd, qdd=qdd)
-    Y = _kernel(model, q, qd, qdd, mode)
+    """regressor() from the generated Python kernel: mode 'loop' (Python floats, state by
+    state), 'rows' (numpy rows over the states) or None (as route decides; then also None
+    where the vectorised form is faster). None when the model has no kernel (screws that are
+    not plain URDF joints, or more (body, ancestor) pairs than THRESHOLDS allows)."""
+    (q, qd, qdd), single = model.validate(('q', 'qd', 'qdd'), (q, qd, qdd))
+    Y = _kernel(model, q, qd, qdd, mode, native_first=False)
     return Y if Y is None or not single else Y[0]
 
 
-def _kernel(model, q, qd, qdd, mode=None):
-    """Kernel path on validated (N, n) arrays -> (N, n, 10 nb), or None (see regressor_kernel)."""
-    N, n = q.shape
-    mode = runtime.check_mode(mode) or runtime.route(model, 'regressor', N)
-    k = runtime.kernel(model, traced.REGRESSOR) if mode else None
-    if k is None:
-        return None
-    idx, packer = k.extras
-    m = 10 * model.nb * n
-    if mode == 'loop':   # each state's non-zero outputs packed straight into place
-        fn, (A0, E0) = k.function, runtime.params(model, traced.REGRESSOR)
-        out = np.empty((N, n, 10 * model.nb))
-        for s, (a, b, c) in enumerate(zip(q.tolist(), qd.tolist(), qdd.tolist(), strict=True)):
-            packer.pack_into(out, 8 * m * s, *fn(a, b, c, A0, E0))
-        return out
-    out = np.zeros((N, m))
-    chunk = runtime.THRESHOLDS['regressor_rows_chunk']
-    for s in range(0, N, chunk):   # bounds the (outputs, states) work array of the batch runner
-        sl = slice(s, s + chunk)
-        out[sl, idx] = runtime.evaluate(model, traced.REGRESSOR, [q[sl], qd[sl], qdd[sl]], 'rows')
-    return out.reshape(N, n, 10 * model.nb)
+def _kernel(model, q, qd, qdd, mode=None, native_first=True):
+    """The kernels on validated (N, n) arrays -> (N, n, 10 nb), or None (see regressor_kernel)."""
+    Y = runtime.run(model, traced.REGRESSOR, [q, qd, qdd], mode, native_first)
+    return None if Y is None else Y.reshape(len(q), model.n, 10 * model.nb)

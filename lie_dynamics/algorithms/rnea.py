@@ -32,27 +32,6 @@ _ID_NO_GRAVITY = traced.INVERSE_DYNAMICS.variant(('inertia', 'no_gravity', 'offs
 _ID_WRENCH_NO_GRAVITY = traced.INVERSE_DYNAMICS_WRENCH.variant(('inertia', 'no_gravity', 'offsets'))
 
 
-def _states(model, args, names):
-    """Validated float arrays, all (n,) (one state) or all (N, n); raises ValueError naming the
-    argument. Float64 inputs are not copied."""
-    n = model.n
-    try:
-        arrs = [np.asarray(x, dtype=float) for x in args]
-    except (ValueError, TypeError):
-        arrs = None
-    if arrs is not None:
-        shape = arrs[0].shape
-        if len(shape) in (1, 2) and shape[-1] == n and all(x.shape == shape for x in arrs):
-            with np.errstate(over='ignore', invalid='ignore'):  # overflow only means: check exactly
-                s = sum(float(x.sum()) for x in arrs)
-            if s - s == 0.0:
-                return arrs
-    # exact checks (also accepts a (n,) state mixed with (1, n) ones, as a single state)
-    first = model.check_batch(names[0], args[0])
-    arrs = [first] + [model.check_batch(nm, x, first.shape[0]) for nm, x in zip(names[1:], args[1:], strict=True)]
-    return [x[0] for x in arrs] if np.ndim(args[0]) == 1 else arrs
-
-
 def inverse_dynamics(model, q, qd, qdd, wrenches=None, with_gravity=True, out=None):
     """tau for a state (n,) or a batch (N, n): paper eqs 16-21 (see module docstring).
 
@@ -60,86 +39,47 @@ def inverse_dynamics(model, q, qd, qdd, wrenches=None, with_gravity=True, out=No
     (6,) or (N, 6). with_gravity=False gives M(q) qdd + C(q, qd) qd. out: optional float64
     array of the result's shape to write into (a control loop then allocates nothing).
     """
-    nk = None
-    if not wrenches:   # the common case first: the native kernel takes it or declines (None)
-        nk = runtime.native(model, traced.INVERSE_DYNAMICS if with_gravity else _ID_NO_GRAVITY)
-        if nk is not None:
-            tau = nk(q, qd, qdd, out)
-            if tau is not None:
-                return tau
-        else:
-            lists = runtime.fast_states(model.n, q, qd, qdd) if out is None else None
-            if lists is not None:
-                b = runtime.single(model, traced.INVERSE_DYNAMICS if with_gravity else _ID_NO_GRAVITY)
-                if b:
-                    return np.array(b[0](*lists, *b[1]))
-    arrs = _states(model, (q, qd, qdd), ('q', 'qd', 'qdd'))
-    single = arrs[0].ndim == 1
-    N = 1 if single else len(arrs[0])
-    runtime.check_out(out, arrs[0].shape)
-    if nk is not None:   # inputs that were not contiguous float64 arrays
-        tau = nk(*arrs, out)
+    if not wrenches:   # the common case first: the kernel takes it or declines (None)
+        tau = runtime.fast(model, traced.INVERSE_DYNAMICS if with_gravity else _ID_NO_GRAVITY)(q, qd, qdd, out)
         if tau is not None:
             return tau
-    return runtime.deliver(_inverse_dynamics(model, arrs, single, N, wrenches, with_gravity), out)
+    arrs, single = model.validate(('q', 'qd', 'qdd'), (q, qd, qdd))
+    N = len(arrs[0])
+    runtime.check_out(out, arrs[0].shape[1:] if single else arrs[0].shape)
+    tau = _inverse_dynamics(model, arrs, N, wrenches, with_gravity)
+    return runtime.deliver(tau[0] if single else tau, out)
 
 
-def _inverse_dynamics(model, arrs, single, N, wrenches, with_gravity):
+def _inverse_dynamics(model, arrs, N, wrenches, with_gravity):
+    """On validated (N, n) arrays -> (N, n)."""
     fext = external_body_wrenches(model, wrenches, N)
     if fext is None:
         spec = traced.INVERSE_DYNAMICS if with_gravity else _ID_NO_GRAVITY
     else:
         spec = traced.INVERSE_DYNAMICS_WRENCH if with_gravity else _ID_WRENCH_NO_GRAVITY
-    arrays = [x.reshape(N, model.n) for x in arrs]
-    nk = runtime.native(model, spec)
-    if nk is not None:
-        if fext is not None:
-            arrays.append(runtime.frames(model).wrench_params(fext).reshape(N, 6 * model.nb))
-        tau = nk(*[np.ascontiguousarray(a) for a in arrays])
-        if tau is not None:
-            return tau[0] if single else tau
-        del arrays[3:]
-    mode = runtime.route(model, 'inverse_dynamics', N)
-    k = runtime.kernel(model, spec) if mode else None
-    if k is None:
-        return _vectorized(model, np.array(arrs), fext, with_gravity)
-    if fext is not None:
-        arrays.append(k.frames.wrench_params(fext).reshape(N, 6 * model.nb))
-    tau = runtime.evaluate(model, spec, arrays, mode, out=np.empty((N, model.n)))
-    return tau[0] if single else tau
+        arrs = arrs + [runtime.frames(model).wrench_params(fext).reshape(N, 6 * model.nb)]
+    tau = runtime.run(model, spec, arrs, c_order=True)
+    return _vectorized(model, np.array(arrs[:3]), fext, with_gravity) if tau is None else tau
 
 
 def inverse_dynamics_vectorized(model, q, qd, qdd, wrenches=None, with_gravity=True):
     """inverse_dynamics by the vectorised root-frame form only, whatever the model and batch size."""
-    a = np.array(_states(model, (q, qd, qdd), ('q', 'qd', 'qdd')))
-    return _vectorized(model, a, external_body_wrenches(model, wrenches, 1 if a.ndim == 2 else a.shape[1]),
-                       with_gravity)
+    arrs, single = model.validate(('q', 'qd', 'qdd'), (q, qd, qdd))
+    tau = _vectorized(model, np.array(arrs), external_body_wrenches(model, wrenches, len(arrs[0])), with_gravity)
+    return tau[0] if single else tau
 
 
 def gravity(model, q, out=None):
     """g(q): eqs 16-21 with V = 0 and Vd_0 = (0, -g); (n,) or (N, n). out: as inverse_dynamics."""
-    nk = runtime.native(model, traced.GRAVITY)
-    if nk is not None:
-        tau = nk(q, out)
-        if tau is not None:
-            return tau
-    elif out is None:
-        x = runtime.is_fast_single(q, model.n)
-        if x is not None:
-            b = runtime.single(model, traced.GRAVITY)
-            if b:
-                return np.array(b[0](x, *b[1]))
-    a = _states(model, (q,), ('q',))[0]
-    runtime.check_out(out, a.shape)
-    if nk is not None:
-        tau = nk(a, out)
-        if tau is not None:
-            return tau
-    N = 1 if a.ndim == 1 else len(a)
-    tau = runtime.dispatch(model, traced.GRAVITY, [a.reshape(N, model.n)], out=np.empty((N, model.n)))
+    tau = runtime.fast(model, traced.GRAVITY)(q, out)
+    if tau is not None:
+        return tau
+    (a,), single = model.validate(('q',), (q,))
+    runtime.check_out(out, a.shape[1:] if single else a.shape)
+    tau = runtime.run(model, traced.GRAVITY, [a], c_order=True)
     if tau is None:
-        return runtime.deliver(gravity_vectorized(model, a), out)
-    return runtime.deliver(tau[0] if a.ndim == 1 else tau, out)
+        tau = _gravity_vectorized(model, a)
+    return runtime.deliver(tau[0] if single else tau, out)
 
 
 def external_body_wrenches(model, wrenches, N):
@@ -170,10 +110,9 @@ def external_body_wrenches(model, wrenches, N):
 
 # ---------------------------------------------------------------- vectorised (reference) path
 def _vectorized(model, a, fext, with_gravity):
-    """Root-frame form of eqs 16-21 on a validated (3, n) or (3, N, n) array; fext: (N, nb, 6)
+    """Root-frame form of eqs 16-21 on a validated (3, N, n) array -> (N, n); fext: (N, nb, 6)
     body wrenches or None."""
-    single = a.ndim == 2
-    q, qd, qdd = (a[:, None] if single else a)
+    q, qd, qdd = a
     N = q.shape[0]
     a0 = model.base_acceleration if with_gravity else np.zeros(6)
     x = model.body_coordinates(q)
@@ -182,7 +121,7 @@ def _vectorized(model, a, fext, with_gravity):
     tau = np.empty((N, model.n))
     for sl in chunks(N, _PER_STATE):
         tau[sl] = _rnea(model, x[sl], xd[sl], xdd[sl], a0, None if fext is None else fext[sl])
-    return tau[0] if single else tau
+    return tau
 
 
 def _rnea(model, x, xd, xdd, a0, fext):
@@ -205,14 +144,17 @@ def _rnea(model, x, xd, xdd, a0, fext):
 
 def gravity_vectorized(model, q):
     """gravity by the vectorised root-frame form only."""
-    q = _states(model, (q,), ('q',))[0]
-    single = q.ndim == 1
-    q = q[None] if single else q
+    (q,), single = model.validate(('q',), (q,))
+    out = _gravity_vectorized(model, q)
+    return out[0] if single else out
+
+
+def _gravity_vectorized(model, q):
     x = model.body_coordinates(q)
     out = np.empty((q.shape[0], model.n))
     for sl in chunks(q.shape[0], _PER_STATE):
         out[sl] = _gravity(model, x[sl])
-    return out[0] if single else out
+    return out
 
 
 def _gravity(model, x):

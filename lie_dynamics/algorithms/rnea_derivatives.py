@@ -91,62 +91,36 @@ def inverse_dynamics_derivatives(model, q, qd, qdd, wrenches=None):
     wrenches: {link: (m, f)} in the link frame, as for inverse_dynamics.
     """
     n = model.n
-    if not wrenches:
-        nk = runtime.native(model, traced.INVERSE_DYNAMICS_DERIVATIVES)
-        if nk is not None:
-            out = nk(q, qd, qdd)
-            if out is not None:
-                out = out.reshape(out.shape[:-1] + (2, n, n))
-                return out[..., 0, :, :], out[..., 1, :, :]
-        else:
-            lists = runtime.fast_states(n, q, qd, qdd)
-            b = runtime.single(model, traced.INVERSE_DYNAMICS_DERIVATIVES) if lists is not None else False
-            if b:
-                out = np.fromiter(b[0](*lists, *b[1]), float, 2 * n * n).reshape(2, n, n)
-                return out[0], out[1]
-    single = np.ndim(q) == 1
-    q, qd, qdd = model.check_states(q=q, qd=qd, qdd=qdd)
+    if not wrenches:   # the common case first: the kernel takes it or declines (None)
+        out = runtime.fast(model, traced.INVERSE_DYNAMICS_DERIVATIVES)(q, qd, qdd)
+        if out is not None:
+            out = out.reshape(out.shape[:-1] + (2, n, n))
+            return out[..., 0, :, :], out[..., 1, :, :]
+    (q, qd, qdd), single = model.validate(('q', 'qd', 'qdd'), (q, qd, qdd))
     fext = external_body_wrenches(model, wrenches, len(q))
-    res = _native(model, q, qd, qdd, fext) or _kernel(model, q, qd, qdd, fext)
+    res = _kernel(model, q, qd, qdd, fext)
     if res is None:
         res = _vectorized(model, q, qd, qdd, fext)
     return (res[0][0], res[1][0]) if single else res
 
 
 def inverse_dynamics_derivatives_kernel(model, q, qd, qdd, wrenches=None, mode=None):
-    """inverse_dynamics_derivatives from the generated kernel: mode 'loop' (Python floats,
-    state by state), 'rows' (numpy rows) or None (as route decides); None without a kernel."""
-    single = np.ndim(q) == 1
-    q, qd, qdd = model.check_states(q=q, qd=qd, qdd=qdd)
-    res = _kernel(model, q, qd, qdd, external_body_wrenches(model, wrenches, len(q)), mode)
+    """inverse_dynamics_derivatives from the generated Python kernel: mode 'loop' (Python
+    floats, state by state), 'rows' (numpy rows) or None (as route decides); None without a
+    kernel."""
+    (q, qd, qdd), single = model.validate(('q', 'qd', 'qdd'), (q, qd, qdd))
+    res = _kernel(model, q, qd, qdd, external_body_wrenches(model, wrenches, len(q)), mode, native_first=False)
     return res if res is None or not single else (res[0][0], res[1][0])
 
 
-def _native(model, q, qd, qdd, fext):
-    """The native kernel on validated (N, n) arrays: (dtau/dq, dtau/dqd), or None."""
-    spec = traced.INVERSE_DYNAMICS_DERIVATIVES if fext is None else traced.INVERSE_DYNAMICS_DERIVATIVES_WRENCH
-    nk = runtime.native(model, spec)
-    if nk is None:
-        return None
-    N, n = q.shape
-    extra = [] if fext is None else [runtime.frames(model).wrench_params(fext).reshape(N, -1)]
-    vals = nk(*[np.ascontiguousarray(a) for a in [q, qd, qdd] + extra])
-    if vals is None:
-        return None
-    vals = vals.reshape(N, 2, n, n)
-    return vals[:, 0], vals[:, 1]
-
-
-def _kernel(model, q, qd, qdd, fext, mode=None):
+def _kernel(model, q, qd, qdd, fext, mode=None, native_first=True):
     """On validated (N, n) arrays; fext: (N, nb, 6) body-frame wrenches or None."""
-    spec = traced.INVERSE_DYNAMICS_DERIVATIVES if fext is None else traced.INVERSE_DYNAMICS_DERIVATIVES_WRENCH
     N, n = q.shape
-    mode = runtime.check_mode(mode) or runtime.route(model, 'inverse_dynamics_derivatives', N)
-    k = runtime.kernel(model, spec) if mode else None
-    if k is None:
-        return None
-    arrays = [q, qd, qdd] + ([] if fext is None else [k.frames.wrench_params(fext).reshape(N, -1)])
-    vals = runtime.evaluate(model, spec, arrays, mode)
+    if fext is None:
+        vals = runtime.run(model, traced.INVERSE_DYNAMICS_DERIVATIVES, [q, qd, qdd], mode, native_first)
+    else:
+        fx = runtime.frames(model).wrench_params(fext).reshape(N, -1)
+        vals = runtime.run(model, traced.INVERSE_DYNAMICS_DERIVATIVES_WRENCH, [q, qd, qdd, fx], mode, native_first)
     if vals is None:
         return None
     vals = vals.reshape(N, 2, n, n)
@@ -155,8 +129,7 @@ def _kernel(model, q, qd, qdd, fext, mode=None):
 
 def inverse_dynamics_derivatives_vectorized(model, q, qd, qdd, wrenches=None):
     """inverse_dynamics_derivatives by the vectorised form (numpy over bodies and states)."""
-    single = np.ndim(q) == 1
-    q, qd, qdd = model.check_states(q=q, qd=qd, qdd=qdd)
+    (q, qd, qdd), single = model.validate(('q', 'qd', 'qdd'), (q, qd, qdd))
     dq, dv = _vectorized(model, q, qd, qdd, external_body_wrenches(model, wrenches, len(q)))
     return (dq[0], dv[0]) if single else (dq, dv)
 
@@ -183,22 +156,11 @@ def coriolis_matrix(model, q, qd):
     q, qd: (n,) or (N, n) -> (n, n) or (N, n, n).
     """
     n = model.n
-    nk = runtime.native(model, traced.CORIOLIS)
-    if nk is not None:
-        C = nk(q, qd)
-        if C is not None:
-            return C
-    else:
-        lists = runtime.fast_states(n, q, qd)
-        b = runtime.single(model, traced.CORIOLIS) if lists is not None else False
-        if b:
-            return np.fromiter(b[0](*lists, *b[1]), float, n * n).reshape(n, n)
-    single = np.ndim(q) == 1
-    q, qd = model.check_states(q=q, qd=qd)
-    C = nk(q, qd) if nk is not None else None
+    C = runtime.fast(model, traced.CORIOLIS)(q, qd)
     if C is not None:
-        return C[0] if single else C
-    C = runtime.dispatch(model, traced.CORIOLIS, [q, qd])
+        return C
+    (q, qd), single = model.validate(('q', 'qd'), (q, qd))
+    C = runtime.run(model, traced.CORIOLIS, [q, qd])
     C = 0.5 * _vectorized(model, q, qd, np.zeros_like(qd), None)[1] if C is None else C.reshape(len(q), n, n)
     return C[0] if single else C
 

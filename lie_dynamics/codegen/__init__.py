@@ -11,10 +11,12 @@ numpy call at all) and on numpy rows with one entry per state for a batch.
   tracer.py   Sym and Graph: the traced scalars, constant folding, shared subexpressions
   render.py   the graph as source: for floats (emit) and for numpy rows (emit_rows)
   crender.py  the graph as C (the native backend), operation for operation as emit
+  kernel.py   Trace (a traced kernel and its argument roles) and Kernel (the one kernel type:
+              the trace and its float, rows and native renderings)
   native.py   the native backend: compiler, disk cache, loading; native_call.c its call path
   algebra.py  3-vectors, 3x3 matrices and spatial algebra on tuples, for tracing
   frames.py   per-structure constants: body frames with every joint axis along z
   thresholds.py  the one threshold table (THRESHOLDS), each entry with its measurement
-  runtime.py  the cache, the dispatch, the batch runner and the native kernels' binding
+  runtime.py  the cache, the dispatch (fast, run), the batch runner and the native kernels' binding
   traced/     each algorithm's traced form and kernel spec (algorithms/ calls them)
 """

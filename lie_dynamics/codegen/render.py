@@ -6,15 +6,14 @@ The same traced algorithm is rendered twice:
     is mostly call overhead), and
   * `emit_rows`: a function on numpy rows with one entry per state, for a batch (state-last
     rows; each operation is one ufunc whose fixed cost the whole chunk shares).
-`kernel` compiles the float form and keeps the rows form's source; `rows_function` compiles
-it on first use. The third rendering, C for the native backend, is crender.py (from the trace
-`kernel` keeps). Argument lists are per-state values unless marked as parameters (Params).
+kernel.Kernel compiles the float form and keeps the rows form's source (compiled on first use).
+The third rendering, C for the native backend, is crender.py. Argument lists are per-state
+values unless marked as parameters (Params).
 """
 import math
 
 import numpy as np
 
-from . import native
 from .tracer import Sym
 
 def form_text(items, const, ref, literal=repr):
@@ -309,28 +308,6 @@ _ROWS_ENV = dict(multiply=np.multiply, add=np.add, subtract=np.subtract, divide=
                  sin=np.sin, cos=np.cos, sqrt=np.sqrt, sin_=math.sin, cos_=math.cos, sqrt_=math.sqrt)
 
 
-def kernel(g, fname, arg_lists, outputs):
-    """(function, float source): the traced outputs compiled for Python floats (one state),
-    with the numpy-rows rendering as attributes rows_source / nreg (see rows_function)."""
-    src = emit(g, fname, arg_lists, outputs)
-    fn = compile_function(src, fname)
-    fn.rows_source, fn.nreg = emit_rows(g, fname + '_rows', arg_lists, outputs)
-    fn.rows = None
-    fn.n_out = len(outputs)
-    fn.pool = []   # reusable register blocks of the rows form (runtime.run_rows)
-    fn.layout = None
-    # the trace, for the C renderer (runtime.native renders it once, then drops it)
-    fn.trace = (g, arg_lists, outputs) if native.wanted() else None
-    return fn, src
-
-
-def rows_function(fn):
-    """The compiled numpy-rows rendering of a kernel, compiled on first use: callers that
-    only ever run one state (a controller) do not pay for it (about a sixth of a build)."""
-    if fn.rows is None:
-        ns = dict(_ROWS_ENV)
-        name = fn.__name__ + '_rows'
-        exec(compile(fn.rows_source, f'<lie_dynamics generated {name}>', 'exec'), ns)
-        fn.rows = ns[name]
-    return fn.rows
-
+def rows_env():
+    """The names the rows rendering's source refers to (numpy ufuncs, math for parameters)."""
+    return _ROWS_ENV

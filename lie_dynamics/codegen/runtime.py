@@ -7,10 +7,13 @@ at run time (inertias and payloads, gravity, locked-joint values) enters the ker
 parameter lists, cached per model until the model's version changes (every setter bumps it).
 
 A kernel is described by a `Spec` (its traced form lives in codegen/traced/): how to build
-it from the model's Frames, which parameter lists follow the per-state arguments, and which
-entry of THRESHOLDS says when it runs. `route` is the one dispatch decision: the float
-kernel (one state, or a small batch state by state), the kernel on numpy rows (a large
-batch), or None: the algorithm's vectorised reference.
+it from the model's Frames, which parameter lists follow the per-state arguments, which
+entry of THRESHOLDS says when it runs and how its outputs are accepted; per structure it is
+one kernel.Kernel. `route` is the one dispatch decision: the float kernel (one state, or a
+small batch state by state), the kernel on numpy rows (a large batch), or None: the
+algorithm's vectorised reference. Every algorithm entry point runs `fast` (the call as
+given), then, when it declines, Model.validate once and `run` (native, route, kernel,
+accept), then its reference.
 """
 import collections
 import contextlib
@@ -20,10 +23,10 @@ import weakref
 
 import numpy as np
 
-from . import crender, native as _native
+from . import native as _native
 from .thresholds import THRESHOLDS, Limits  # noqa: F401 (Limits: part of this module's interface)
 from .frames import Frames
-from .render import rows_function
+from .kernel import Kernel, builds as _kernel_builds
 
 
 def pairs(model):
@@ -48,12 +51,12 @@ def route(model, name, N=None):
 class _Slot:
     """What the runtime keeps for one live model (dropped with it): its fingerprint, Frames and
     kernels (structure, never invalidated) and values that follow the model's version."""
-    __slots__ = ('ref', 'version', 'fingerprint', 'frames', 'kernels', 'structure', 'values', 'singles', 'natives')
+    __slots__ = ('ref', 'version', 'fingerprint', 'frames', 'kernels', 'structure', 'values', 'fast', 'natives')
 
     def __init__(self, model):
         self.ref = weakref.ref(model)
         self.version, self.fingerprint, self.frames = None, None, None
-        self.kernels, self.structure, self.values, self.singles, self.natives = {}, {}, {}, {}, {}
+        self.kernels, self.structure, self.values, self.fast, self.natives = {}, {}, {}, {}, {}
 
 
 _SLOTS = {}                                   # id(model) -> _Slot, removed when the model dies
@@ -68,13 +71,14 @@ def _slot(model):
         s = _SLOTS[id(model)] = _Slot(model)
         weakref.finalize(model, _SLOTS.pop, id(model), None)
     if s.version != model.version:
-        s.values, s.singles, s.natives = {}, {}, {}   # new dicts: concurrent readers keep the old ones
+        s.values, s.fast, s.natives = {}, {}, {}   # new dicts: concurrent readers keep the old ones
         s.version = model.version
     return s
 
 
 def _shared(key, make):
-    """The LRU entry `key`, made on a miss (outside the lock: builds take long)."""
+    """The LRU entry `key`, made on a miss (outside the lock: builds take long); `_BUILDS`
+    counts the Frames made (kernels count their renderings: kernel.builds)."""
     with _LOCK:
         v = _SHARED.get(key)
         if v is not None:
@@ -82,7 +86,7 @@ def _shared(key, make):
             return v
     v = make()
     with _LOCK:
-        _BUILDS[0] += 1
+        _BUILDS[0] += isinstance(v, Frames)
         v = _SHARED.setdefault(key, v)
         while len(_SHARED) > THRESHOLDS['compiled_cache']:
             _SHARED.popitem(last=False)
@@ -90,9 +94,9 @@ def _shared(key, make):
 
 
 def cache_info():
-    """dict(builds=kernels and Frames built since the process started, cached=entries in the
-    shared cache, models=live models with runtime state)."""
-    return dict(builds=_BUILDS[0], cached=len(_SHARED), models=len(_SLOTS))
+    """dict(builds=kernels rendered and Frames built since the process started, cached=entries
+    in the shared cache, models=live models with runtime state)."""
+    return dict(builds=_BUILDS[0] + _kernel_builds(), cached=len(_SHARED), models=len(_SLOTS))
 
 
 def clear():
@@ -140,33 +144,22 @@ def frames(model):
     return s.frames
 
 
-class Kernel(tuple):
-    """A built kernel of one model structure, by name: `frames` (Frames), `function` (the float
-    kernel, with its rows form: render.kernel), `source` (its Python text) and `extras` (what
-    the build returned after them: the ABA's geometry, the regressor's output index and
-    packer). Still indexable as the tuple (frames, function, source, *extras)."""
-    __slots__ = ()
-
-    frames = property(lambda self: self[0])
-    function = property(lambda self: self[1])
-    source = property(lambda self: self[2])
-    extras = property(lambda self: self[3:])
-
-
-def _compiled(model, name, build):
-    """The Kernel `name` of this model's structure from build(frames) (render.kernel's
-    (function, source[, extras...])), built once per structure; False when the model's screws
-    are not unit revolute / prismatic axes or build returns None."""
+def _entry(model, spec):
+    """spec's Kernel of this model's structure (created, not traced: kernel.Kernel), or None:
+    too large for THRESHOLDS, spec.supports(model) false, or screws other than unit revolute
+    / prismatic axes."""
     s = _slot(model)
-    k = s.kernels.get(name)
+    k = s.kernels.get(spec.name)
     if k is None:
-        fr = frames(model)
-
-        def make():
-            res = build(fr) if fr.supported else None
-            return Kernel((fr,) + tuple(res)) if res is not None else False
-        k = s.kernels[name] = _shared((fingerprint(model), name), make)
-    return k
+        t = THRESHOLDS[spec.limits]
+        if (model.nb if t.size == 'bodies' else pairs(model)) > t.compile_max \
+                or (spec.supports is not None and not spec.supports(model)) or not frames(model).supported:
+            k = False
+        else:
+            fr, fp = frames(model), fingerprint(model)
+            k = _shared((fp, spec.name), lambda: Kernel(lambda: spec.build(fr), spec.name, fr, fp))
+        s.kernels[spec.name] = k
+    return k or None
 
 
 # ---------------------------------------------------------------------------- parameters
@@ -208,54 +201,65 @@ def as_rows(values):
 # ---------------------------------------------------------------------------- kernels
 class Spec:
     """A generated kernel: `name` (its cache key: specs of one name share the compiled code),
-    `build(frames)` -> render.kernel's (function, source[, extras...]) or None, `params` (the
-    parameter lists that follow its per-state arguments: PARAMETERS keys, or functions
-    (model, kernel) -> tuple), `limits` (its THRESHOLDS entry), `supports` (an extra
+    `build(frames)` -> its kernel.Trace or None, `params` (the parameter lists that follow
+    its per-state arguments, the trace's Params lists in order: PARAMETERS keys, or
+    functions (model) -> tuple), `limits` (its THRESHOLDS entry), `supports` (an extra
     condition on the model, or None), `rows_arrays` (parameters of the rows form as 0-d
-    arrays, see as_rows) and `checked` (callers check the outputs: the rows form runs
-    without floating-point warnings) and `pooled` (the batch runner keeps its register blocks
-    between calls: run_rows). For the native backend: `result` (model) -> (shape of one
-    state's result, its first prod(shape) outputs, checked finite; rtol: None, or the
-    outputs after it are pivots then their scales, as many each, accepted above rtol times
-    the scale), None for all outputs as a vector; `scatter` (kernel) -> (flat indices,
-    size) when the outputs are the non-zero entries of a larger result. Parameter
-    functions are called (model, kernel) and (model, None) for the native backend."""
+    arrays, see as_rows), `checked` (the outputs are checked: the rows form runs without
+    floating-point warnings), `pooled` (the batch runner keeps its register blocks between
+    calls: run_rows), `rows_chunk` (None, or the THRESHOLDS entry bounding the states of one
+    rows call) and `result` (model) -> (shape of one state's result, rtol): its first
+    prod(shape) values are the result; rtol None, or the outputs after them are pivots then
+    their scales, as many each, accepted above rtol times the scale (`accepts`). None: all
+    outputs as a vector."""
     __slots__ = ('name', 'build', 'params', 'limits', 'supports', 'rows_arrays', 'checked', 'pooled', 'result',
-                 'scatter')
+                 'rows_chunk')
 
     def __init__(self, name, build, params, limits, supports=None, rows_arrays=False, checked=False,
-                 pooled=False, result=None, scatter=None):
+                 pooled=False, result=None, rows_chunk=None):
         self.name, self.build, self.params, self.limits = name, build, tuple(params), limits
         self.supports, self.rows_arrays, self.checked, self.pooled = supports, rows_arrays, checked, pooled
-        self.result, self.scatter = result, scatter
+        self.result, self.rows_chunk = result, rows_chunk
 
     def variant(self, params):
         """The same kernel with other parameter lists (e.g. gravity switched off)."""
         return Spec(self.name, self.build, params, self.limits, self.supports, self.rows_arrays, self.checked,
-                    self.pooled, self.result, self.scatter)
+                    self.pooled, self.result, self.rows_chunk)
 
 
 def kernel(model, spec):
-    """spec's Kernel for this model, or None:
-    too large for THRESHOLDS, screws other than unit revolute / prismatic axes, or
-    spec.supports(model) false."""
-    t = THRESHOLDS[spec.limits]
-    if (model.nb if t.size == 'bodies' else pairs(model)) > t.compile_max:
-        return None
-    if spec.supports is not None and not spec.supports(model):
-        return None
-    return _compiled(model, spec.name, spec.build) or None
+    """spec's Kernel for this model with its Python forms built, or None: too large for
+    THRESHOLDS, screws other than unit revolute / prismatic axes, or spec.supports(model)
+    false."""
+    k = _entry(model, spec)
+    return k if k is not None and k.python() else None
+
+
+class Bound:
+    """spec's Kernel with the parameter lists of one model version: `kernel`, `function` (its
+    float function), `params` and `rows_params` (those of the rows form)."""
+    __slots__ = ('kernel', 'function', 'params', 'rows_params')
+
+    def __init__(self, k, params, rows_params):
+        self.kernel, self.function, self.params, self.rows_params = k, k.function, params, rows_params
+
+
+def _parameters(model, spec):
+    return tuple(parameter(model, p) if isinstance(p, str) else p(model) for p in spec.params)
 
 
 def _bind(s, model, spec):
-    """(kernel, parameter lists, those of the rows form) of spec for the model's version, or False."""
+    """The Bound of spec for the model's version, or False (no kernel)."""
     b = s.values.get(spec)
     if b is None:
         k = kernel(model, spec)
+        b = False
         if k:
-            P = tuple(parameter(model, p) if isinstance(p, str) else p(model, k) for p in spec.params)
-            b = (k, P, as_rows(P) if spec.rows_arrays else P)
-        s.values[spec] = b = b or False
+            P = _parameters(model, spec)
+            if len(P) != k.roles.count('param'):
+                raise ValueError(f'kernel {spec.name}: {len(P)} parameter lists for {k.roles.count("param")}')
+            b = Bound(k, P, as_rows(P) if spec.rows_arrays else P)
+        s.values[spec] = b
     return b
 
 
@@ -263,53 +267,116 @@ def params(model, spec, rows=False):
     """The parameter lists of spec's kernel (for its rows form when rows), cached until the
     model's version changes; None when the model has no such kernel."""
     b = _bind(_slot(model), model, spec)
-    return (b[2] if rows else b[1]) if b else None
+    return (b.rows_params if rows else b.params) if b else None
 
 
-def single(model, spec):
-    """(float function, parameter lists, kernel) when one state of this model runs spec's
-    float kernel (route), else False; cached until the model's version changes."""
+def _result(model, spec, n_out):
+    """(shape of one state's result, its number of values, rtol or None): spec.result."""
+    shape, rtol = spec.result(model) if spec.result else ((n_out,), None)
+    return tuple(shape), int(np.prod(shape)), rtol
+
+
+def accepts(vals, m, rtol):
+    """Outputs of a kernel with pivots (Spec.result) for one state (a sequence) or a batch
+    (N, k): a finite result (the first m) and every pivot above rtol times its scale (the
+    outputs after the result: pivots, then as many scales). The one acceptance rule of the
+    Python kernels (native_call.c applies it to the C kernels' outputs)."""
+    if isinstance(vals, np.ndarray):
+        p = (vals.shape[1] - m) // 2
+        return bool(np.all(np.isfinite(vals[:, :m])) and np.all(vals[:, m:m + p] > rtol * vals[:, m + p:]))
+    p = (len(vals) - m) // 2
+    s = sum(vals[:m])
+    return s - s == 0.0 and all(d > rtol * c for d, c in zip(vals[m:m + p], vals[m + p:], strict=True))
+
+
+# ---------------------------------------------------------------------------- one call's fast path
+def _declined(*args):
+    return None
+
+
+class _Single:
+    """`fast` without a native kernel: one state given as (k,) float64 arrays or sequences of
+    k numbers (k per argument list) with a finite sum, through the float kernel; None for
+    anything else, `out` given, a kernel that raised or outputs that fail `accepts`."""
+    __slots__ = ('function', 'params', 'widths', 'n_state', 'shape', 'm', 'rtol', 'packer', 'size', 'kind')
+
+    def __init__(self, model, spec, b):
+        k = b.kernel
+        self.function, self.params, self.widths, self.n_state = b.function, b.params, k.widths, k.n_state
+        self.shape, self.m, self.rtol = _result(model, spec, k.n_out)
+        self.packer, self.size = k.packer, (k.scatter[1] if k.scatter else None)
+        # what becomes of the outputs: 0 all as a vector, 1 a matrix, 2 scattered, 3 pivots to test
+        self.kind = 2 if k.packer else 3 if self.rtol is not None else 1 if len(self.shape) > 1 else 0
+
+    def __call__(self, *args):
+        ns = self.n_state
+        if len(args) != ns and (len(args) != ns + 1 or args[ns] is not None):
+            return None
+        lists = _float_lists(self.widths, args, ns)
+        if lists is None:
+            return None
+        try:
+            vals = self.function(*lists, *self.params)
+        except (ValueError, ZeroDivisionError, OverflowError):   # sqrt of a negative pivot, a zero pivot
+            return None
+        kind = self.kind
+        if kind == 0:
+            return np.array(vals)
+        if kind == 1:
+            return np.fromiter(vals, float, self.m).reshape(self.shape)
+        if kind == 2:
+            out = np.empty(self.size)
+            self.packer.pack_into(out, 0, *vals)
+            return out.reshape(self.shape)
+        if not accepts(vals, self.m, self.rtol):
+            return None
+        return np.fromiter(vals, float, self.m).reshape(self.shape)
+
+
+def _float_lists(widths, xs, count):
+    """Float lists of the first `count` of one state's arguments xs: (k,) float64 arrays or
+    sequences of k numbers, k from widths, whose sum is finite; else None (the caller then
+    validates in full)."""
+    out = []
+    s = 0.0
+    for i in range(count):
+        x = xs[i]
+        n = widths[i]
+        if type(x) is _ND:
+            if x.shape != (n,) or x.dtype != _F64:
+                return None
+            x = x.tolist()
+        elif type(x) in (list, tuple) and len(x) == n:
+            try:
+                x = [float(v) for v in x]
+            except (TypeError, ValueError):
+                return None
+        else:
+            return None
+        s += sum(x)
+        out.append(x)
+    return out if s - s == 0.0 else None   # inf - inf and nan are not 0: exact checks
+
+
+def fast(model, spec):
+    """The first step of every entry point: a callable taking one call's per-state arguments
+    as given (and an optional `out`), unvalidated, that returns spec's result (shape of
+    Spec.result; (N,) + shape for a batch) or None, and then the caller validates and takes
+    the full path (`run`). It is the native kernel (runtime.native: contiguous float64 (n,)
+    or (N, n) arrays, the result checked in C), else, for one state that route sends to the
+    float kernel, that kernel on the float lists, else a callable that always declines.
+    Cached until the model's version changes."""
     s = _SLOTS.get(id(model))   # the hot path of a control loop: _slot, inlined
     if s is None or s.version != model.version or s.ref() is not model:
         s = _slot(model)
-    b = s.singles.get(spec)
-    if b is None:
-        k = _bind(s, model, spec) if route(model, spec.limits) == 'loop' else False
-        b = s.singles[spec] = (k[0].function, k[1], k[0]) if k else False
-    return b
-
-
-def _native_library(model, spec):
-    """The compiled C kernel of spec for this model's structure (native.Library), or False."""
-    t = THRESHOLDS[spec.limits]
-    if (model.nb if t.size == 'bodies' else pairs(model)) > t.compile_max or not _native.wanted():
-        return False
-    if (spec.supports is not None and not spec.supports(model)) or not frames(model).supported:
-        return False
-
-    def render():
-        k = kernel(model, spec)
-        if not k or k.function.trace is None:
-            return None
-        g, arg_lists, outputs = k.function.trace
-        k.function.trace = None                     # rendered once per structure (the library is cached)
-        if len(g.live(outputs)[1]) > THRESHOLDS['native_nodes']:
-            return None
-        n_state = len(arg_lists) - len(spec.params)
-        roles = ['state'] * n_state + ['param'] * len(spec.params)
-        index, size = spec.scatter(k) if spec.scatter else (None, None)
-        src = crender.emit_c(g, 'lie_kernel', arg_lists, roles, outputs, index, size)
-        return (src, [len(a) for _, a in arg_lists[:n_state]], [len(a) for _, a in arg_lists[n_state:]],
-                size or len(outputs))
-
-    def make():
-        return _native.library(fingerprint(model), spec.name, render) or False
-    s = _slot(model)
-    key = ('native', spec.name)
-    lib = s.kernels.get(key)
-    if lib is None:
-        lib = s.kernels[key] = _shared((fingerprint(model), key), make)
-    return lib
+    f = s.fast.get(spec)
+    if f is None:
+        f = native(model, spec)
+        if f is None:
+            b = _bind(s, model, spec) if route(model, spec.limits) == 'loop' else False
+            f = _Single(model, spec, b) if b else _declined
+        s.fast[spec] = f
+    return f
 
 
 def native(model, spec):
@@ -333,24 +400,24 @@ def use_native(model, on=True):
     for comparisons in one process; LIE_DYNAMICS_NATIVE=0 switches them off everywhere)."""
     s = _slot(model)
     s.structure['native_off'] = not on
-    s.natives, s.values = {}, {}   # values: derived entries that hold a bound native kernel
+    s.natives, s.fast, s.values = {}, {}, {}   # values: derived entries that hold a bound native kernel
 
 
 def _bind_native(model, spec):
-    if _slot(model).structure.get('native_off'):
+    if _slot(model).structure.get('native_off') or not _native.wanted():
         return None
-    lib = _native_library(model, spec)
-    if not lib:
+    k = _entry(model, spec)
+    lib = k.native() if k is not None else None
+    if lib is None:
         return None
     try:
-        P = tuple(parameter(model, p) if isinstance(p, str) else p(model, None) for p in spec.params)
+        P = _parameters(model, spec)
     except (ValueError, ZeroDivisionError, OverflowError):
         return None
     if tuple(len(p) for p in P) != lib.par_lengths:
         return None
-    shape, rtol = spec.result(model) if spec.result else ((lib.n_out,), None)
-    n_res = int(np.prod(shape))
-    return _native.bind(lib, P, n_res, shape, rtol is not None, rtol or 0.0, THRESHOLDS['native_gil_rows'])
+    shape, m, rtol = _result(model, spec, lib.n_out)
+    return _native.bind(lib, P, m, shape, rtol is not None, rtol or 0.0, THRESHOLDS['native_gil_rows'])
 
 
 def forget(model):
@@ -359,22 +426,84 @@ def forget(model):
     _SLOTS.pop(id(model), None)
 
 
+# ---------------------------------------------------------------------------- the full path
 def evaluate(model, spec, arrays, mode, out=None):
     """spec's kernel on validated per-state arrays (N, k_i), in the kernel's order: 'loop'
-    (floats, state by state) or 'rows' (into `out` when given). Returns (N, n_out), or None
-    when the model has no such kernel or the float kernel raised (sqrt of a negative pivot,
-    a zero pivot: callers report it by the reference)."""
+    (floats, state by state) or 'rows' (into `out` when given). Returns its outputs (N,
+    n_out), or None when the model has no such kernel or the float kernel raised (sqrt of a
+    negative pivot, a zero pivot: callers report it by the reference)."""
     b = _bind(_slot(model), model, spec)
-    if not b:
-        return None
-    fn = b[0].function
+    return _evaluate(b, spec, arrays, mode, out) if b else None
+
+
+def _evaluate(b, spec, arrays, mode, out=None):
+    k = b.kernel
     try:
         if mode == 'loop':
-            return np.array(run_loop(fn, arrays, b[1]), dtype=float).reshape(len(arrays[0]), fn.n_out)
-        return run_rows(fn, list(arrays) + list(b[2]), fn.n_out, out=out, quiet=spec.checked,
-                        pooled=spec.pooled)
+            return np.array(run_loop(b.function, arrays, b.params), dtype=float).reshape(len(arrays[0]), k.n_out)
+        return run_rows(k, list(arrays) + list(b.rows_params), out=out, quiet=spec.checked, pooled=spec.pooled)
     except (ValueError, ZeroDivisionError, OverflowError):   # also from parameters alone, as floats
         return None
+
+
+def run(model, spec, arrays, mode=None, native_first=True, c_order=False):
+    """The full path after validation: spec's kernel on validated (N, k_i) per-state arrays,
+    in the kernel's order. Its C form first (mode None and native_first), else the float
+    ('loop') or rows kernel where route (or the forced mode) says so, its outputs accepted
+    as Spec.result says and scattered into place (Kernel.scatter). Returns (N, values of one
+    state's result); c_order: the rows kernel writes a C-ordered array (else it returns the
+    transpose of a state-last one). None: no kernel, the vectorised reference is faster, or
+    the outputs failed the check (the reference then reports it)."""
+    N = len(arrays[0])
+    if mode is None and native_first:
+        nk = native(model, spec)
+        if nk is not None:
+            r = nk(*arrays)
+            if r is None and not all(a.flags.c_contiguous for a in arrays):
+                r = nk(*[np.ascontiguousarray(a) for a in arrays])
+            if r is not None:
+                return r if r.ndim == 2 else r.reshape(N, -1)
+    mode = check_mode(mode) or route(model, spec.limits, N)
+    b = _bind(_slot(model), model, spec) if mode else False
+    if not b:
+        return None
+    k = b.kernel
+    if k.scatter is not None:
+        return _scattered(b, spec, arrays, mode)
+    vals = _evaluate(b, spec, arrays, mode, np.empty((N, k.n_out)) if c_order and mode == 'rows' else None)
+    if vals is None:
+        return None
+    _, m, rtol = _result(model, spec, k.n_out)
+    if rtol is not None:
+        if not accepts(vals, m, rtol):
+            return None
+        vals = vals[:, :m]
+    return vals
+
+
+def _scattered(b, spec, arrays, mode):
+    """run for a kernel whose outputs are scattered into a larger result (Kernel.scatter)."""
+    k = b.kernel
+    idx, size = k.scatter
+    N = len(arrays[0])
+    if mode == 'loop':   # each state's outputs packed straight into place
+        res = np.empty((N, size))
+        fn, P, pack = b.function, b.params, k.packer.pack_into
+        try:
+            for s, state in enumerate(zip(*[a.tolist() for a in arrays], strict=True)):
+                pack(res, 8 * size * s, *fn(*state, *P))
+        except (ValueError, ZeroDivisionError, OverflowError):
+            return None
+        return res
+    res = np.zeros((N, size))
+    chunk = THRESHOLDS[spec.rows_chunk] if spec.rows_chunk else N
+    for s in range(0, N, chunk):   # bounds the (outputs, states) work array of the batch runner
+        sl = slice(s, s + chunk)
+        vals = _evaluate(b, spec, [a[sl] for a in arrays], 'rows')
+        if vals is None:
+            return None
+        res[sl, idx] = vals
+    return res
 
 
 def check_out(out, shape):
@@ -401,44 +530,15 @@ def check_mode(mode):
     return mode
 
 
-def dispatch(model, spec, arrays, mode=None, out=None):
-    """spec's kernel on validated (N, k_i) per-state arrays where route (or a forced mode,
-    'loop' or 'rows') says so: (N, n_out) outputs, or None for the vectorised reference."""
-    mode = check_mode(mode) or route(model, spec.limits, len(arrays[0]))
-    return evaluate(model, spec, arrays, mode, out) if mode else None
-
-
 # ---------------------------------------------------------------------------- running kernels
 _ND = np.ndarray
 _F64 = np.dtype(float)
 _NO_ERRSTATE = contextlib.nullcontext()
 
 
-def fast_states(n, *xs):
-    """Float lists for one state given as (n,) float64 arrays or sequences of n numbers whose
-    sum is finite, else None (callers then validate in full and report what is wrong)."""
-    out = []
-    s = 0.0
-    for x in xs:
-        if type(x) is _ND:
-            if x.shape != (n,) or x.dtype != _F64:
-                return None
-            x = x.tolist()
-        elif type(x) in (list, tuple) and len(x) == n:
-            try:
-                x = [float(v) for v in x]
-            except (TypeError, ValueError):
-                return None
-        else:
-            return None
-        s += sum(x)
-        out.append(x)
-    return out if s - s == 0.0 else None   # inf - inf and nan are not 0: exact checks
-
-
 def is_fast_single(x, n):
-    """fast_states for one argument: its float list, or None."""
-    lists = fast_states(n, x)
+    """One (n,) float64 array or sequence of n numbers with a finite sum as a float list, or None."""
+    lists = _float_lists((n,), (x,), 1)
     return lists[0] if lists else None
 
 
@@ -462,9 +562,9 @@ def run_loop(fn, arrays, params):
     return loop(fn, [x.tolist() for x in arrays], params)
 
 
-def run_rows(fn, args, n_out, chunk=None, out=None, quiet=True, pooled=False):
-    """Run a kernel's rows form on a batch: args in the kernel's order, (N, k) arrays for the
-    per-state lists and parameter sequences otherwise. Returns (N, n_out): `out` when given
+def run_rows(k, args, chunk=None, out=None, quiet=True, pooled=False):
+    """Run Kernel k's rows form on a batch: args in the kernel's order, (N, width) arrays for
+    its per-state lists (Kernel.roles), then the parameter sequences. Returns (N, k.n_out): `out` when given
     (written column by column), else the transpose of a state-last array. quiet: no
     floating-point warnings (for callers that check the outputs).
 
@@ -477,18 +577,19 @@ def run_rows(fn, args, n_out, chunk=None, out=None, quiet=True, pooled=False):
     threshold above it, and every large temporary of such a call (e.g. the regressor's
     output) stays a fresh mmap with its page faults.
     """
-    rows_fn = rows_function(fn)
-    lay = fn.layout
-    if lay is None or lay[0] != len(args):   # where the per-state arrays are: fixed per kernel
-        idx = tuple(i for i, a in enumerate(args) if isinstance(a, _ND) and a.ndim == 2)
-        height = fn.nreg + 1 + sum(args[i].shape[1] for i in idx)
+    rows_fn = k.rows()
+    lay = k.layout
+    if lay is None:   # the block's height and the chunk size: fixed per kernel
+        height = k.nreg + 1 + sum(k.widths[:k.n_state])
         size = int(min(THRESHOLDS['rows_chunk'], max(256, THRESHOLDS['rows_bytes'] // (8 * height))))
-        lay = fn.layout = (len(args), idx, height, size)
-    _, idx, height, size = lay
+        lay = k.layout = (height, size)
+    height, size = lay
     size = chunk or size
-    regs = fn.nreg + 1
-    N = args[idx[0]].shape[0]
-    buf = fn.pool.pop() if pooled and fn.pool else None
+    regs = k.nreg + 1
+    idx = range(k.n_state)
+    n_out = k.n_out
+    N = args[0].shape[0]
+    buf = k.pool.pop() if pooled and k.pool else None
     if buf is None or buf.size < height * min(size, N):
         buf = np.empty(height * (size if pooled else min(size, N)))
     res = np.empty((n_out, N)) if out is None else None
@@ -501,18 +602,18 @@ def run_rows(fn, args, n_out, chunk=None, out=None, quiet=True, pooled=False):
                 view = buf[:height * (stop - start)].reshape(height, stop - start)   # adjacent rows
                 r = regs
                 for i in idx:
-                    w = args[i].shape[1]
+                    w = k.widths[i]
                     view[r:r + w] = args[i][start:stop].T
                     call[i] = view[r:r + w]
                     r += w
                 vals = rows_fn(*call, list(view[:regs]))
                 if out is None:
-                    for k, v in enumerate(vals):
-                        res[k, start:stop] = v
+                    for j, v in enumerate(vals):
+                        res[j, start:stop] = v
                 else:
-                    for k, v in enumerate(vals):
-                        out[start:stop, k] = v
+                    for j, v in enumerate(vals):
+                        out[start:stop, j] = v
     finally:
         if pooled:
-            fn.pool.append(buf)
+            k.pool.append(buf)
     return res.T if out is None else out

@@ -356,12 +356,31 @@ class Model:
     def check_states(self, **arrays):
         """check_batch for the state arguments of one call, in keyword order: the first sets the
         number of states N, the others must match it. Returns the (N, n) arrays in that order."""
+        return self.validate(tuple(arrays), tuple(arrays.values()))[0]
+
+    def validate(self, names, args):
+        """The one validation of a call's per-state arguments (`names` name them in messages):
+        ((N, n) float arrays, whether the call is one state: its first argument is (n,)).
+        The common case is one check: arrays of one shape, (n,) or (N, n), with a finite sum
+        (float64 ones are not copied). Anything else is checked argument by argument
+        (check_batch: the first sets N), and the first bad one raises ValueError naming it."""
+        try:
+            arrs = [np.asarray(x, dtype=float) for x in args]
+        except (ValueError, TypeError):
+            arrs = None
+        if arrs is not None:
+            shape = arrs[0].shape
+            if len(shape) in (1, 2) and shape[-1] == self.n and all(x.shape == shape for x in arrs):
+                with np.errstate(over='ignore', invalid='ignore'):   # overflow only means: check exactly
+                    s = sum(float(x.sum()) for x in arrs)
+                if s - s == 0.0:
+                    return ([x[None] for x in arrs] if len(shape) == 1 else arrs), len(shape) == 1
         out, N = [], None
-        for name, x in arrays.items():
+        for name, x in zip(names, args, strict=True):
             a = self.check_batch(name, x, N)
             N = a.shape[0]
             out.append(a)
-        return out
+        return out, np.ndim(args[0]) == 1
 
     def body_coordinates(self, q):
         """Body joint values x = E q + L q_locked + c0 for a batch q (N, n)."""

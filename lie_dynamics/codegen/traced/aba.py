@@ -15,7 +15,7 @@ import numpy as np
 
 from .. import algebra as la
 from .. import runtime
-from ..render import kernel
+from ..kernel import Trace
 from ...algorithms.cholesky import PD_RTOL
 from ..runtime import Spec
 from ..tracer import SNAP, Graph, Sym, snap
@@ -430,7 +430,7 @@ def build_aba(fr, wrench=False):
         if joint_of[b] is not None:
             per_joint[joint_of[b]] = res[b]
     outputs = [r[i] for i in range(3) for r in per_joint]
-    return kernel(g, 'aba_kernel', args, outputs) + (geom,)
+    return Trace(g, 'aba_kernel', args, outputs)
 
 
 def supports(model):
@@ -447,19 +447,14 @@ def _geometry(model):
     return runtime.structural(model, 'aba_geometry', lambda: _Geometry(runtime.frames(model)))
 
 
-def _inertias(model, k):
-    """The inertia parameters in the kernel's frames (_Geometry.params; k may be None)."""
+def _inertias(model):
+    """The inertia parameters in the kernel's frames (_Geometry.params)."""
     return tuple(_geometry(model).params(runtime.parameter(model, 'inertia')))
 
 
-def native_wrenches(model, fext):
+def wrenches(model, fext):
     """(N, nb, 6) body-frame wrenches -> the FX argument of the kernels (their frames)."""
     return _geometry(model).wrenches(fext)
-
-
-def wrenches(k, fext):
-    """(N, nb, 6) body-frame wrenches -> the FX argument of kernel k (its frames)."""
-    return k.extras[0].wrenches(fext)
 
 
 ABA = Spec('aba', lambda fr: build_aba(fr, False), (_inertias, 'gravity', 'offsets'), 'aba',

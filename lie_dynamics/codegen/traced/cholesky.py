@@ -6,7 +6,7 @@ the model's tree (algorithms/aba.py, method='cholesky'). The kernels end their o
 with the pivots d_j^2 and diag(M): callers test positive definiteness with them
 (algorithms/cholesky.py), blind to the scale of the masses.
 """
-from ..render import kernel
+from ..kernel import Trace
 from ...algorithms.cholesky import PD_RTOL
 from ..runtime import Spec
 from ..tracer import Graph
@@ -85,7 +85,7 @@ def build_forward_dynamics(fr):
     co, args, params, ga, taus = trace_inputs(fr, g)
     z, M, L, inv_d, pivots = trace_forward_dynamics(fr, g, co['x'], co['xd'], params, ga, taus)
     outputs = z + pivots + [M[j][j] for j in range(fr.n)]
-    return kernel(g, 'forward_dynamics_kernel', args, outputs)
+    return Trace(g, 'forward_dynamics_kernel', args, outputs)
 
 
 FORWARD_DYNAMICS = Spec('forward_dynamics', build_forward_dynamics, ('inertia', 'gravity', 'offsets'),

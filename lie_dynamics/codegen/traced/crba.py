@@ -1,6 +1,6 @@
 """The composite rigid body algorithm, traced (the recursive form of eq 39; algorithms/crba.py)."""
 from .. import algebra as la
-from ..render import kernel
+from ..kernel import Trace
 from ..runtime import Spec
 from ..tracer import Graph
 
@@ -51,7 +51,7 @@ def build_mass_matrix(fr):
     X = [fr.joint_transform(g, b, co['x'][b]) for b in range(fr.nb)]
     M = trace_mass_matrix(fr, g, params, X)
     outputs = [v for row in M for v in row]
-    return kernel(g, 'mass_kernel', co['args'] + [parg, co['offset_args']], outputs)
+    return Trace(g, 'mass_kernel', co['args'] + [parg, co['offset_args']], outputs)
 
 
 MASS_MATRIX = Spec('mass_matrix', build_mass_matrix, ('inertia', 'offsets'), 'mass_matrix',

@@ -1,7 +1,7 @@
 """Derivatives of inverse and forward dynamics, traced (formulas in algorithms/rnea_derivatives.py
 and algorithms/aba_derivatives.py)."""
 from .. import algebra as la
-from ..render import kernel
+from ..kernel import Trace
 from ...algorithms.cholesky import PD_RTOL
 from ..runtime import Spec
 from ..tracer import Graph
@@ -119,7 +119,7 @@ def build_inverse_dynamics_derivatives(fr, wrench=False, center=0, coriolis=Fals
         outputs = [0.5 * dv[r][c] for r in range(n) for c in range(n)]
     else:
         outputs = [dq[r][c] for r in range(n) for c in range(n)] + [dv[r][c] for r in range(n) for c in range(n)]
-    return kernel(g, 'rnea_derivatives_kernel', args, outputs)
+    return Trace(g, 'rnea_derivatives_kernel', args, outputs)
 
 
 def _poses(fr, g, x, r):
@@ -193,7 +193,7 @@ def build_forward_dynamics_derivatives(fr):
     for k in range(3):
         outputs += [cols[k * n + c][r] for r in range(n) for c in range(n)]
     outputs += pivots + [M[j][j] for j in range(n)]
-    return kernel(g, 'forward_dynamics_derivatives_kernel', args, outputs)
+    return Trace(g, 'forward_dynamics_derivatives_kernel', args, outputs)
 
 
 INVERSE_DYNAMICS_DERIVATIVES = Spec(

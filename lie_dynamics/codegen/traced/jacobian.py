@@ -19,7 +19,7 @@ translation, in the body's primed frame; Frames.point_params), so one kernel ser
 link fixed to the body and every point.
 """
 from .. import algebra as la
-from ..render import kernel
+from ..kernel import Trace
 from ..runtime import Spec
 from ..tracer import Graph
 
@@ -121,7 +121,7 @@ def trace_drift(fr, g, x, xd, X, body, frame):
 
 
 def build(fr, kind, frame, body):
-    """k(Q[, QD], X, E0) -> the Jacobian (6 n, row-major) or J̇q̇ (6), as render.kernel."""
+    """k(Q[, QD], X, E0) -> the Jacobian (6 n, row-major) or J̇q̇ (6): its Trace."""
     g = Graph()
     co = fr.trace_coordinates(g, rates=1 if kind == 'jacobian_dot' else 0)
     names = [f'lk{k}' for k in range(12)]
@@ -131,7 +131,7 @@ def build(fr, kind, frame, body):
         outputs = trace_jacobian(fr, g, co['x'], X, body, frame)
     else:
         outputs = trace_drift(fr, g, co['x'], co['xd'], X, body, frame)
-    return kernel(g, f'{kind}_kernel', args, outputs)
+    return Trace(g, f'{kind}_kernel', args, outputs)
 
 
 _SPECS = {}

@@ -7,12 +7,8 @@ same operation count for coordinate-axis joints (the arm), 7-50% more for genera
 (counted on the test robots), while here only a few products per body are added (the axis
 is not e_z).
 """
-import struct
-
-import numpy as np
-
 from .. import algebra as la
-from ..render import kernel
+from ..kernel import Trace
 from ..runtime import Spec
 from ..tracer import Graph, Sym, snap
 from ...spatial import hat3
@@ -111,8 +107,8 @@ def trace_regressor(fr, g, M, S, x, xd, xdd, a0):
 
 
 def build_regressor(fr):
-    """k(Q, QD, QDD, A0, E0) -> the non-zero entries of E^T Y; extras: their flat indices and
-    a struct that writes them (zeros as pad bytes) into a (n, 10 nb) float64 buffer."""
+    """k(Q, QD, QDD, A0, E0) -> the non-zero entries of E^T Y, scattered into the (n, 10 nb)
+    result (Trace.scatter: the Kernel's packer writes them, zeros as pad bytes)."""
     M, S = fr.M, fr.S
     g = Graph()
     co = fr.trace_coordinates(g, rates=2)
@@ -128,23 +124,11 @@ def build_regressor(fr):
                     s = s + float(E[b, a]) * rows[b][col]
             flat.append(s)
     # Only the non-zero outputs are returned: zeros (bodies off a joint's subtree, folded
-    # terms) are pad bytes ('x', packed as NUL bytes, i.e. 0.0) of the struct that writes the
-    # float path's result: ~3x faster than np.array/np.fromiter of the returned tuple.
+    # terms) are written by the scatter, not computed.
     idx = [i for i, o in enumerate(flat) if isinstance(o, Sym) or o != 0.0]
-    fmt, i = [], 0
-    keep = np.zeros(len(flat), bool)
-    keep[idx] = True
-    while i < len(flat):
-        j = i
-        while j < len(flat) and keep[j] == keep[i]:
-            j += 1
-        fmt.append(f'{j - i}d' if keep[i] else f'{8 * (j - i)}x')
-        i = j
-    packer = struct.Struct('=' + ''.join(fmt))   # native byte order, no alignment
     args = co['args'] + [a0arg, co['offset_args']]
-    return kernel(g, 'regressor_kernel', args, [flat[i] for i in idx]) + (np.array(idx, dtype=np.intp), packer)
+    return Trace(g, 'regressor_kernel', args, [flat[i] for i in idx], scatter=(idx, len(flat)))
 
 
 REGRESSOR = Spec('regressor', build_regressor, ('gravity', 'offsets'), 'regressor',
-                 result=lambda model: ((model.n, 10 * model.nb), None),
-                 scatter=lambda k: (k.extras[0], 10 * k.frames.nb * k.frames.n))
+                 result=lambda model: ((model.n, 10 * model.nb), None), rows_chunk='regressor_rows_chunk')

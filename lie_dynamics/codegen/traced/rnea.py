@@ -16,7 +16,8 @@ frames, so payload, gravity and locked-joint changes never recompile.
 import numpy as np
 
 from .. import algebra as la
-from ..render import Params, kernel
+from ..kernel import Trace
+from ..render import Params
 from ..runtime import Spec
 from ..tracer import Graph
 from ...spatial import hat3
@@ -186,13 +187,12 @@ def build_momentum(fr):
     co, cs = _coordinates(fr, g, 1)
     parg, params = fr.trace_params(g)
     p_b, c_b = trace_momentum(fr, cs, co['x'], co['xd'], params)
-    return kernel(g, 'momentum_kernel', co['args'] + [parg, co['offset_args']],
+    return Trace(g, 'momentum_kernel', co['args'] + [parg, co['offset_args']],
                   _torques(fr, p_b) + _torques(fr, c_b))
 
 
 def build_inverse_dynamics(fr, wrench):
-    """k(Q, QD, QDD[, FX], P, A0, E0) -> tau tuple: eqs 18-21 in primed frames, as render.kernel
-    (the float function, with the rows form as its attribute)."""
+    """k(Q, QD, QDD[, FX], P, A0, E0) -> tau tuple: eqs 18-21 in primed frames (its Trace)."""
     g = Graph()
     co, cs = _coordinates(fr, g, 2)
     parg, params = fr.trace_params(g)
@@ -204,7 +204,7 @@ def build_inverse_dynamics(fr, wrench):
         fx = [g.input(nm) for nm in names]
     args += [parg, a0arg, co['offset_args']]
     tau_b = trace_inverse_dynamics(fr, cs, co['x'], co['xd'], co['xdd'], params, ga, fx)
-    return kernel(g, 'inverse_dynamics_kernel', args, _torques(fr, tau_b))
+    return Trace(g, 'inverse_dynamics_kernel', args, _torques(fr, tau_b))
 
 
 def build_gravity(fr):
@@ -244,7 +244,7 @@ def build_gravity(fr):
         else:  # H + m_sub z x
             u = (H[b][0], H[b][1], H[b][2] + params[b][0] * x[b])
         H[p] = _lin(R0[b], u, add=H[p])
-    return kernel(g, 'gravity_kernel', args, _torques(fr, tau_b))
+    return Trace(g, 'gravity_kernel', args, _torques(fr, tau_b))
 
 
 INVERSE_DYNAMICS = Spec('inverse_dynamics', lambda fr: build_inverse_dynamics(fr, False),
