@@ -18,6 +18,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from ..ros.core.params import broadcast_joints
 from ..ros.run import node_parser, run
 
 # (name, default, meaning): declared in this order; --help lists them. Arrays: one value for
@@ -46,12 +47,10 @@ def desired_state(t, q_home, amplitude, frequency):
 
 def per_joint(values, n, name):
     """A parameter array for n joints: one value for all, or exactly n values."""
-    values = np.asarray(values, dtype=float)
-    if values.shape == (1,):
-        return np.full(n, values[0])
-    if values.shape != (n,):
-        raise ValueError(f'{name} has {values.size} values for {n} joints (give 1 or {n})')
-    return values
+    out = broadcast_joints(values, n)
+    if out is None:
+        raise ValueError(f'{name} has {np.size(values)} values for {n} joints (give 1 or {n})')
+    return out
 
 
 class TrajectorySource(Node):
