@@ -18,6 +18,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from ..ros.core.cdr import stamp_ns
 from ..ros.core.params import broadcast_joints
 from ..ros.run import node_parser, run
 
@@ -82,7 +83,7 @@ class TrajectorySource(Node):
         n = len(msg.name)
         if n == 0:
             return
-        t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9 + self.lead
+        t = stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec) * 1e-9 + self.lead
         try:
             home, amp, freq = (per_joint(x, n, k) for x, k in ((self.home, 'home'), (self.amplitude, 'amplitude'),
                                                                (self.frequency, 'frequency')))
