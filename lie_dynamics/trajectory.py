@@ -21,6 +21,7 @@ import numpy as np
 
 from .cli import CliParser, run_cli
 from .laws import COULOMB_VELOCITY_EPSILON, friction_torque
+from .model.joint_names import joint_columns
 
 
 def _derivative(y, t):
@@ -49,12 +50,12 @@ def fill_trajectory_efforts(model, traj, friction=False, eps=COULOMB_VELOCITY_EP
     if friction and not (np.isfinite(eps) and eps > 0):
         raise ValueError(f'eps must be finite and > 0, got {eps}')
     names = list(traj.get('joint_names') or model.joint_names)
-    if len(set(names)) != len(names):
+    mapped = joint_columns(names, model.joint_names)
+    if mapped.duplicates:
         raise ValueError(f'trajectory joint_names has duplicates: {names}')
-    missing = [j for j in model.joint_names if j not in names]
-    if missing:
-        raise ValueError(f'trajectory lacks controlled joints {missing}')
-    cols = np.array([names.index(j) for j in model.joint_names])
+    if mapped.missing:
+        raise ValueError(f'trajectory lacks controlled joints {mapped.missing}')
+    cols = mapped.columns
 
     def field(key, required):
         if traj.get(key) is None or (np.size(traj.get(key)) == 0 and not required):

@@ -255,9 +255,17 @@ class Model:
         """Attach a rigid payload to `link` (replaces any previous one on that link).
 
         com: CoM in the link frame (m). inertia: about the CoM in the link frame, a 3x3
-        matrix or (ixx, ixy, ixz, iyy, iyz, izz); None = point mass. Checked by the one
-        consistency rule (inertia.violations) at the model's own scale.
+        matrix or (ixx, ixy, ixz, iyy, iyz, izz); None = point mass. Checked by `check_payload`.
         """
+        m, c, I = self.check_payload(link, mass, com, inertia)
+        self._payloads[link] = (m, c, I)
+        self._update_inertia()
+
+    def check_payload(self, link, mass, com, inertia=None):
+        """The one payload check (set_payload's, and a caller's that validates first): (mass, CoM (3,),
+        symmetric inertia about the CoM (3, 3)) of a payload `set_payload` would accept, or
+        ValueError naming the problem. The inertia passes the one consistency rule
+        (inertia.violations) at the model's own scale. Changes nothing."""
         if link not in self.link_frames:
             raise ValueError(f"unknown link '{link}' for payload")
         m = float(mass)
@@ -278,8 +286,7 @@ class Model:
             if bad:
                 raise ValueError('payload inertia is not physically valid: '
                                  + '; '.join(f'{rule}: {detail}' for rule, detail in bad))
-        self._payloads[link] = (m, c, 0.5 * (I + I.T))
-        self._update_inertia()
+        return m, c, 0.5 * (I + I.T)
 
     def clear_payload(self, link=None):
         """Remove the payload of `link`, or all payloads."""

@@ -61,6 +61,7 @@ from std_srvs.srv import SetBool, Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from .loading.background import Background
+from .loading.models import update_refusal
 from .core.cdr import JointStateDecoder, read_desired, sample_of, stamp_parts
 from .core.compensator import Compensator, Throttle
 from .features.contact import check_settings
@@ -457,9 +458,8 @@ class DynamicsNode(Node):
         if load is None and 'inertia_policy' in changes and s['inertia_policy'] != core.settings['inertia_policy']:
             kind, text = self._current_source()
             if kind is not None and core.model is not None:
-                if s['description_update'] == 'none':
-                    raise ValueError("description_update is 'none': the running model cannot be reloaded under "
-                                     'another inertia_policy')
+                if refusal := update_refusal(s['description_update'], core.model):
+                    raise ValueError(f'{refusal} (an inertia_policy change reloads the description)')
                 if s['inertia_policy'] == 'strict' and core.inertia_report:
                     raise ValueError("inertia_policy 'strict' would refuse the running description: " +
                                      '; '.join(r['message'] for r in core.inertia_report))

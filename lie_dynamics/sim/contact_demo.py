@@ -12,6 +12,7 @@ the simulator's wrench starts at PUSH_START x duration.
 import numpy as np
 
 from ..cli import ros_array
+from ..ros.core.cdr import stamp_ns
 
 NAME = 'contact'
 LINK = 'flange'
@@ -55,7 +56,7 @@ def record(node, rec, depth):
 
     def stamped(key_t, key):
         def on_msg(msg):
-            rec[key_t].append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+            rec[key_t].append(stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec) * 1e-9)
             rec[key].append(list(msg.effort))
         return on_msg
     # Every message as it comes (copies of re-sent states too): Bool has no stamp, the node publishes

@@ -41,6 +41,7 @@ from .domains import reserve_domains
 from . import contact_demo, payload_demo
 from .trajectory_source import desired_state
 from ..model.urdf import load_urdf
+from ..ros.core.cdr import stamp_ns
 
 HOME = [0.0, -0.6, 0.0, 2.0, 0.0, 1.6, 0.8]   # an arm pose with large gravity torques
 AMPLITUDE = [0.4, 0.3, 0.4, 0.3, 0.5, 0.4, 0.5]
@@ -185,7 +186,7 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
         ex.add_node(node)
 
         def on_state(msg):
-            t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            t = stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec) * 1e-9
             if rec['t'] and t == rec['t'][-1]:
                 return  # the simulator re-sent an unanswered state: one sample per simulated step
             rec['t'].append(t)

@@ -39,6 +39,7 @@ from trajectory_msgs.msg import JointTrajectory
 
 from .. import default_urdf_path
 from ..ros.run import node_parser, run
+from ..ros.core.cdr import stamp_parts
 from .arm import ArmSim
 from ..model.urdf import load_urdf
 
@@ -230,8 +231,7 @@ class SimNode(Node):
         return False
 
     def _stamp(self):
-        ns = int(round(self.sim.t * 1e9))
-        return ns // 1_000_000_000, ns % 1_000_000_000
+        return stamp_parts(int(round(self.sim.t * 1e9)))
 
     def _publish_state(self):
         msg = JointState()

@@ -18,6 +18,8 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from ..ros.core.cdr import stamp_ns
+from ..ros.core.params import broadcast_joints
 from ..ros.run import node_parser, run
 
 # (name, default, meaning): declared in this order; --help lists them. Arrays: one value for
@@ -46,12 +48,10 @@ def desired_state(t, q_home, amplitude, frequency):
 
 def per_joint(values, n, name):
     """A parameter array for n joints: one value for all, or exactly n values."""
-    values = np.asarray(values, dtype=float)
-    if values.shape == (1,):
-        return np.full(n, values[0])
-    if values.shape != (n,):
-        raise ValueError(f'{name} has {values.size} values for {n} joints (give 1 or {n})')
-    return values
+    out = broadcast_joints(values, n)
+    if out is None:
+        raise ValueError(f'{name} has {np.size(values)} values for {n} joints (give 1 or {n})')
+    return out
 
 
 class TrajectorySource(Node):
@@ -83,7 +83,7 @@ class TrajectorySource(Node):
         n = len(msg.name)
         if n == 0:
             return
-        t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9 + self.lead
+        t = stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec) * 1e-9 + self.lead
         try:
             home, amp, freq = (per_joint(x, n, k) for x, k in ((self.home, 'home'), (self.amplitude, 'amplitude'),
                                                                (self.frequency, 'frequency')))

@@ -46,7 +46,7 @@ from .ramp import Ramp
 from .settings import (BLEND_KEYS, PAYLOAD_KEYS, Plan, check_payload_pair, derive, gains, payload_link,
                        place_payload)
 from ..trajectories.fill import TrajectoryInput
-from .watchdog import Watchdog
+from .watchdog import Watchdog, fresh
 
 # OK/WARN/ERROR, Throttle and the text bounds live in diagnostics.py; offered here as well.
 __all__ = ['Compensator', 'Plan', 'Throttle', 'OK', 'WARN', 'ERROR', 'DIAG_TEXT_MAX', 'INERTIA_LOG_LINES',
@@ -408,7 +408,7 @@ class Compensator(TrajectoryInput):
     # ------------------------------------------------------------------ desired state
     def desired_is_fresh(self, now=None):
         now = self.clock() if now is None else now
-        return self.desired_time is not None and now - self.desired_time <= self.settings['desired_timeout']
+        return fresh(self.desired_time, self.settings['desired_timeout'], now)
 
     def on_desired(self, names, points, now=None):
         """One desired-state message (JointTrajectory joint_names and points) -> accepted?

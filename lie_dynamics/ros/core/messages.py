@@ -8,6 +8,7 @@ counts or logs; the compensator does.
 """
 import numpy as np
 
+from ...model.joint_names import joint_columns
 from .diagnostics import names_text
 
 
@@ -21,7 +22,8 @@ class Rejected(ValueError):
 
 
 class NameMap:
-    """Column indices of the controlled joints in a message's name list (cached per list)."""
+    """Column indices of the controlled joints in a message's name list (cached per list), by
+    the one mapping rule (model.joint_names.joint_columns)."""
 
     def __init__(self):
         self.names = None
@@ -33,24 +35,17 @@ class NameMap:
         # compares equal to it only in the same type
         self.names = names if isinstance(names, tuple) else list(names)
         self.error = None
-        index = {}
-        dup = []
-        for i, name in enumerate(names):
-            if name in index:
-                dup.append(name)
-            index[name] = i
-        if dup:
-            self.error = Rejected('duplicate', f'duplicate joint names {names_text(sorted(set(dup)))}')
-            return index
-        missing = [j for j in controlled if j not in index]
-        if missing:
+        mapped = joint_columns(names, controlled)
+        if mapped.duplicates:
+            self.error = Rejected('duplicate', f'duplicate joint names {names_text(mapped.duplicates)}')
+        elif mapped.missing:
             known = set(controlled)
             other = [j for j in names if j not in known]
             hint = f' (it names {names_text(other)}, which are not controlled joints)' if other else ''
-            self.error = Rejected('missing', f'missing controlled joints {names_text(missing)}{hint}')
-            return index
-        self.idx = np.array([index[j] for j in controlled], dtype=int)
-        return index
+            self.error = Rejected('missing', f'missing controlled joints {names_text(mapped.missing)}{hint}')
+        else:
+            self.idx = mapped.columns
+        return mapped.index
 
 
 class JointStateReader:

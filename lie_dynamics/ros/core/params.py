@@ -2,11 +2,15 @@
 
 The node turns each `ParamSpec` into a declared ROS parameter with a descriptor (range,
 read-only flag, description); `check_value` is the single place where a value is
-validated, used both at start-up and for live updates (`ros2 param set`).
+validated, used both at start-up and for live updates (`ros2 param set`). The rules are data of
+the specs (choices, lengths, per-joint shape, minimum, norm), not code per name; what needs the
+joint count is `per_joint_values`, on the one expansion rule `broadcast_joints`.
 """
 import math
 from dataclasses import dataclass
 from typing import Optional, Tuple
+
+import numpy as np
 
 # MODES: the torque laws (lie_dynamics.laws). Every mode but `gravity` needs the desired-state stream.
 from ...laws import COULOMB_VELOCITY_EPSILON, MODES
@@ -26,6 +30,10 @@ DYNAMICS_TERMS = ('gravity', 'coriolis', 'mass_matrix', 'jacobian')
 JACOBIAN_FRAMES = ('world_aligned', 'local', 'world')
 
 # kinds: 'bool', 'integer', 'double', 'string', 'double_array', 'string_array'
+# Per-joint shapes of a double array (ParamSpec.per_joint): one value for every joint or one per
+# controlled joint (per_joint_values); empty means the URDF's values ('urdf'), zeros ('zero'), or
+# is refused ('required').
+PER_JOINT_SHAPES = ('urdf', 'zero', 'required')
 
 
 @dataclass(frozen=True)
@@ -38,10 +46,19 @@ class ParamSpec:
     range: Optional[Tuple[float, float]] = None   # inclusive, integers and doubles
     constraints: str = ''
     choices: Tuple[str, ...] = ()   # strings: the accepted values; string arrays: of each entry
+    lengths: Tuple[int, ...] = ()   # double arrays: the accepted lengths (empty: any)
+    per_joint: str = ''             # double arrays: a PER_JOINT_SHAPES entry ('': not per joint)
+    minimum: Optional[float] = None  # double arrays: every entry >= minimum (> with above)
+    above: bool = False
+    norm_max: Optional[float] = None  # double arrays: the largest Euclidean norm
+    unit: str = ''                  # of the entries, as rejection reasons quote it
+    nonempty: bool = False          # strings: '' (or blanks) refused
 
     def __post_init__(self):
         if self.choices and not self.constraints:  # what `ros2 param describe` shows
             object.__setattr__(self, 'constraints', ' or '.join(self.choices))
+        if self.per_joint not in ('',) + PER_JOINT_SHAPES:
+            raise ValueError(f'{self.name}: per_joint must be one of {PER_JOINT_SHAPES}, got {self.per_joint!r}')
 
 
 PARAMS = (
@@ -57,7 +74,7 @@ PARAMS = (
     ParamSpec('command_topic', 'string', 'effort_controller/commands',
               'std_msgs/Float64MultiArray effort command topic. Relative names resolve in the node\'s '
               'namespace: /effort_controller/commands without one, /<ns>/effort_controller/commands '
-              'under -r __ns:=/<ns>.', False),
+              'under -r __ns:=/<ns>.', False, nonempty=True),
     ParamSpec('publish_joint_state', 'bool', False,
               'Also publish the command as sensor_msgs/JointState (names + efforts) on ~/commanded_efforts.',
               True),
@@ -72,28 +89,30 @@ PARAMS = (
     ParamSpec('kp', 'double_array', [0.0],
               'Position gains of feedforward / computed_torque / pd (computed_torque: 1/s^2, else N m/rad); '
               'one value: every joint, or one per controlled joint in `joints` order.', True,
-              constraints='empty (= 0), 1 or n finite doubles >= 0'),
+              constraints='empty (= 0), 1 or n finite doubles >= 0', per_joint='zero', minimum=0.0),
     ParamSpec('kd', 'double_array', [0.0],
               'Velocity gains, as kp (computed_torque: 1/s, else N m s/rad).', True,
-              constraints='empty (= 0), 1 or n finite doubles >= 0'),
+              constraints='empty (= 0), 1 or n finite doubles >= 0', per_joint='zero', minimum=0.0),
     ParamSpec('desired_topic', 'string', '~/desired',
               'trajectory_msgs/JointTrajectory desired-state topic: one point with positions, optional '
-              'velocities and accelerations (absent = 0), joints mapped by name.', False),
+              'velocities and accelerations (absent = 0), joints mapped by name.', False, nonempty=True),
     ParamSpec('desired_timeout', 'double', 0.1,
               'Seconds after the last valid desired state before a mode that needs it falls back to '
               'gravity compensation at the measured state.', True, (0.001, 60.0)),
     ParamSpec('gravity', 'double_array', [0.0, 0.0, -9.81],
               'Gravity in the URDF root frame, m/s^2 (3 doubles; wall or ceiling mounts).', True,
-              constraints='3 finite doubles, norm <= 100'),
+              constraints='3 finite doubles, norm <= 100', lengths=(3,), norm_max=100.0, unit='m/s^2'),
     ParamSpec('gravity_scale', 'double', 1.0, 'Scale of the gravity torques.', True, (0.0, 1.0)),
     ParamSpec('include_velocity_terms', 'bool', False,
               'Add C(q, qd) qd computed with the measured velocities.', True),
     ParamSpec('friction.viscous', 'double_array', None,
               'Viscous friction compensation b*qd, N m s/rad per joint. Empty: URDF <dynamics damping>; '
-              'one value: every joint; [0.0]: off.', True, constraints='empty, 1 or n finite doubles >= 0'),
+              'one value: every joint; [0.0]: off.', True, constraints='empty, 1 or n finite doubles >= 0',
+              per_joint='urdf', minimum=0.0),
     ParamSpec('friction.coulomb', 'double_array', None,
               'Coulomb friction compensation fc*tanh(qd/eps), N m per joint. Empty: URDF <dynamics friction>; '
-              'one value: every joint; [0.0]: off.', True, constraints='empty, 1 or n finite doubles >= 0'),
+              'one value: every joint; [0.0]: off.', True, constraints='empty, 1 or n finite doubles >= 0',
+              per_joint='urdf', minimum=0.0),
     ParamSpec('friction.coulomb_velocity_epsilon', 'double', COULOMB_VELOCITY_EPSILON,
               'eps of the smooth Coulomb term tanh(qd/eps), rad/s (or m/s).', True, (1e-6, 10.0)),
     ParamSpec('effort_limit_scale', 'double', 1.0,
@@ -137,10 +156,11 @@ PARAMS = (
     ParamSpec('payload.link', 'string', '', 'Link the payload is rigidly attached to (empty: none).', True),
     ParamSpec('payload.mass', 'double', 0.0, 'Payload mass, kg (0: no payload).', True, (0.0, 1000.0)),
     ParamSpec('payload.com', 'double_array', [0.0, 0.0, 0.0],
-              'Payload centre of mass in the link frame, m (3 doubles).', True, constraints='3 finite doubles'),
+              'Payload centre of mass in the link frame, m (3 doubles).', True, constraints='3 finite doubles',
+              lengths=(3,)),
     ParamSpec('payload.inertia', 'double_array', None,
               'Payload inertia about its CoM in link axes: ixx, ixy, ixz, iyy, iyz, izz (kg m^2). '
-              'Empty: point mass.', True, constraints='empty or 6 finite doubles'),
+              'Empty: point mass.', True, constraints='empty or 6 finite doubles', lengths=(0, 6)),
     # gravity from a topic, robots that compensate gravity, payload identification (gravity_source.py,
     # payload_service.py)
     ParamSpec('gravity_topic', 'string', '',
@@ -177,7 +197,8 @@ PARAMS = (
               'back); none: no usable effort, the observer is off.', True, choices=EFFORT_CONVENTIONS),
     ParamSpec('collision.threshold', 'double_array', [10.0],
               'Collision when |external torque| exceeds this, N m (or N): one value for every joint, or one per '
-              'controlled joint.', True, constraints='1 or n finite doubles > 0'),
+              'controlled joint.', True, constraints='1 or n finite doubles > 0', per_joint='required', minimum=0.0,
+              above=True, unit='N m'),
     ParamSpec('collision.hold_time', 'double', 0.01,
               'Seconds a threshold crossing (and its end) must last before ~/collision changes.', True, (0.0, 10.0)),
     # dynamics terms for other nodes (dynamics_topics.py)
@@ -198,6 +219,8 @@ PARAMS = (
 )
 
 SPECS = {p.name: p for p in PARAMS}
+# The payload parameters, set together (~/set_payload, identification) and blended as one change.
+PAYLOAD_KEYS = tuple(p.name for p in PARAMS if p.name.startswith('payload.'))
 
 
 def _shown(value):
@@ -232,7 +255,7 @@ def check_value(name, value):
             raise ValueError(f'{name} must be a string')
         if spec.choices and value not in spec.choices:
             raise ValueError(f'{name} must be one of {list(spec.choices)}, got {_shown(value)}')
-        if name in ('command_topic', 'desired_topic') and not value.strip():
+        if spec.nonempty and not value.strip():
             raise ValueError(f'{name} must not be empty')
         return value
     if spec.kind == 'integer':
@@ -263,24 +286,49 @@ def check_value(name, value):
             raise ValueError(f'{name}: unknown {_shown(bad[0])}, use a subset of {list(spec.choices)}')
         return vals
     vals = _finite_list(value, name)
-    if name == 'gravity':
-        if len(vals) != 3:
-            raise ValueError(f'gravity must have 3 values, got {len(vals)}')
-        if math.sqrt(sum(v * v for v in vals)) > 100.0:
-            raise ValueError(f'gravity norm must be <= 100 m/s^2 (units?), got {_shown(vals)}')
-    elif name == 'payload.com':
-        if len(vals) != 3:
-            raise ValueError(f'payload.com must have 3 values, got {len(vals)}')
-    elif name == 'payload.inertia':
-        if len(vals) not in (0, 6):
-            raise ValueError(f'payload.inertia must be empty or have 6 values, got {len(vals)}')
-    elif name == 'collision.threshold':
-        if not vals or any(v <= 0 for v in vals):
-            raise ValueError(f'collision.threshold must be one or more values > 0, got {_shown(vals)}')
-    elif name.startswith('friction.') or name in ('kp', 'kd'):
-        if any(v < 0 for v in vals):
-            raise ValueError(f'{name} must be >= 0, got {_shown(vals)}')
+    if spec.lengths and len(vals) not in spec.lengths:
+        sizes = ' or '.join(str(k) for k in spec.lengths if k)
+        need = f'be empty or have {sizes}' if 0 in spec.lengths else f'have {sizes}'
+        raise ValueError(f'{name} must {need} values, got {len(vals)}')
+    if spec.norm_max is not None and math.sqrt(sum(v * v for v in vals)) > spec.norm_max:
+        raise ValueError(f'{name} norm must be <= {spec.norm_max:g} {spec.unit} (units?), got {_shown(vals)}')
+    need = 'one or more values' if spec.per_joint == 'required' else ''
+    lo = spec.minimum
+    if (need and not vals) or (lo is not None and any(v < lo or (spec.above and v == lo) for v in vals)):
+        bound = '' if lo is None else f"{' ' if need else ''}{'>' if spec.above else '>='} {lo:g}"
+        raise ValueError(f'{name} must be {need}{bound}, got {_shown(vals)}')
     return vals
+
+
+def broadcast_joints(values, n):
+    """The one rule of per-joint values: one value for every joint, or one per joint. values as
+    n floats (a new array), or None when there are neither 1 nor n of them."""
+    a = np.atleast_1d(np.asarray(values, dtype=float))
+    if a.ndim != 1 or len(a) not in (1, n):
+        return None
+    return np.full(n, a[0]) if len(a) == 1 and n != 1 else a.copy()
+
+
+def per_joint_values(name, values, n, urdf=None):
+    """Per-joint parameter `name` (its spec's per_joint shape) for n controlled joints, as n floats:
+    broadcast_joints of its values; empty is `urdf` (shape 'urdf'), zeros ('zero') or refused
+    ('required'). Every entry finite and within the spec's minimum. Raises ValueError."""
+    spec = SPECS[name]
+    if len(values) == 0 and spec.per_joint == 'urdf':
+        out = np.asarray(urdf, dtype=float).copy()
+    elif len(values) == 0 and spec.per_joint == 'zero':
+        out = np.zeros(n)
+    else:
+        out = broadcast_joints(values, n)
+    if out is None:
+        counts = '0, 1 or' if spec.per_joint == 'urdf' else '1 or'
+        raise ValueError(f'{name} must have {counts} {n} values (one per controlled joint), got {len(values)}')
+    lo = spec.minimum
+    if not np.all(np.isfinite(out)) or (lo is not None and (np.any(out < lo) or (spec.above and np.any(out == lo)))):
+        bound = '' if lo is None else f" and {'>' if spec.above else '>='} {lo:g}"
+        unit = f' ({spec.unit})' if spec.unit else ''
+        raise ValueError(f'{name} must be finite{bound}{unit}, got {_shown(out.tolist())}')
+    return out
 
 
 # `dynamics_node --help`: what it does, the parameters most set-ups touch, an example.

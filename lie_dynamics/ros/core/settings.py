@@ -8,34 +8,21 @@ import numpy as np
 
 from ...laws import effort_limits, make_friction
 from .diagnostics import clip
+from .params import PAYLOAD_KEYS, per_joint_values
 
-PAYLOAD_KEYS = ('payload.link', 'payload.mass', 'payload.com', 'payload.inertia')
 # Settings whose change steps the command: with ramp_time > 0 the node blends across them.
 BLEND_KEYS = ('mode', 'gravity', 'gravity_scale', 'robot_compensates_gravity') + PAYLOAD_KEYS
 
 
 def per_joint(values, urdf_values, n, name):
     """Friction coefficients: [] -> URDF, [c] -> every joint, n values -> per joint. None when all 0."""
-    if len(values) == 0:
-        out = np.asarray(urdf_values, dtype=float).copy()
-    elif len(values) == 1:
-        out = np.full(n, float(values[0]))
-    elif len(values) == n:
-        out = np.asarray(values, dtype=float)
-    else:
-        raise ValueError(f'{name} must have 0, 1 or {n} values (one per controlled joint), got {len(values)}')
-    if not np.all(np.isfinite(out)) or np.any(out < 0):
-        raise ValueError(f'{name} must be finite and >= 0, got {out.tolist()}')
+    out = per_joint_values(name, values, n, urdf_values)
     return out if np.any(out != 0) else None
 
 
 def gains(values, n, name):
     """PD gains: [] -> 0, [k] -> every joint, n values -> per joint. None when all 0."""
-    if len(values) not in (0, 1, n):
-        raise ValueError(f'{name} must have 1 or {n} values (one per controlled joint), got {len(values)}')
-    out = np.zeros(n) + np.asarray(values or [0.0], dtype=float)
-    if not np.all(np.isfinite(out)) or np.any(out < 0):
-        raise ValueError(f'{name} must be finite and >= 0, got {out.tolist()}')
+    out = per_joint_values(name, values, n)
     return out if np.any(out != 0) else None
 
 

@@ -2,6 +2,13 @@
 import time
 
 
+def fresh(since, timeout, now):
+    """The one freshness rule of the node's inputs (joint_states, the desired state, the gravity
+    topic): an input that arrived at `since` (None: never) is fresh at `now` while it is at most
+    `timeout` seconds old; older, its user falls back."""
+    return since is not None and now - since <= timeout
+
+
 class Watchdog:
     """Is the input stream alive? `feed` at every valid input, `expired` periodically.
 
@@ -31,12 +38,11 @@ class Watchdog:
         if self.stale or self.last_valid_time is None:
             return None
         now = self.clock() if now is None else now
-        age = now - self.last_valid_time
-        if age <= self.timeout:
+        if fresh(self.last_valid_time, self.timeout, now):
             return None
         self.stale = True
         self.stale_events += 1
-        return age
+        return now - self.last_valid_time
 
     @property
     def waiting(self):

@@ -29,16 +29,15 @@ import numpy as np
 
 from ...algorithms.observer import MomentumObserver
 from ..core.diagnostics import OK, WARN, clip, names_text
-from ..core.params import EFFORT_CONVENTIONS
+from ..core.params import EFFORT_CONVENTIONS, PAYLOAD_KEYS, per_joint_values
 
 __all__ = ['EFFORT_CONVENTIONS', 'ContactMonitor', 'Debounce', 'check_settings', 'effort_convention', 'motor_torque',
            'thresholds']
 # A longer gap between two samples is not integrated (the trapezoid would spread garbage over it).
 MAX_GAP_S = 0.5
 # Settings whose change starts a new integral: the model's dynamics or the observer itself.
-REINIT_KEYS = ('observer.enabled', 'observer.gain', 'measured_effort', 'gravity', 'gravity_scale',
-               'payload.link', 'payload.mass', 'payload.com', 'payload.inertia', 'friction.viscous',
-               'friction.coulomb', 'friction.coulomb_velocity_epsilon')
+REINIT_KEYS = ('observer.enabled', 'observer.gain', 'measured_effort', 'gravity', 'gravity_scale') + PAYLOAD_KEYS + (
+    'friction.viscous', 'friction.coulomb', 'friction.coulomb_velocity_epsilon')
 
 
 def effort_convention(settings):
@@ -66,12 +65,7 @@ def motor_torque(model, q, effort, convention):
 def thresholds(values, n):
     """collision.threshold as n per-joint values: one value for every joint, or n values.
     Raises ValueError."""
-    vals = np.asarray(values, dtype=float).reshape(-1)
-    if len(vals) not in (1, n):
-        raise ValueError(f'collision.threshold must have 1 or {n} values (one per controlled joint), got {len(vals)}')
-    if not np.all(np.isfinite(vals)) or np.any(vals <= 0):
-        raise ValueError(f'collision.threshold must be finite and > 0 (N m), got {clip(str(vals.tolist()), 120)}')
-    return np.zeros(n) + vals
+    return per_joint_values('collision.threshold', values, n)
 
 
 def check_settings(settings, n):

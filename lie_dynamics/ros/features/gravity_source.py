@@ -21,6 +21,7 @@ import time
 import numpy as np
 
 from ..core.diagnostics import clip
+from ..core.watchdog import fresh
 
 # A gravity vector longer than this (m/s^2, 3 g) is a units or frame error, not a tilted base.
 GRAVITY_NORM_MAX = 30.0
@@ -87,7 +88,7 @@ class GravitySource:
         return True
 
     def fresh(self, timeout, now):
-        return self.time is not None and now - self.time <= timeout
+        return fresh(self.time, timeout, now)
 
     def sync(self, core, now=None):
         """Put the gravity in force on core.model: the topic's vector while fresh, else the

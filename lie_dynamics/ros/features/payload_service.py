@@ -12,8 +12,9 @@ parameters. Time is the joint_states stamp when there is one (simulated time in 
 from the first stamp so that float seconds keep their resolution), else the steady clock.
 
 `~/set_payload` takes the four payload.* values in one request (`check_payload_request`): all of
-them, a full inertia about the CoM, physically consistent (inertia.violations), on a link that moves
-a controlled joint; mass 0 (or link '') clears the payload.
+them, a full inertia about the CoM, physically consistent (Model.check_payload, the check setting
+the parameters makes), on a link that moves a controlled joint; mass 0 (or link '') clears the
+payload. An identified payload is set through the parameters, so the same check applies to it.
 """
 import copy
 import threading
@@ -23,10 +24,9 @@ import numpy as np
 
 from ...algorithms.payload import identify_payload
 from ...laws import friction_torque
-from ...model.inertia import RTOL, violations
 from ..core.diagnostics import DIAG_TEXT_MAX, clip
 from .contact import effort_convention, motor_torque
-from ..core.params import IDENTIFY_MODES
+from ..core.params import IDENTIFY_MODES, PAYLOAD_KEYS, SPECS
 
 __all__ = ['IDENTIFY_MODES', 'Identification', 'Recording', 'check_payload_request', 'fit', 'prepare',
            'smooth_derivative']
@@ -44,7 +44,7 @@ STILL_VELOCITY = 0.02
 DERIVATIVE_HALF_WIDTH = 0.05
 # Wall-clock limit of a recording: joint_states may run slower than real time (lockstep simulation)
 WALL_FACTOR, WALL_EXTRA = 5.0, 10.0
-PAYLOAD_PARAMS = ('payload.link', 'payload.mass', 'payload.com', 'payload.inertia')
+PAYLOAD_PARAMS = PAYLOAD_KEYS
 
 
 class Recording:
@@ -305,18 +305,17 @@ def check_payload_request(values, model):
     mass = _number('payload.mass', values.get('payload.mass', 0.0 if not link else None))
     if not link or mass == 0:
         return {'payload.link': '', 'payload.mass': 0.0, 'payload.com': [0.0, 0.0, 0.0], 'payload.inertia': []}
-    if not 0 < mass <= 1000:
-        raise ValueError(f'payload.mass must be in (0, 1000] kg, got {mass:g}')
+    top = SPECS['payload.mass'].range[1]
+    if not 0 < mass <= top:
+        raise ValueError(f'payload.mass must be in (0, {top:g}] kg, got {mass:g}')
     missing = [k for k in ('payload.com', 'payload.inertia') if k not in values]
     if missing:
         raise ValueError(f'{" and ".join(missing)} required (a full payload: mass, CoM and inertia)')
-    com = _vector('payload.com', values['payload.com'], 3)
-    inertia = _vector('payload.inertia', values['payload.inertia'], 6)
+    # the longest length each parameter takes: a CoM and a full inertia
+    com = _vector('payload.com', values['payload.com'], SPECS['payload.com'].lengths[-1])
+    inertia = _vector('payload.inertia', values['payload.inertia'], SPECS['payload.inertia'].lengths[-1])
     if model is None:
         raise ValueError('no robot model loaded')
     _moving_link(model, link, 'payload.link')
-    xx, xy, xz, yy, yz, zz = inertia
-    bad = violations(mass, np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]), RTOL * model.inertia_scale)
-    if bad:
-        raise ValueError('payload inertia is not physically consistent: ' + '; '.join(f'{r}: {d}' for r, d in bad))
+    model.check_payload(link, mass, com, inertia)   # the model's own check, as setting the parameters does
     return {'payload.link': link, 'payload.mass': mass, 'payload.com': com, 'payload.inertia': inertia}

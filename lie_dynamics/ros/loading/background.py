@@ -32,7 +32,7 @@ import sys
 from .build_process import BuildProcess, build, read_description
 from ..core.diagnostics import clip
 from ..core.messages import Rejected
-from .models import warm_up
+from .models import update_refusal, warm_up
 from .sources import open_source, resolve_path, source_label
 from ..trajectories.trajectory_cdr import Unsupported, arrays, head, read, write
 from ..trajectories.trajectory_msgs import set_point_efforts, trajectory_arrays
@@ -89,8 +89,9 @@ class Background:
     def precheck(self, kind, text, settings=None):
         """Why the description (kind, text) is refused before it is read, or None."""
         s = self.core.settings if settings is None else settings
-        if self.core.model is not None and s['description_update'] == 'none':
-            return "description_update is 'none': the running model stays"
+        refusal = update_refusal(s['description_update'], self.core.model)
+        if refusal:
+            return refusal
         cap = s['max_description_bytes']
         if kind == 'file':
             path = resolve_path(text)

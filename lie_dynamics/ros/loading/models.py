@@ -7,14 +7,16 @@ import numpy as np
 from ..core.diagnostics import clip, names_text
 
 
-def update_refusal(policy, running, new):
-    """Why model `new` may not replace `running` under description_update `policy`, or None.
-    (That it controls the same joints is checked with the command layout, Compensator.plan.)"""
+def update_refusal(policy, running, new=None):
+    """The one description-update policy: why model `new` may not replace `running` under
+    description_update `policy`, or None. new=None asks before a description is read (a reload,
+    a description to parse): only 'none' refuses then. (That a new model controls the same joints
+    is checked with the command layout, Compensator.plan.)"""
     if running is None:
         return None
     if policy == 'none':
         return "description_update is 'none': the running model stays"
-    if policy == 'same_robot' and new.name != running.name:
+    if policy == 'same_robot' and new is not None and new.name != running.name:
         return (f"robot '{clip(new.name, 80)}' is not the running robot '{running.name}' (description_update "
                 "'same_robot'; 'any' accepts another robot with the controlled joints)")
     return None

@@ -14,6 +14,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from ...laws import add_friction, clamp
+from ...model.joint_names import joint_columns
 from ...trajectory import fill_trajectory_efforts
 from ..core.diagnostics import DIAG_TEXT_MAX, clip, names_text, problem_key
 from ..core.messages import Rejected
@@ -31,16 +32,12 @@ class TrajectoryFill(NamedTuple):
         """(efforts (N, len(names)) in the message's joint order, clamp note or None) for a
         trajectory given as trajectory_msgs.trajectory_arrays. Raises ValueError (bounded text)."""
         names = list(names)
-        column = {}
-        for i, name in enumerate(names):
-            column.setdefault(name, i)
-        if len(column) != len(names):
-            dup = sorted({n for i, n in enumerate(names) if column[n] != i})
-            raise ValueError(f'trajectory joint_names has duplicates: {names_text(dup)}')
         model = self.model
-        missing = [j for j in model.joint_names if j not in column]
-        if missing:
-            raise ValueError(f'trajectory lacks controlled joints {names_text(missing)}')
+        mapped = joint_columns(names, model.joint_names)
+        if mapped.duplicates:
+            raise ValueError(f'trajectory joint_names has duplicates: {names_text(mapped.duplicates)}')
+        if mapped.missing:
+            raise ValueError(f'trajectory lacks controlled joints {names_text(mapped.missing)}')
         res = fill_trajectory_efforts(model, arrays, with_gravity=not self.gravity_free)
         tau, over = clamp(add_friction(res['efforts'], res['velocities'], self.friction), self.limits)
         note = None
@@ -51,7 +48,7 @@ class TrajectoryFill(NamedTuple):
         if tau is None:
             raise ValueError('non-finite effort computed')
         efforts = np.zeros((len(tau), len(names)))
-        efforts[:, [column[j] for j in model.joint_names]] = tau
+        efforts[:, mapped.columns] = tau
         return efforts, note
 
 

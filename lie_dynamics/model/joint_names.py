@@ -1,0 +1,28 @@
+"""Joint names mapped to columns: the one rule by which a message's or a trajectory's name list
+is read in a model's joint order (sensor_msgs/JointState, the desired state, trajectories)."""
+from typing import NamedTuple, Optional
+
+import numpy as np
+
+
+class JointColumns(NamedTuple):
+    index: dict                    # name -> its (first) column
+    columns: Optional[np.ndarray]  # column of each joint, in the joints' order; None: a repeat or a gap
+    duplicates: list               # names given more than once, sorted
+    missing: list                  # joints not named, in the joints' order
+
+
+def joint_columns(names, joints):
+    """JointColumns of the name list `names` for `joints` (e.g. Model.joint_names). Names that are
+    not joints are ignored; a repeated name or a missing joint leaves `columns` None, the caller
+    says which (duplicates before missing)."""
+    index = {}
+    dup = set()
+    for i, name in enumerate(names):
+        if name in index:
+            dup.add(name)
+        else:
+            index[name] = i
+    missing = [j for j in joints if j not in index]
+    columns = None if dup or missing else np.array([index[j] for j in joints], dtype=int)
+    return JointColumns(index, columns, sorted(dup), missing)

@@ -1,0 +1,211 @@
+"""Rules the node applies in several places, each implemented once: the parameter table's checks
+(as data of the specs), the per-joint expansion, the payload check, the description-update
+policy, the joint-name mapping and the freshness of inputs. Each test checks the rule and that
+its users follow it (no ROS)."""
+import math
+
+import numpy as np
+import pytest
+
+from lie_dynamics import default_urdf_path, load_urdf
+from lie_dynamics.model.joint_names import joint_columns
+from lie_dynamics.ros.core import settings as settings_module
+from lie_dynamics.ros.core.compensator import Compensator
+from lie_dynamics.ros.core.messages import NameMap, Rejected, read_desired
+from lie_dynamics.ros.core.params import (PARAMS, PAYLOAD_KEYS, SPECS, ParamSpec, broadcast_joints, check_value,
+                                          per_joint_values)
+from lie_dynamics.ros.core.watchdog import Watchdog, fresh
+from lie_dynamics.ros.features import contact, payload_service
+from lie_dynamics.ros.features.gravity_source import GravitySource
+from lie_dynamics.ros.loading.models import update_refusal
+from lie_dynamics.ros.trajectories.fill import TrajectoryFill
+from lie_dynamics.laws import effort_limits
+from lie_dynamics.sim.trajectory_source import per_joint as sim_per_joint
+from lie_dynamics.trajectory import fill_trajectory_efforts
+
+COM, INERTIA = [0.01, -0.02, 0.05], [3e-3, 1e-4, 0.0, 4e-3, -2e-4, 2e-3]
+
+
+@pytest.fixture(scope='module')
+def arm():
+    return load_urdf(default_urdf_path())
+
+
+# ---------------------------------------------------------------- parameter specs as data
+@pytest.mark.parametrize('name, value, message', [
+    ('gravity', [0.0, 9.81], 'gravity must have 3 values, got 2'),
+    ('gravity', [0.0, 0.0, -981.0], r'gravity norm must be <= 100 m/s\^2 \(units\?\)'),
+    ('payload.com', [0.0], 'payload.com must have 3 values, got 1'),
+    ('payload.inertia', [1.0, 2.0], 'payload.inertia must be empty or have 6 values, got 2'),
+    ('kp', [1.0, -1.0], 'kp must be >= 0, got'),
+    ('friction.coulomb', [-0.1], 'friction.coulomb must be >= 0, got'),
+    ('collision.threshold', [0.0], 'collision.threshold must be one or more values > 0, got'),
+    ('collision.threshold', [], 'collision.threshold must be one or more values > 0, got'),
+    ('command_topic', '  ', 'command_topic must not be empty'),
+    ('mode', 'torque', r"mode must be one of \['gravity'"),
+])
+def test_check_value_reads_the_spec(name, value, message):
+    with pytest.raises(ValueError, match=message):
+        check_value(name, value)
+
+
+def test_specs_carry_their_rules():
+    assert SPECS['gravity'].lengths == (3,) and SPECS['gravity'].norm_max == 100.0
+    assert SPECS['payload.inertia'].lengths == (0, 6)
+    assert {p.name: p.per_joint for p in PARAMS if p.per_joint} == {
+        'kp': 'zero', 'kd': 'zero', 'friction.viscous': 'urdf', 'friction.coulomb': 'urdf',
+        'collision.threshold': 'required'}
+    # an accepted value of each: the boundaries themselves
+    assert check_value('gravity', [0.0, 0.0, -100.0]) == [0.0, 0.0, -100.0]
+    assert check_value('kp', [0.0]) == [0.0] and check_value('payload.inertia', []) == []
+    with pytest.raises(ValueError, match='per_joint must be one of'):
+        ParamSpec('x', 'double_array', None, '', True, per_joint='each')
+
+
+# ---------------------------------------------------------------- one value or one per joint
+def test_broadcast_joints():
+    np.testing.assert_array_equal(broadcast_joints([2.0], 3), [2.0, 2.0, 2.0])
+    given = np.array([1.0, 2.0, 3.0])
+    out = broadcast_joints(given, 3)
+    np.testing.assert_array_equal(out, given)
+    assert out is not given   # a new array: the caller's is never aliased
+    assert broadcast_joints([1.0, 2.0], 3) is None and broadcast_joints([], 3) is None
+    assert broadcast_joints([[1.0, 2.0, 3.0]], 3) is None
+    assert broadcast_joints([], 0).shape == (0,)
+
+
+def test_per_joint_values_by_shape():
+    urdf = [0.1, 0.2, 0.3]
+    np.testing.assert_array_equal(per_joint_values('friction.viscous', [], 3, urdf), urdf)
+    np.testing.assert_array_equal(per_joint_values('kp', [], 3), np.zeros(3))
+    np.testing.assert_array_equal(per_joint_values('collision.threshold', [5.0], 3), [5.0] * 3)
+    for name, values, message in (
+            ('friction.viscous', [1.0, 2.0], r'friction.viscous must have 0, 1 or 3 values \(one per controlled '
+                                             r'joint\), got 2'),
+            ('kd', [1.0, 2.0], 'kd must have 1 or 3 values'),
+            ('collision.threshold', [], 'collision.threshold must have 1 or 3 values'),
+            ('kp', [-1.0], 'kp must be finite and >= 0'),
+            ('collision.threshold', [0.0], r'collision.threshold must be finite and > 0 \(N m\)'),
+            ('friction.coulomb', [], 'friction.coulomb must be finite and >= 0')):   # a NaN in the URDF
+        with pytest.raises(ValueError, match=message):
+            per_joint_values(name, values, 3, [0.0, math.nan, 0.0])
+
+
+def test_every_per_joint_user_follows_the_rule(arm):
+    n = arm.n
+    assert settings_module.gains([], n, 'kp') is None       # all zero: off
+    np.testing.assert_array_equal(settings_module.gains([2.0], n, 'kp'), per_joint_values('kp', [2.0], n))
+    np.testing.assert_array_equal(settings_module.per_joint([0.5], arm.damping, n, 'friction.viscous'),
+                                  np.full(n, 0.5))
+    np.testing.assert_array_equal(contact.thresholds([3.0], n), np.full(n, 3.0))
+    np.testing.assert_array_equal(sim_per_joint([0.5], 3, 'home'), [0.5] * 3)
+    for call in (lambda: settings_module.gains([1.0, 2.0], n, 'kp'), lambda: contact.thresholds([1.0, 2.0], n),
+                 lambda: settings_module.per_joint([1.0, 2.0], arm.damping, n, 'friction.viscous')):
+        with pytest.raises(ValueError, match=f'1 or {n} values'):
+            call()
+
+
+# ---------------------------------------------------------------- payload
+def test_model_check_payload_is_set_payload_check(arm):
+    version = arm.version
+    m, c, inertia = arm.check_payload('hand', 2.0, COM, INERTIA)
+    assert arm.version == version   # checks only
+    assert m == 2.0 and np.array_equal(c, COM) and np.array_equal(inertia, inertia.T)
+    bad = [0.001, 0.0, 0.0, 0.001, 0.0, 0.01]   # 1e-3 + 1e-3 < 1e-2: triangle inequality
+    for call in (lambda: arm.check_payload('hand', 2.0, COM, bad), lambda: arm.set_payload('hand', 2.0, COM, bad)):
+        with pytest.raises(ValueError, match='payload inertia is not physically valid: triangle inequality'):
+            call()
+    assert arm.version == version
+
+
+def test_set_payload_service_uses_the_model_check(arm, monkeypatch):
+    calls = []
+    real = type(arm).check_payload
+
+    def spy(self, *args):
+        calls.append(args)
+        return real(self, *args)
+
+    monkeypatch.setattr(type(arm), 'check_payload', spy)
+    request = {'payload.link': 'hand', 'payload.mass': 2.0, 'payload.com': COM, 'payload.inertia': INERTIA}
+    assert payload_service.check_payload_request(request, arm)['payload.mass'] == 2.0
+    assert calls == [('hand', 2.0, COM, INERTIA)]
+    # and so does setting the parameters (Compensator.plan -> place_payload -> Model.set_payload)
+    core = Compensator()
+    core.set_model(load_urdf(default_urdf_path()))
+    calls.clear()
+    core.update(request)
+    assert calls and calls[-1][0] == 'hand'
+
+
+def test_payload_keys_are_one_list():
+    assert PAYLOAD_KEYS == ('payload.link', 'payload.mass', 'payload.com', 'payload.inertia')
+    assert payload_service.PAYLOAD_PARAMS is PAYLOAD_KEYS and settings_module.PAYLOAD_KEYS is PAYLOAD_KEYS
+    assert set(PAYLOAD_KEYS) <= set(contact.REINIT_KEYS) and set(PAYLOAD_KEYS) <= set(settings_module.BLEND_KEYS)
+
+
+# ---------------------------------------------------------------- description updates
+def test_update_refusal_is_the_policy(arm):
+    other = load_urdf(default_urdf_path())
+    assert update_refusal('none', None) is None and update_refusal('none', None, arm) is None   # nothing runs yet
+    assert "description_update is 'none'" in update_refusal('none', arm)          # before reading
+    assert "description_update is 'none'" in update_refusal('none', arm, other)
+    assert update_refusal('same_robot', arm) is None and update_refusal('any', arm) is None
+    assert update_refusal('same_robot', arm, other) is None                          # same name
+    other.name = 'another'
+    assert "'same_robot'" in update_refusal('same_robot', arm, other)
+    assert update_refusal('any', arm, other) is None
+
+
+# ---------------------------------------------------------------- joint names
+def test_joint_columns():
+    m = joint_columns(['c', 'x', 'a', 'b'], ['a', 'b', 'c'])
+    assert m.columns.tolist() == [2, 3, 0] and not m.duplicates and not m.missing
+    m = joint_columns(['a', 'b', 'a', 'c', 'b'], ['a', 'b', 'c'])
+    assert m.columns is None and m.duplicates == ['a', 'b'] and m.index['a'] == 0
+    m = joint_columns(['b'], ['a', 'b', 'c'])
+    assert m.columns is None and m.missing == ['a', 'c']
+
+
+def test_every_name_mapping_follows_it(arm):
+    joints = list(arm.joint_names)
+    names = ['finger'] + joints[::-1]
+    cols = joint_columns(names, joints).columns
+    nm = NameMap()
+    nm.build(names, joints)
+    assert nm.error is None and nm.idx.tolist() == cols.tolist()
+    q = np.linspace(0.1, 0.7, len(joints))
+    msg_q = np.concatenate([[9.0], q[::-1]])
+
+    class Point:
+        positions, velocities, accelerations = msg_q, [], []
+
+    np.testing.assert_array_equal(read_desired(names, [Point], joints, NameMap())[0], q)
+    traj = {'joint_names': names, 'positions': np.stack([msg_q, msg_q]), 'time_from_start': [0.0, 0.1]}
+    ref = fill_trajectory_efforts(arm, traj)['efforts']
+    fill = TrajectoryFill(arm, None, effort_limits(np.full(arm.n, np.inf)), 1.0)
+    efforts, _ = fill.fill(names, traj)
+    np.testing.assert_allclose(efforts[:, cols], ref, rtol=0, atol=1e-12)
+    assert np.all(efforts[:, 0] == 0)   # not a controlled joint
+    # the same refusals, each in its own words
+    dup = names + [joints[0]]
+    nm.build(dup, joints)
+    assert isinstance(nm.error, Rejected) and nm.error.kind == 'duplicate' and joints[0] in nm.error.text
+    with pytest.raises(ValueError, match='joint_names has duplicates'):
+        fill.fill(dup, dict(traj, joint_names=dup, positions=np.zeros((2, len(dup)))))
+    with pytest.raises(ValueError, match=f"lacks controlled joints \\['{joints[0]}'\\]"):
+        fill_trajectory_efforts(arm, dict(traj, joint_names=names[:-1], positions=msg_q[None, :-1]))
+
+
+# ---------------------------------------------------------------- freshness
+def test_fresh_and_its_users():
+    assert fresh(10.0, 0.5, 10.5) and not fresh(10.0, 0.5, 10.5 + 1e-9) and not fresh(None, 1e9, 0.0)
+    w = Watchdog(0.5)
+    w.feed(10.0)
+    assert w.expired(10.5) is None and w.expired(10.6) == pytest.approx(0.6)
+    g = GravitySource('gravity')
+    g.offer((0.0, 0.0, -9.81), '', None, now=10.0)
+    assert g.fresh(0.5, 10.5) and not g.fresh(0.5, 10.6)
+    core = Compensator({'desired_timeout': 0.5}, clock=lambda: 0.0)
+    core.desired_time = 10.0
+    assert core.desired_is_fresh(10.5) and not core.desired_is_fresh(10.6)
