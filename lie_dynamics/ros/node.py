@@ -4,23 +4,14 @@ commands, and feedforward efforts for joint_trajectory_controller trajectories.
     ros2 run lie_dynamics dynamics_node --ros-args --params-file config/arm7_gravity.yaml
     python -m lie_dynamics.dynamics_node --ros-args -p urdf_path:=config/arm7.urdf
 
-The rclpy shell of the parts below it (ros/__init__.py); the behaviour, parameter by parameter,
-is described in docs/node.md. Per joint_states message (docs/architecture.md draws it):
-serialized bytes -> core/cdr.py sample -> core (Compensator.on_sample: the command and
-`result`, a core/sample.py SampleResult) -> the command published -> the features
-(features/base.py, FEATURES below) with each accepted result -> one event queue, drained into
-the throttled log (core/log.py), and one diagnostics status (every diagnostics_period, on
-/diagnostics, named after the node's full name).
-
-Topics and services, with their types and QoS: interfaces.py, the one table. The command goes
-to <command_topic> (std_msgs/Float64MultiArray, `joints` order), one per valid joint_states;
-~/commanded_efforts (if publish_joint_state) repeats it with the input's stamp. ~/set_enabled
-and ~/reload_model keep SERVICE_QUEUE requests each (beyond that the oldest unanswered ones are
-dropped and their clients wait: call with a timeout); heavy work runs off the control path
-(loading/background.py).
-
-Timing: the watchdog and diagnostics timer runs on the steady clock (with use_sim_time a
-stopped /clock must not stop the safety timer); stamps of published messages are ROS time.
+The rclpy shell of the plain-Python parts below it (ros/__init__.py); behaviour, parameter by
+parameter: docs/node.md; every topic and service with its type and QoS: interfaces.py. Per
+joint_states message (drawn in docs/architecture.md): bytes -> core/cdr.py sample -> the core's
+command and SampleResult (core/compensator.py, core/sample.py) -> the command published -> each
+accepted result to the features (FEATURES, features/base.py) -> one event queue into the
+throttled log (core/log.py); one diagnostics status every diagnostics_period. The timer runs on
+the steady clock (with use_sim_time a stopped /clock must not stop the watchdog); stamps of
+published messages are ROS time. Heavy work runs off the control path (loading/background.py).
 """
 import sys
 import threading
@@ -36,8 +27,7 @@ from trajectory_msgs.msg import JointTrajectory
 from . import interfaces
 from .core.cdr import JointStateDecoder, read_desired, sample_of
 from .core.compensator import Compensator
-from .core.diagnostics import DIAG_TEXT_MAX, clip
-from .core.log import LOG_THROTTLE_S, EventLog
+from .core.log import LOG_THROTTLE_S, EventLog, guarded
 from .core.params import HELP_DESCRIPTION, HELP_EXAMPLE, PARAMS, SPECS, help_rows
 from .core.watchdog import tick_period
 from .features.base import Features
@@ -66,20 +56,6 @@ FEATURES = (
 )
 
 
-def _guarded(callback):
-    """The node never dies on input: an unexpected exception in a callback is logged, not raised."""
-    def wrapper(self, *args):
-        try:
-            return callback(self, *args)
-        except Exception as exc:  # noqa: BLE001 - last line of defence
-            text = clip(f'{callback.__name__}: {type(exc).__name__}: {exc}', DIAG_TEXT_MAX)
-            self.core.last_error = text
-            self.log_event('error', 'internal:' + callback.__name__, f'internal error in {text}')
-            return args[-1] if callback.__name__.startswith('_srv') else None
-    wrapper.__name__ = callback.__name__
-    return wrapper
-
-
 class DynamicsNode(Node):
     """Dynamics node. features: the per-sample feature types (FEATURES); extra keyword arguments
     go to rclpy's Node (context, overrides)."""
@@ -103,11 +79,11 @@ class DynamicsNode(Node):
             interfaces.parameter_descriptor(spec)).value for spec in PARAMS}
         self.core = Compensator(values)  # ValueError on an invalid configuration
         self.events = self.core.events   # the one event queue: the core's and every feature's
-        self.event_log = EventLog(self._emit)
         self.lock = threading.RLock()  # services/parameters vs. callbacks when spun by several threads
         self._sources = Sources()      # the running model's source, the last topic message
         self._decoder = JointStateDecoder()   # keeps the last name list: decoded once per stream
         self.outputs = Outputs(self, values['command_topic'])
+        self.event_log = EventLog(self.outputs.log_line)
         self._traj_pub = self.create_publisher(JointTrajectory, '~/trajectory_out', TRAJECTORY_QOS,
                                                event_callbacks=NO_PUB_EVENTS)
         self._bg = Background(self.core, self._sources, publish=self._traj_pub.publish,
@@ -175,14 +151,14 @@ class DynamicsNode(Node):
         return self.features.get('contact').monitor
 
     # ------------------------------------------------------------------ input
-    @_guarded
+    @guarded
     def _on_description(self, msg):
         with self.lock:
             self._sources.topic_xml = msg.data
             self._bg.request('topic', msg.data, skip_identical=True)
             self.drain_events()
 
-    @_guarded
+    @guarded
     def on_joint_state(self, msg):
         """The joint_states callback: the serialized message (bytes, as the subscription delivers
         it) or a sensor_msgs/JointState (benchmarks drive it in-process with either)."""
@@ -207,7 +183,7 @@ class DynamicsNode(Node):
                 self.drain_events()
             core.record_compute_time(time.perf_counter() - t0)
 
-    @_guarded
+    @guarded
     def _on_desired(self, data):
         with self.lock:
             try:
@@ -219,7 +195,7 @@ class DynamicsNode(Node):
             if self.events:
                 self.drain_events()
 
-    @_guarded
+    @guarded
     def _on_trajectory(self, data):
         with self.lock:
             self._bg.fill(data)
@@ -237,18 +213,8 @@ class DynamicsNode(Node):
         """The one event queue (core and features) into the log."""
         self.event_log.events(self.features.drain())
 
-    def _emit(self, severity, text):
-        log = self.get_logger()
-        # one call site per severity: rclpy's logger refuses to change it per call site
-        if severity == 'info':
-            log.info(text)
-        elif severity == 'warn':
-            log.warning(text)
-        else:
-            log.error(text)
-
     # ------------------------------------------------------------------ timer
-    @_guarded
+    @guarded
     def _on_timer(self):
         with self.lock:
             self._bg.collect()
@@ -304,7 +270,7 @@ class DynamicsNode(Node):
             self.features.sync(self.core)  # publishers made here, not on the control path
             self.drain_events()
 
-    @_guarded
+    @guarded
     def _srv_set_enabled(self, request, response):
         result = self.set_parameters([Parameter('enabled', Parameter.Type.BOOL, bool(request.data))])[0]
         response.success = result.successful
@@ -316,7 +282,7 @@ class DynamicsNode(Node):
         return self._sources.reload_source(self.get_parameter('robot_description').value,
                                            self.get_parameter('urdf_path').value)
 
-    @_guarded
+    @guarded
     def _srv_reload(self, request, response):
         """Starts the reload (answered at once): the running model answers until the new one is
         ready; the result is in the log and the diagnostics (model_state, description_error)."""
