@@ -1,5 +1,5 @@
-"""The dynamics node's own outputs (rclpy): the command, ~/commanded_efforts and /diagnostics
-(interfaces.py has their types and QoS). Messages are reused for every command (measured: -5 us
+"""The dynamics node's own outputs (rclpy): the command, ~/commanded_efforts, /diagnostics
+(interfaces.py has their types and QoS) and its log lines. Messages are reused for every command (measured: -5 us
 per message, -12 us with publish_joint_state)."""
 import array
 
@@ -46,6 +46,17 @@ class Outputs:
                 js.name = names
             js.effort = data
             self._js_pub.publish(js)
+
+    def log_line(self, severity, text):
+        """One line of the node's log (core/log.py decides which and when)."""
+        log = self.node.get_logger()
+        # one call site per severity: rclpy's logger refuses to change it per call site
+        if severity == 'info':
+            log.info(text)
+        elif severity == 'warn':
+            log.warning(text)
+        else:
+            log.error(text)
 
     def wait_for_command_acked(self, seconds):
         try:

@@ -5,7 +5,7 @@ every line at most LOG_TEXT_MAX characters. Writing a line is the caller's `emit
 """
 import time
 
-from .diagnostics import LOG_TEXT_MAX, Throttle, clip, held_text
+from .diagnostics import DIAG_TEXT_MAX, LOG_TEXT_MAX, Throttle, clip, held_text
 
 LOG_THROTTLE_S = 2.0
 
@@ -36,3 +36,19 @@ class EventLog:
         """Classes whose period ended with lines held back: their newest line, with how many more."""
         for (severity, text), more in self.throttle.due(now):
             self.emit(severity, clip(held_text(text, more, self.period), LOG_TEXT_MAX))
+
+
+def guarded(callback):
+    """A node callback that never lets the node die on input: an unexpected exception is kept
+    as the core's last_error and logged (`self.log_event`), not raised; a service callback
+    (named _srv*) answers with its response as it stands."""
+    def wrapper(self, *args):
+        try:
+            return callback(self, *args)
+        except Exception as exc:  # noqa: BLE001 - last line of defence
+            text = clip(f'{callback.__name__}: {type(exc).__name__}: {exc}', DIAG_TEXT_MAX)
+            self.core.last_error = text
+            self.log_event('error', 'internal:' + callback.__name__, f'internal error in {text}')
+            return args[-1] if callback.__name__.startswith('_srv') else None
+    wrapper.__name__ = callback.__name__
+    return wrapper
