@@ -15,7 +15,7 @@ from lie_dynamics.ros.core.compensator import Compensator
 from lie_dynamics.ros.core.log import EventLog
 from lie_dynamics.ros.core.sample import SampleResult
 from lie_dynamics.ros.core.watchdog import tick_period
-from lie_dynamics.ros.loading.parameter_change import ParameterChanges, plan_change
+from lie_dynamics.ros.loading.parameter_change import ParameterChanges, plan_change, reload_answer, start_source
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 JOINTS = [f'joint{i}' for i in range(1, 8)]
@@ -256,3 +256,13 @@ def test_parameter_change_plans_checks_and_loads():
 
 def test_tick_period_serves_the_watchdog_and_the_diagnostics():
     assert tick_period(0.5, 1.0) == 0.25 and tick_period(10.0, 1.0) == 1.0 and tick_period(0.001, 1.0) == 0.002
+
+
+def test_start_source_and_reload_answer():
+    assert start_source({'robot_description': '', 'urdf_path': ''}) is None
+    assert start_source({'robot_description': '<robot/>', 'urdf_path': 'a.urdf'}) == ('parameter', '<robot/>')
+    assert start_source({'robot_description': '', 'urdf_path': 'a.urdf'}) == ('file', 'a.urdf')
+    assert reload_answer(None, None, None) == (False, 'no robot description to reload')
+    assert reload_answer('file', 'a.urdf', 'refused: too big') == (False, 'refused: too big')
+    ok, text = reload_answer('file', 'a.urdf', None)
+    assert ok and 'a.urdf' in text and 'the running model answers until it is ready' in text

@@ -38,8 +38,8 @@ from .features.gravity_payload import GravityTopic, PayloadServices
 from .interfaces import (DESCRIPTION_QOS, JOINT_STATES_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SERVICE_QOS,
                          SERVICE_QUEUE, TRAJECTORY_QOS)
 from .loading.background import Background
-from .loading.parameter_change import SOURCES, ParameterChanges
-from .loading.sources import Sources, source_label
+from .loading.parameter_change import ParameterChanges, reload_answer, start_source
+from .loading.sources import Sources
 from .outputs import Outputs
 from .run import node_parser, run
 
@@ -113,13 +113,11 @@ class DynamicsNode(Node):
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
-        for name, kind in SOURCES:  # at start-up in this thread: nothing to keep answering yet
-            if values[name]:
-                # a start-up description that cannot load (a typo in a launch file) refuses to start (exit 2)
-                err = self._bg.load_now(kind, values[name])
-                if err is not None:
-                    raise ValueError(err)
-                break
+        source = start_source(values)   # loaded in this thread: nothing to keep answering yet
+        if source is not None:
+            err = self._bg.load_now(*source)   # one that cannot load (a typo in a launch file): exit 2
+            if err is not None:
+                raise ValueError(err)
         self._check(self.core.settings)  # exit 2
         self.features.sync(self.core)
         self.drain_events()
@@ -288,15 +286,9 @@ class DynamicsNode(Node):
         ready; the result is in the log and the diagnostics (model_state, description_error)."""
         with self.lock:
             kind, text = self._current_source()
-            if kind is None:
-                response.success, response.message = False, 'no robot description to reload'
-                return response
-            err = self._bg.request(kind, text)
+            err = None if kind is None else self._bg.request(kind, text)
             self.drain_events()
-        response.success = err is None
-        response.message = err if err is not None else (
-            f'loading {source_label(kind, text)} in the background; the running model answers until it is ready '
-            '(result: log, diagnostics model_state / description_error)')
+        response.success, response.message = reload_answer(kind, text, err)
         return response
 
     def shutdown_command(self):

@@ -76,3 +76,22 @@ class ParameterChanges:
             pending = (changes,) + plan_change(self.core, changes, *self._args)
         _, plan, load = pending
         return self.core.apply(plan), load
+
+
+def start_source(values):
+    """(kind, text) of the description to load at start-up: the first source parameter set, or None."""
+    for name, kind in SOURCES:
+        if values[name]:
+            return kind, values[name]
+    return None
+
+
+def reload_answer(kind, text, err):
+    """(success, message) of ~/reload_model for source (kind, text) (None: none to reload) and the
+    load request's refusal err (None: started)."""
+    if kind is None:
+        return False, 'no robot description to reload'
+    if err is not None:
+        return False, err
+    return True, (f'loading {source_label(kind, text)} in the background; the running model answers until it is '
+                  'ready (result: log, diagnostics model_state / description_error)')
