@@ -12,6 +12,7 @@ import numpy as np
 
 _EMPTY = np.empty(0)
 _EMPTY.flags.writeable = False
+_new = tuple.__new__   # the generated NamedTuple __new__ costs a Python call per message
 
 
 def _frozen(a):
@@ -45,7 +46,8 @@ class SampleResult(NamedTuple):
 
     @classmethod
     def accept(cls, stamp, q, model, names, columns, velocity, effort):
-        return cls(stamp, True, '', '', _frozen(q), model, model.version, names, columns, velocity, effort, {})
+        q.flags.writeable = False
+        return _new(cls, (stamp, True, '', '', q, model, model.version, names, columns, velocity, effort, {}))
 
     @classmethod
     def reject(cls, stamp, reason, why):
