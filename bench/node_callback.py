@@ -45,7 +45,11 @@ def messages(n, seed=0):
 
 
 def _takes_bytes(node_cls):
-    """Does this version's joint_states subscription deliver serialized messages?"""
+    """Does this version's joint_states subscription deliver serialized messages? (Its table of
+    interfaces says, or, in a version without one, the line that subscribes.)"""
+    table = getattr(sys.modules[node_cls.__module__], 'interfaces', None)
+    if table is not None:
+        return table.INTERFACES['joint_states'].raw
     return 'raw=True' in inspect.getsource(node_cls._start).split("'joint_states'")[1].split('\n')[0]
 
 

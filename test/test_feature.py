@@ -1,4 +1,4 @@
-"""The per-sample feature interface (ros/feature.py) with a real Compensator, and the rate gate of
+"""The per-sample feature interface (ros/features/base.py) with a real Compensator, and the rate gate of
 the dynamics topics and their serialized message templates, without DDS."""
 import numpy as np
 import pytest
@@ -22,7 +22,7 @@ class Recorder(Feature):
         if settings['dynamics.link'] == 'refused':
             raise ValueError('refused link')
 
-    def configure(self, settings, model):
+    def configure(self, settings, model, derived):
         self.configured += 1
         self.active = model is not None and settings['dynamics.rate'] > 0
 
@@ -30,8 +30,8 @@ class Recorder(Feature):
         self.samples.append((s.q.copy(), s.qd.copy(), s.effort.copy(), s.stamp, s.version, s.velocity.copy()))
         self.events.append(('info', 'recorder', f'sample {s.stamp}'))
 
-    def report(self):
-        return [('recorder_samples', str(len(self.samples)))]
+    def report(self, level, message):
+        return max(level, 1), message + '; recorded', [('recorder_samples', str(len(self.samples)))]
 
 
 def sample(q, qd=(), effort=(), stamp=0, names=JOINTS):
@@ -42,35 +42,40 @@ def sample(q, qd=(), effort=(), stamp=0, names=JOINTS):
 def test_features_get_each_accepted_sample_once_in_model_order():
     core = Compensator({'stale_timeout': 60.0, 'ramp_time': 0.0})
     rec = Recorder()
-    feats = Features([rec])
-    feats.feed(core, sample(np.zeros(7)), JOINTS)          # no model: nothing accepted, nothing fed
+    feats = Features([rec], events=core.events)
+    core.on_sample(sample(np.zeros(7)))
+    feats.feed(core)                                       # no model: nothing accepted, nothing fed
+    assert core.result.reason == 'no_model' and not rec.samples
     core.load(default_urdf_path())
     q = np.linspace(-0.5, 0.5, 7)
     order = JOINTS[::-1]
     s = sample(q[::-1], [np.nan] + list(np.arange(6.0))[::-1], np.arange(7.0)[::-1], stamp=5, names=order)
     assert core.on_sample(s) is not None
-    feats.feed(core, s, JOINTS)
+    feats.feed(core)
     assert rec.configured == 2 and len(rec.samples) == 1
     fq, fqd, fe, stamp, version, fv = rec.samples[0]
     assert np.isnan(fv[-1]) and np.array_equal(fv[:-1], fqd[:-1])   # as sent, in model order
     assert np.array_equal(fq, q) and stamp == 5 and version == core.model.version
     assert np.array_equal(fqd, [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 0.0])   # reversed back; NaN as 0
     assert np.array_equal(fe, np.arange(7.0))
-    feats.feed(core, s, JOINTS)                            # the same message again: not accepted again
+    feats.feed(core)                                       # the same result again: not fed again
     bad = sample(np.full(7, np.nan), stamp=6)
     core.on_sample(bad)
-    feats.feed(core, bad, JOINTS)                          # rejected: not fed
-    assert len(rec.samples) == 1
-    assert feats.drain() == [('info', 'recorder', 'sample 5')] and not feats.has_events
-    assert feats.report() == [('recorder_samples', '1')]
+    feats.feed(core)                                       # rejected: not fed
+    assert len(rec.samples) == 1 and core.result.reason == 'nonfinite' and not core.result.accepted
+    events = feats.drain()   # one queue: the core's rejection and the feature's line, in order
+    assert ('info', 'recorder', 'sample 5') in events and events[-1][1] == 'reject:nonfinite'
+    assert not feats.events and core.events is feats.events
+    assert feats.report(0, 'ok', [('core', 'x')]) == (1, 'ok; recorded', [('core', 'x'), ('recorder_samples', '1')])
     # switched off by a setting: no call at all, and a rejection while off is not fed afterwards
     core.update({'dynamics.rate': 0.0})
     core.on_sample(sample(q, stamp=7))
+    feats.feed(core)
     core.on_sample(sample(np.full(7, np.nan), stamp=8))
-    feats.feed(core, sample(q, stamp=7), JOINTS)
+    feats.feed(core)
     assert rec.active is False and len(rec.samples) == 1
     core.update({'dynamics.rate': 10.0})
-    feats.feed(core, sample(np.full(7, np.nan), stamp=8), JOINTS)
+    feats.feed(core)
     assert len(rec.samples) == 1
     with pytest.raises(ValueError, match='refused link'):
         feats.check(dict(core.settings, **{'dynamics.link': 'refused'}), core.model)

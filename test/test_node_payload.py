@@ -62,7 +62,7 @@ node took before: it refuses older stamps). Returns (response, responses of the 
     (An extra call that the loaded machine delivers only after the first has finished is a new
     identification: the streaming goes on for it.)"""
     fut = call_async(ros, Trigger, '/dynamics_node/identify_payload', Trigger.Request())
-    wait_until(lambda: ros.node._gp.ident.recording is not None, what='recording started')
+    wait_until(lambda: ros.node.features.get('payload').ident.recording is not None, what='recording started')
     core, n0 = ros.node.core, len(ros.cmds)
     a0 = core.count.accepted
     # a client whose request history holds the whole flood (the default keeps 10 unacknowledged)
@@ -191,7 +191,7 @@ def test_gravity_topic_follow_stale_fallback(ros, xml):
 
     follows(wall)
     # a flood of bad vectors: rejected, counted, logged boundedly; the last valid one stays
-    src = ros.node._gp.gravity
+    src = ros.node.features.get('gravity').source
     accepted, t0 = src.received - src.rejected, time.monotonic()
     for k in range(200):  # one at a time: depth 1 keeps only the newest
         r0 = src.received

@@ -7,7 +7,8 @@ import pytest
 from lie_dynamics import default_urdf_path, load_urdf
 from lie_dynamics.algorithms.identification import excitation_trajectory
 from lie_dynamics.ros.core.compensator import Compensator
-from lie_dynamics.ros.features.payload_service import (MAX_SAMPLES, Identification, Recording,
+from lie_dynamics.ros.features.base import Features
+from lie_dynamics.ros.features.payload_service import (MAX_SAMPLES, Identification, PayloadRecording, Recording,
                                                        check_payload_request, fit, smooth_derivative)
 
 MASS, COM, INERTIA = 1.3, [0.01, -0.02, 0.05], [3e-3, 1e-4, 0.0, 4e-3, -2e-4, 2e-3]
@@ -92,18 +93,22 @@ def test_refusals(arm):
 def test_identification_records_only_accepted_states_with_efforts(arm):
     core = Compensator({'identify.duration': 1.0, 'payload.link': 'hand', 'payload.mass': 0.5})
     core.set_model(load_urdf(default_urdf_path()))
-    ident = Identification(clock=lambda: 0.0)
+    feature = PayloadRecording(clock=lambda: 0.0)
+    features, ident = Features([feature], events=core.events), feature.ident
     names, q = core.layout, np.zeros(7)
+    features.feed(core)
+    assert not feature.active
     assert ident.begin(core) == 'hand'
     with pytest.raises(ValueError, match='already running'):
         ident.begin(core)
+    assert feature.active
     for k in range(30):
         stamp = 10**9 + k * 5_000_000   # 5 ms apart
         core.on_joint_state(names, q, np.zeros(7), [] if k % 2 else np.ones(7), stamp=stamp)
-        ident.add(core, np.zeros(7), [] if k % 2 else np.ones(7), stamp)
-        ident.add(core, np.zeros(7), np.ones(7), stamp)   # the same message twice: counted once
+        features.feed(core)
+        features.feed(core)   # the same message twice: counted once
     core.on_joint_state(names, [np.nan] * 7, stamp=2 * 10**9)  # rejected: not recorded
-    ident.add(core, np.zeros(7), np.ones(7), 2 * 10**9)
+    features.feed(core)
     assert ident.recording is not None and ident._rec.size == 15 and ident._rec.no_effort == 15
     ident.stop('test')
     with pytest.raises(ValueError, match='test'):

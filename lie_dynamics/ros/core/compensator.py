@@ -43,6 +43,7 @@ from .messages import JointStateReader, NameMap, Rejected, read_desired
 from ..loading.models import model_changes, update_refusal
 from .params import check_value, defaults
 from .ramp import Ramp
+from .sample import SampleResult
 from .settings import (BLEND_KEYS, PAYLOAD_KEYS, Plan, check_payload_pair, derive, gains, payload_link,
                        place_payload)
 from ..trajectories.fill import TrajectoryInput
@@ -93,6 +94,7 @@ class Compensator(TrajectoryInput):
         self.needs_velocity = {}      # mode -> does its law read the measured velocity
         self.last_q = None            # positions of the last valid joint_states (the stale action holds them)
         self.last_stamp = 0           # stamp (ns) of the last accepted joint_states; 0: none
+        self.result = None            # sample.SampleResult of the last joint_states message
         self.clamped = None           # joints clamped in the last command
         # transitions: while silent nothing is published (disabled and ramped down)
         self.ramp = Ramp(s['ramp_time'], 1.0 if s['enabled'] else 0.0)
@@ -296,14 +298,16 @@ class Compensator(TrajectoryInput):
         return cmd
 
     # ------------------------------------------------------------------ per message
-    def _reject(self, kind, text):
+    def _reject(self, kind, text, stamp=0):
         self.count.rejected += 1
         self.last_error = clip(f'joint_states rejected: {text}', DIAG_TEXT_MAX)
         self._event('warn', 'reject:' + kind, self.last_error)
+        self.result = SampleResult.reject(stamp, kind, self.last_error)
         return None
 
     def on_sample(self, sample, now=None):
-        """One joint_states sample (cdr.JointStateSample) -> command or None (on_joint_state)."""
+        """One joint_states sample (cdr.JointStateSample) -> command or None (on_joint_state);
+        what became of it: `result`."""
         return self.on_joint_state(sample.names, sample.position, sample.velocity, sample.effort, now, sample.stamp)
 
     def refuse_malformed(self, topic, text):
@@ -319,20 +323,22 @@ class Compensator(TrajectoryInput):
 
     def on_joint_state(self, names, position, velocity=(), effort=(), now=None, stamp=0):
         """One joint_states message -> command (ndarray, command order) or None (publish nothing).
-        stamp: header stamp in ns (0: none); an older one than the last accepted is refused."""
+        stamp: header stamp in ns (0: none); an older one than the last accepted is refused.
+        `result` (sample.SampleResult) then says whether it was accepted, and why not."""
         self.clamped = None
         count = self.count
         count.received += 1
         reader = self.reader
         if reader is None:  # no model: the node said once at start-up that it waits for one
+            self.result = SampleResult.reject(stamp, 'no_model', 'no robot model loaded')
             return None
         if stamp and stamp < self.last_stamp and not self.watchdog.stale:
             return self._reject('old', f'stamp {stamp * 1e-9:.9f} s is older than the last accepted state '
-                                       f'({self.last_stamp * 1e-9:.9f} s)')
+                                       f'({self.last_stamp * 1e-9:.9f} s)', stamp)
         try:
             q = reader.positions(names, position, velocity, effort)
         except Rejected as exc:
-            return self._reject(exc.kind, exc.text)
+            return self._reject(exc.kind, exc.text, stamp)
         s = self.settings
         now = self.clock() if now is None else now
         law = s['mode']
@@ -355,9 +361,11 @@ class Compensator(TrajectoryInput):
             tau = ramp.shape(tau, now)
         tau = self._limit(tau)
         if tau is None:
-            return self._reject('nonfinite_output', f'non-finite torque computed at q={clip(str(q.tolist()), 300)}')
+            return self._reject('nonfinite_output', f'non-finite torque computed at q={clip(str(q.tolist()), 300)}',
+                                stamp)
         count.accepted += 1
         self.last_q = q
+        self.result = SampleResult.accept(stamp, q, self.model, self.layout, reader.map.idx, velocity, effort)
         if stamp:
             self.last_stamp = stamp
         if self.watchdog.feed(now):
@@ -372,6 +380,17 @@ class Compensator(TrajectoryInput):
         self.published = True
         self.last_cmd = tau
         return tau
+
+    def use_gravity(self, g, blend=False):
+        """Put the gravity vector g (root frame, scale applied) on the current model for the next
+        command (a feature that follows gravity from elsewhere asks here). blend: the gravity's
+        source changed (a topic went stale or came back): once a command went out, the next ones
+        blend over ramp_time as for a parameter change."""
+        if blend and self.last_cmd is not None:
+            self.ramp.switch()
+        model = self.model
+        if model is not None and not np.array_equal(model.gravity_vector, g):
+            model.gravity_vector = g
 
     def _limit(self, tau):
         """A command through laws.clamp, counted and logged when clamped. None: non-finite."""

@@ -48,3 +48,9 @@ class Watchdog:
     def waiting(self):
         """No valid input yet, or none for longer than the timeout (as last checked)."""
         return self.stale or self.last_valid_time is None
+
+
+def tick_period(stale_timeout, diagnostics_period):
+    """The node's one timer serves the watchdog, ramps without input and diagnostics: stale input
+    is detected between stale_timeout and 1.5 x stale_timeout. (Each wake-up costs CPU.)"""
+    return max(min(stale_timeout / 2.0, diagnostics_period), 0.002)

@@ -1,61 +1,27 @@
-"""Per-sample features of the dynamics node: the small interface the node loops over, in plain
+"""Per-sample features of the dynamics node: the one interface the node loops over, in plain
 Python (no rclpy import).
 
-A feature is something the node does with every accepted joint_states sample after its command
-went out (publish dynamics terms, run an observer, record for an identification). The node:
+A feature is something the node does around the torque command of each joint_states message:
+publish dynamics terms, run the momentum observer, follow gravity from a topic, record for a
+payload identification. The node makes each registered feature once (`DynamicsNode` in
+node.py: `FEATURES`, one line each, made as `cls(node)`; topics and services it makes come
+from the one table, interfaces.py) and then calls, through `Features`:
 
   * `check(settings, model)` on every parameter change (on-set) and at start-up: ValueError with
     the reason refuses the change (the old values stay) or the start-up (exit 2);
-  * `configure(settings, model)` when the settings or the model object changed (before the next
-    sample; the model's own setters, gravity from a topic or locked values, bump
-    `model.version` instead, which `Accepted.version` carries);
-  * `on_sample(accepted)` for each new accepted sample while `active` (nothing at all is called
-    per sample for an inactive feature: a feature that is off costs the node nothing);
-  * `report()` -> [(key, value string)] appended to the node's diagnostics;
-  * `events`: (severity, throttle key, text) log lines the node drains through its one event
-    path (`DynamicsNode.log_event`: one line per key every LOG_THROTTLE_S s).
-
-The node's own rclpy objects (publishers) are made by the feature's rclpy side from the node
-it is given; everything that decides lives in methods the tests can drive without ROS.
+  * `configure(settings, model, derived)` when the settings or the model object changed (before
+    the next sample; derived: core.settings.Derived, None without a model). The model's own
+    setters (gravity, locked values) bump `model.version` instead, which the sample carries;
+  * `before_command(core)` only for a feature that steers the command (it defines the method):
+    before every command, asking the core through its public methods (`Compensator.use_gravity`);
+  * `on_sample(sample)` with each accepted core.sample.SampleResult, once, in order, after the
+    command went out, while `active` (nothing is called per sample for an inactive feature);
+  * `report(level, message)` -> (level, message, [(key, value string)]): its part of the
+    node's one diagnostics status (registration order);
+  * `events`: (severity, throttle key, text) log lines, appended to the node's one event queue
+    (the same list for the core and every feature) that the node drains through its throttled log;
+  * `stop()` when the node goes (worker threads, helper nodes).
 """
-import numpy as np
-
-
-class Accepted:
-    """One accepted joint_states sample, after its command: q (validated positions, model order),
-    stamp (ns, 0: none), the model that computed the command and its `version`, `names` (the
-    command layout), and on demand, in model order: `velocity` and `effort` as the message gave
-    them (NaN where absent: an observer pauses on them), and `qd` (the velocity with absent or
-    non-finite entries as 0, as the torque laws use it)."""
-
-    __slots__ = ('q', 'stamp', 'model', 'version', 'names', '_sample', '_idx', '_velocity', '_qd', '_effort')
-
-    def __init__(self, q, stamp, model, names, sample, idx):
-        self.q, self.stamp, self.model, self.version, self.names = q, stamp, model, model.version, names
-        self._sample, self._idx = sample, idx   # the message's arrays and their map to model order
-        self._velocity = self._qd = self._effort = None
-
-    def _mapped(self, values):
-        return np.asarray(values, dtype=float)[self._idx] if len(values) else np.full(len(self.q), np.nan)
-
-    @property
-    def velocity(self):
-        if self._velocity is None:
-            self._velocity = self._mapped(self._sample.velocity)
-        return self._velocity
-
-    @property
-    def qd(self):
-        if self._qd is None:
-            v = self.velocity
-            self._qd = np.where(np.isfinite(v), v, 0.0)
-        return self._qd
-
-    @property
-    def effort(self):
-        if self._effort is None:
-            self._effort = self._mapped(self._sample.effort)
-        return self._effort
 
 
 class Feature:
@@ -70,25 +36,45 @@ class Feature:
     def check(self, settings, model):
         """Validation of a planned change that needs the model (None: not loaded yet)."""
 
-    def configure(self, settings, model):
+    def configure(self, settings, model, derived):
         """The settings or the model changed."""
 
-    def on_sample(self, accepted):
+    def on_sample(self, sample):
         """One new accepted sample (only while `active`)."""
 
-    def report(self):
-        return []
+    def report(self, level, message):
+        return level, message, []
+
+    def stop(self):
+        """The node is being destroyed."""
 
 
 class Features:
-    """The node's registered features, configured when the settings or the model change and fed
-    each new accepted sample. `events` of every feature are collected by `drain`."""
+    """The node's features: configured when the settings or the model change, fed each accepted
+    sample once, reported in order. events: the one queue (a list) every feature appends to."""
 
-    def __init__(self, features=()):
-        self.all = list(features)
-        self.active = []
+    def __init__(self, features=(), events=None):
+        self.events = [] if events is None else events
+        self.all, self.steering = [], []
         self._settings = self._model = None
-        self._accepted = 0   # core.count.accepted at the last sample fed
+        self._last = None   # the last sample fed
+        for f in features:
+            self.add(f)
+
+    def add(self, feature):
+        """Register `feature` (after those already registered); its events go to the one queue."""
+        feature.events = self.events
+        self.all.append(feature)
+        if callable(getattr(feature, 'before_command', None)):
+            self.steering.append(feature)
+        self._settings = None   # configured at the next sync
+
+    def get(self, name):
+        """The feature registered under `name`."""
+        for f in self.all:
+            if f.name == name:
+                return f
+        raise KeyError(name)
 
     def check(self, settings, model):
         for f in self.all:
@@ -99,36 +85,39 @@ class Features:
         if core.settings is not self._settings or core.model is not self._model:
             self._settings, self._model = core.settings, core.model
             for f in self.all:
-                f.configure(core.settings, core.model)
-            self.active = [f for f in self.all if f.active]
+                f.configure(core.settings, core.model, core.derived)
 
-    def feed(self, core, sample, names):
-        """After the command for `sample` (cdr.JointStateSample): each active feature gets it if
-        the compensator accepted it (a rejected or repeated message feeds nothing)."""
+    def before_command(self, core):
+        """Before each command (joint_states and the timer): the features that steer it."""
+        for f in self.steering:
+            f.before_command(core)
+
+    def feed(self, core):
+        """After the command for a joint_states message: each active feature gets core.result if
+        the core accepted it (a rejected message, or the same result again, feeds nothing)."""
         self.sync(core)
-        accepted = core.count.accepted
-        fresh, self._accepted = accepted != self._accepted, accepted  # kept up to date while inactive too
-        if not fresh or not self.active:
+        sample = core.result
+        if sample is self._last or sample is None or not sample.accepted:
             return
-        acc = Accepted(core.last_q, sample.stamp, core.model, names, sample, core.reader.map.idx)
-        for f in self.active:
-            f.on_sample(acc)
-
-    @property
-    def has_events(self):
-        return any(f.events for f in self.all)
+        self._last = sample
+        for f in self.all:
+            if f.active:
+                f.on_sample(sample)
 
     def drain(self):
-        """[(severity, key, text)] of every feature, emptied."""
-        out = []
-        for f in self.all:
-            if f.events:
-                out += f.events
-                f.events = []
+        """[(severity, key, text)] queued by the core and the features, emptied."""
+        out = self.events[:]
+        self.events.clear()
         return out
 
-    def report(self):
-        out = []
+    def report(self, level, message, values):
+        """The core's diagnostics (level, message, values) with each feature's part added."""
+        values = list(values)
         for f in self.all:
-            out += f.report()
-        return out
+            level, message, more = f.report(level, message)
+            values += more
+        return level, message, values
+
+    def stop(self):
+        for f in self.all:
+            f.stop()

@@ -1,4 +1,4 @@
-"""The dynamics node's dynamics terms for other nodes, a per-sample feature (feature.py).
+"""The dynamics node's dynamics terms for other nodes, a per-sample feature (base.py).
 
 Publishes, after the command of an accepted joint_states sample, at most `dynamics.rate`
 times a second (0: every accepted state), the terms listed in `dynamics.publish`:
@@ -25,18 +25,14 @@ clock for unstamped states; a stamp that goes back restarts it.
 import time
 
 import numpy as np
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
 
+from .. import interfaces
 from ..core.cdr import Template
 from ..core.diagnostics import clip
 from .base import Feature
 
-TOPICS = {'gravity': (JointState, '~/dynamics/gravity'), 'coriolis': (JointState, '~/dynamics/coriolis'),
-          'mass_matrix': (Float64MultiArray, '~/dynamics/mass_matrix'),
-          'jacobian': (Float64MultiArray, '~/dynamics/jacobian')}
+TOPICS = {term: f'~/dynamics/{term}' for term in ('gravity', 'coriolis', 'mass_matrix', 'jacobian')}
 ROWS = ('vx', 'vy', 'vz', 'wx', 'wy', 'wz')
-DEPTH = 10
 
 
 def tip_link(model):
@@ -102,14 +98,14 @@ class RateGate:
 
 
 class DynamicsTopics(Feature):
-    """dynamics.* settings -> the ~/dynamics/* topics. create_publisher(msg_type, topic, depth):
-    the node's (publishers are made when a term is first switched on, then kept)."""
+    """dynamics.* settings -> the ~/dynamics/* topics of `node` (publishers are made when a term
+    is first switched on, then kept)."""
 
     name = 'dynamics'
 
-    def __init__(self, create_publisher, clock=time.monotonic_ns):
+    def __init__(self, node, clock=time.monotonic_ns):
         super().__init__()
-        self._create = create_publisher
+        self._node = node
         self._clock = clock
         self._pubs = {}
         self.terms = ()
@@ -125,7 +121,7 @@ class DynamicsTopics(Feature):
     def check(self, settings, model):
         check_link(settings, model)
 
-    def configure(self, settings, model):
+    def configure(self, settings, model, derived):
         terms = tuple(t for t in TOPICS if t in settings['dynamics.publish'])
         self.frame = settings['dynamics.jacobian_frame']
         self.link = ''
@@ -138,7 +134,7 @@ class DynamicsTopics(Feature):
                 terms = tuple(t for t in terms if t != 'jacobian')
         for t in terms:
             if t not in self._pubs:
-                self._pubs[t] = self._create(TOPICS[t][0], TOPICS[t][1], DEPTH)
+                self._pubs[t] = interfaces.publisher(self._node, TOPICS[t])
         if settings['dynamics.rate'] != self.rate:
             self.rate = settings['dynamics.rate']
             self.gate = RateGate(self.rate)
@@ -199,7 +195,10 @@ class DynamicsTopics(Feature):
         self._pubs[term].publish(data)
         self.published[term] += 1
 
-    def report(self):
+    def report(self, level, message):
+        return level, message, self._values()
+
+    def _values(self):
         if not self.active:
             return [('dynamics_topics', 'off')]
         rate = f'{1e9 / self.gate.period:g} Hz' if self.gate.period else 'every state'

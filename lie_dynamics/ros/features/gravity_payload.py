@@ -1,38 +1,33 @@
 """The dynamics node's gravity topic and payload services: the rclpy side of gravity_source.py
-and payload_service.py, which hold the logic.
+and payload_service.py (which hold the logic), as two per-sample features (base.py).
 
-    <gravity_topic>      geometry_msgs/Vector3Stamped (best effort, depth 1), if set
+    <gravity_topic>      geometry_msgs/Vector3Stamped (best effort, depth 1), if set: GravityTopic
     ~/set_payload        rcl_interfaces/SetParametersAtomically: payload.link, payload.mass,
                          payload.com, payload.inertia in one request, checked for consistency
     ~/identify_payload   std_srvs/Trigger: record identify.duration s, fit, set payload.*; the
-                         answer says what was identified or why it was refused
+                         answer says what was identified or why it was refused (PayloadServices)
 
 ~/identify_payload answers only after its recording and fit (seconds), and rclpy's executors
 cannot answer a request later from another callback (the EventsExecutor calls service callbacks
 synchronously). So it is served by a hidden helper node in the same context, spun by its own
 two-thread executor: one thread may wait for the recording while the other refuses concurrent
 calls at once, and the node's own executor never waits. The recording itself happens on the
-node's control path (Identification.add after each joint_states).
+node's control path: PayloadServices is active while it records (Identification.add with each
+accepted sample).
 """
 import threading
 
-from geometry_msgs.msg import Vector3Stamped
 from rcl_interfaces.msg import SetParametersResult
-from rcl_interfaces.srv import SetParametersAtomically
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from std_srvs.srv import Trigger
 
+from .. import interfaces
 from ..core.diagnostics import DIAG_TEXT_MAX, clip
+from .base import Feature
 from .gravity_source import GravitySource
-from .payload_service import Identification, check_identify_link, check_payload_request, fit
-
-# Only the newest vector matters; best effort accepts any publisher (an IMU filter, a base estimator).
-GRAVITY_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT,
-                         durability=DurabilityPolicy.VOLATILE)
+from .payload_service import PayloadRecording, check_payload_request, fit
 
 
 def _parameter(name, value):
@@ -41,25 +36,64 @@ def _parameter(name, value):
     return Parameter(name, value=value)
 
 
-class GravityPayload:
-    """Attached to a DynamicsNode `node` (uses its public core, lock and log_event); `values`: its start-up
-    parameters; service_qos: the QoS of its services."""
+class GravityTopic(Feature):
+    """The gravity vector from <gravity_topic> (if set) in force before every command. Attached to
+    a DynamicsNode `node` (its public core, lock and drain_events)."""
 
-    def __init__(self, node, values, service_qos, sub_events=None):
+    name = 'gravity'
+
+    def __init__(self, node):
         self.node = node
-        self.gravity = GravitySource()
-        self.ident = Identification()
-        if values['gravity_topic']:
-            sub = node.create_subscription(Vector3Stamped, values['gravity_topic'], self._on_gravity, GRAVITY_QOS,
-                                           event_callbacks=sub_events)
-            self.gravity.topic = sub.topic_name
-        node.create_service(SetParametersAtomically, '~/set_payload', self._srv_set_payload, qos_profile=service_qos)
+        self.source = GravitySource()
+        super().__init__()
+        topic = node.get_parameter('gravity_topic').value
+        if topic:
+            self.source.topic = interfaces.subscription(node, '<gravity_topic>', self._on_gravity, topic).topic_name
+
+    @property
+    def events(self):   # the source's queue is the feature's
+        return self.source.events
+
+    @events.setter
+    def events(self, queue):
+        self.source.events = queue
+
+    def before_command(self, core):
+        """The gravity in force for the next command (topic or parameter)."""
+        if self.source.topic:
+            self.source.sync(core)
+
+    def report(self, level, message):
+        level, message, values = self.source.report(level, message)
+        return level, clip(message, DIAG_TEXT_MAX), [(k, clip(v, DIAG_TEXT_MAX)) for k, v in values]
+
+    def _on_gravity(self, msg):
+        node = self.node
+        try:
+            with node.lock:
+                v = msg.vector
+                self.source.offer((v.x, v.y, v.z), msg.header.frame_id, node.core.model)
+                self.source.sync(node.core)
+                node.drain_events()
+        except Exception as exc:  # noqa: BLE001 - the node never dies on input
+            node.log_event('error', 'internal:gravity',
+                           clip(f'gravity message: {type(exc).__name__}: {exc}', DIAG_TEXT_MAX))
+
+
+class PayloadServices(PayloadRecording):
+    """~/set_payload and ~/identify_payload of a DynamicsNode `node` (its public core, lock,
+    log_event and parameters); records while an identification runs (PayloadRecording)."""
+
+    def __init__(self, node):
+        super().__init__()
+        self.node = node
+        interfaces.service(node, '~/set_payload', self._srv_set_payload)
         self._helper = Node(f'_{node.get_name()}_payload', namespace=node.get_namespace(), context=node.context,
                             start_parameter_services=False, enable_rosout=False,
                             use_global_arguments=False)  # a `-r __node:=...` names the node, not its helper
-        self._helper.create_service(Trigger, f'{node.get_fully_qualified_name()}/identify_payload',
-                                    self._srv_identify, qos_profile=service_qos,
-                                    callback_group=ReentrantCallbackGroup())
+        interfaces.service(self._helper, '~/identify_payload', self._srv_identify,
+                           f'{node.get_fully_qualified_name()}/identify_payload',
+                           callback_group=ReentrantCallbackGroup())
         self._executor = MultiThreadedExecutor(num_threads=2, context=node.context)
         self._executor.add_node(self._helper)
         self._thread = threading.Thread(target=self._spin, name='lie_dynamics_payload', daemon=True)
@@ -76,41 +110,6 @@ class GravityPayload:
         self._executor.shutdown(timeout_sec=2.0)
         self._thread.join(timeout=2.0)
         self._helper.destroy_node()
-
-    # ------------------------------------------------------------------ control path (node's lock held)
-    def before_command(self, core):
-        """The gravity in force for the next command (topic or parameter)."""
-        if self.gravity.topic:
-            self.gravity.sync(core)
-            if self.gravity.events:
-                self._drain()
-
-    def _drain(self):
-        events, self.gravity.events = self.gravity.events, []
-        for severity, key, text in events:
-            self.node.log_event(severity, key, text)
-
-    def report(self, level, message, values):
-        level, message, extra = self.gravity.report(level, message)
-        extra = [(k, clip(v, DIAG_TEXT_MAX)) for k, v in extra + self.ident.report()]
-        return level, clip(message, DIAG_TEXT_MAX), values + extra
-
-    def check(self, settings):
-        """Validation of a parameter change that needs the model (on-set; raises ValueError)."""
-        check_identify_link(settings, self.node.core.model)
-
-    def _on_gravity(self, msg):
-        node = self.node
-        try:
-            with node.lock:
-                v = msg.vector
-                self.gravity.offer((v.x, v.y, v.z), msg.header.frame_id, node.core.model)
-                self.gravity.sync(node.core)
-                if self.gravity.events:
-                    self._drain()
-        except Exception as exc:  # noqa: BLE001 - the node never dies on input
-            node.log_event('error', 'internal:gravity',
-                           clip(f'gravity message: {type(exc).__name__}: {exc}', DIAG_TEXT_MAX))
 
     # ------------------------------------------------------------------ services
     def _srv_set_payload(self, request, response):

@@ -100,21 +100,19 @@ class GravitySource:
         s = core.settings
         now = self.clock() if now is None else now
         fresh = self.fresh(s['gravity_timeout'], now)
-        if fresh != self.following:
+        switched = fresh != self.following
+        if switched:
             self.following = fresh
-            self._transition(core, fresh, now, s)
+            self._transition(fresh, now, s)
         seq = self.seq if fresh else -1
         k = self._key
         if k is not None and k[0] is model and k[2] is s and k[1] == model.version and k[3] == seq:
             return
-        g = (self.vector if fresh else np.asarray(s['gravity'], dtype=float)) * s['gravity_scale']
-        if not np.array_equal(model.gravity_vector, g):
-            model.gravity_vector = g
+        core.use_gravity((self.vector if fresh else np.asarray(s['gravity'], dtype=float)) * s['gravity_scale'],
+                         blend=switched)
         self._key = (model, model.version, s, seq)
 
-    def _transition(self, core, fresh, now, s):
-        if core.last_cmd is not None:
-            core.ramp.switch()
+    def _transition(self, fresh, now, s):
         if fresh:
             if self.fallback:
                 self.events.append(('info', 'gravity:resumed', f'gravity on {self.topic} fresh again: following it'))

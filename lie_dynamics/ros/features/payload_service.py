@@ -25,11 +25,12 @@ import numpy as np
 from ...algorithms.payload import identify_payload
 from ...laws import friction_torque
 from ..core.diagnostics import DIAG_TEXT_MAX, clip
+from .base import Feature
 from .contact import effort_convention, motor_torque
 from ..core.params import IDENTIFY_MODES, PAYLOAD_KEYS, SPECS
 
-__all__ = ['IDENTIFY_MODES', 'Identification', 'Recording', 'check_payload_request', 'fit', 'prepare',
-           'smooth_derivative']
+__all__ = ['IDENTIFY_MODES', 'Identification', 'PayloadRecording', 'Recording', 'check_payload_request', 'fit',
+           'prepare', 'smooth_derivative']
 
 # Samples kept: when full, every other one is dropped and the stride doubles (memory is bounded
 # whatever identify.duration and the input rate; 4,000 samples of 7 joints fit in 10-70 ms).
@@ -178,7 +179,8 @@ def check_identify_link(settings, model):
 
 class Identification:
     """One identification at a time. begin() and add() run under the node's lock (add on the
-    control path, after each joint_states); wait() and the fit run in the service's own thread."""
+    control path, after each accepted joint_states); wait() and the fit run in the service's own
+    thread."""
 
     def __init__(self, clock=time.monotonic):
         self.clock = clock
@@ -188,7 +190,7 @@ class Identification:
         self.state = 'idle'
         self.last = ''             # the last outcome, for the diagnostics
         self.succeeded = self.refused = 0
-        self._rec = self._model = self._seen = self._stamp0 = None
+        self._rec = self._model = self._stamp0 = None
         self._abort = ''
         self.started = None
 
@@ -208,28 +210,27 @@ class Identification:
         self.busy, self._abort = True, ''
         self.done.clear()
         self._rec = self.recording = Recording(core.model.n, s['identify.duration'])
-        self._model, self._seen, self._stamp0 = core.model, core.count.accepted, None
+        self._model, self._stamp0 = core.model, None
         self.started = self.clock() if now is None else now
         self.state = f"recording {s['identify.duration']:g} s"
         return link
 
-    def add(self, core, velocity, effort, stamp, now=None):
-        """After each joint_states (control path): record it if the core accepted it."""
+    def add(self, sample, now=None):
+        """One accepted joint_states (core.sample.SampleResult), after its command (control path)."""
         rec = self.recording
-        if rec is None or core.count.accepted == self._seen:
+        if rec is None:
             return
-        self._seen = core.count.accepted
-        if core.model is not self._model:
+        if sample.model is not self._model:
             return self.stop('the robot model changed while recording')
-        e = np.asarray(effort, dtype=float)[core.reader.map.idx] if len(effort) else None
-        if e is None or np.count_nonzero(np.isfinite(e)) != e.size:
+        e = sample.effort
+        if np.count_nonzero(np.isfinite(e)) != e.size:
             rec.no_effort += 1
             return
-        qd, _ = core.reader.velocity(velocity)
+        stamp = sample.stamp
         if stamp and self._stamp0 is None:
             self._stamp0 = stamp
         t = (stamp - self._stamp0) * 1e-9 if stamp else (self.clock() if now is None else now)
-        if rec.add(t, core.last_q, qd, e, stamped=bool(stamp)):
+        if rec.add(t, sample.q, sample.qd, e, stamped=bool(stamp)):
             self.stop()
 
     def stop(self, why=''):
@@ -274,6 +275,30 @@ class Identification:
         return [('payload_identification', self.state), ('payload_identification_last', self.last),
                 ('payload_identifications_total', str(self.succeeded)),
                 ('payload_identifications_refused', str(self.refused))]
+
+
+class PayloadRecording(Feature):
+    """The recording of ~/identify_payload as a per-sample feature (base.py): active while an
+    Identification records, fed each accepted sample; identify.link checked on every change."""
+
+    name = 'payload'
+
+    def __init__(self, clock=time.monotonic):
+        super().__init__()
+        self.ident = Identification(clock)
+
+    @property
+    def active(self):
+        return self.ident.recording is not None
+
+    def check(self, settings, model):
+        check_identify_link(settings, model)
+
+    def on_sample(self, sample):
+        self.ident.add(sample)
+
+    def report(self, level, message):
+        return level, message, [(k, clip(v, DIAG_TEXT_MAX)) for k, v in self.ident.report()]
 
 
 def _number(name, value):

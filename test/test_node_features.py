@@ -1,0 +1,268 @@
+"""Per-sample features on a real node (an rclpy context in this process, joint_states as the
+serialized bytes its subscription delivers): a registered feature sees each accepted state
+once, in order, after its command, and no rejected one, across a model version change and a
+model swap from a new robot_description; and the plain-Python pieces the node's shell uses
+(core/sample.py, core/log.py, loading/parameter_change.py) without ROS."""
+import os
+import re
+import time
+
+import numpy as np
+import pytest
+
+from lie_dynamics import default_urdf_path
+from lie_dynamics.ros.core.compensator import Compensator
+from lie_dynamics.ros.core.log import EventLog
+from lie_dynamics.ros.core.sample import SampleResult
+from lie_dynamics.ros.core.watchdog import tick_period
+from lie_dynamics.ros.loading.parameter_change import ParameterChanges, plan_change, reload_answer, start_source
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+JOINTS = [f'joint{i}' for i in range(1, 8)]
+Q = np.array([0.1, 0.5, -0.2, 1.2, 0.3, 0.8, 0.1])
+
+
+def heavier(xml, factor):
+    return re.sub(r'<mass value="([^"]*)"', lambda m: f'<mass value="{factor * float(m.group(1))!r}"', xml)
+
+
+# ---------------------------------------------------------------------- a real node
+@pytest.fixture
+def node_in_context():
+    rclpy = pytest.importorskip('rclpy')
+    from lie_dynamics.ros.features.base import Feature
+    from lie_dynamics.ros.node import FEATURES, DynamicsNode
+
+    order = []   # ('command' | 'feature', stamp), as they happen
+
+    class Recording(Feature):
+        name = 'recording'
+
+        def __init__(self, node):
+            super().__init__()
+            self.seen, self.arrays = [], []
+
+        def configure(self, settings, model, derived):
+            self.active = model is not None
+
+        def on_sample(self, s):
+            order.append(('feature', s.stamp))
+            self.seen.append((s.stamp, s.version, s.model))
+            self.arrays.append((np.array(s.q), np.array(s.effort)))
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = DynamicsNode('feature_test_node', context=ctx, features=(Recording,) + FEATURES, parameter_overrides=[
+        rclpy.parameter.Parameter('urdf_path', value=default_urdf_path()),
+        rclpy.parameter.Parameter('stale_timeout', value=60.0), rclpy.parameter.Parameter('ramp_time', value=0.0)])
+    command = node.outputs.command
+
+    def recorded_command(tau, names, stamp=None):
+        order.append(('command', stamp))
+        command(tau, names, stamp)
+    node.outputs.command = recorded_command
+    lines = []
+    emit = node.event_log.emit
+    node.event_log.emit = lambda severity, text: (lines.append(text), emit(severity, text))
+    node.lines = lines
+    try:
+        yield node, node.features.get('recording'), order
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+
+
+def serialized(q, stamp, names=JOINTS, effort=None):
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import JointState
+    m = JointState(name=list(names), position=[float(v) for v in q], velocity=[0.0] * len(names),
+                   effort=[float(v) for v in (np.arange(len(names)) if effort is None else effort)])
+    m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, 10**9)
+    return bytes(serialize_message(m))
+
+
+def test_each_accepted_state_once_in_order_across_a_model_swap(node_in_context):
+    from rclpy.parameter import Parameter
+    node, rec, order = node_in_context
+    core = node.core
+    first = core.model
+    expected, rejected = [], []
+    stamp = 10**9
+
+    def send(data, stamp, good):
+        n = core.count.accepted
+        node.on_joint_state(data)
+        if core.count.accepted == n + 1:
+            expected.append((stamp, core.model.version, core.model))
+        else:
+            rejected.append(stamp)
+        assert (core.count.accepted == n + 1) == good, (stamp, core.last_error)
+
+    for k in range(40):
+        stamp += 1_000_000
+        send(serialized(Q + 0.001 * k, stamp), stamp, True)
+        if k % 5 == 1:   # a non-finite position: rejected
+            send(serialized(np.full(7, np.nan), stamp + 1), stamp + 1, False)
+        if k % 5 == 2:   # older than the last accepted: rejected
+            send(serialized(Q, stamp - 500_000), stamp - 500_000, False)
+        if k % 5 == 3:   # a controlled joint missing: rejected
+            send(serialized(Q[:6], stamp + 2, JOINTS[:6]), stamp + 2, False)
+        if k % 5 == 4:   # malformed bytes: rejected, no stamp read
+            node.on_joint_state(b'\x00\x01\x00\x00\x07')
+        if k == 10:      # the model's version changes (a payload), not the model
+            assert all(r.successful for r in node.set_parameters([Parameter('payload.link', value='hand'),
+                                                                  Parameter('payload.mass', value=1.5)]))
+        if k == 20:      # a new description: the swap happens between two states
+            with open(default_urdf_path()) as fh:
+                xml = heavier(fh.read(), 2.0)
+            assert node.set_parameters([Parameter('robot_description', value=xml)])[0].successful
+            deadline = time.monotonic() + 60
+            while core.model is first and time.monotonic() < deadline:
+                stamp += 1_000_000
+                send(serialized(Q, stamp), stamp, True)
+                time.sleep(0.01)
+            assert core.model is not first
+    seen = rec.seen
+    assert seen == expected
+    assert not [line for line in node.lines if 'internal error' in line]
+    assert any('rejected' in line for line in node.lines)
+    assert not set(rejected) & {s for s, _, _ in seen}
+    on_first = [m is first for _, _, m in seen]
+    assert on_first == sorted(on_first, reverse=True) and on_first[0] and not on_first[-1]   # one swap
+    for model in (first, core.model):
+        versions = [v for _, v, m in seen if m is model]
+        assert versions == sorted(versions)
+    assert len({v for _, v, m in seen if m is first}) >= 2   # the payload changed the version, not the model
+    stamps = [s for s, _, _ in seen]
+    assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
+    # each state's command went out before any feature saw it
+    assert [s for what, s in order if what == 'feature'] == stamps
+    for s in stamps:
+        assert order.index(('command', s)) < order.index(('feature', s))
+    # what the feature got: the validated positions and the message's efforts, in model order
+    np.testing.assert_array_equal(rec.arrays[0][0], Q)
+    np.testing.assert_array_equal(rec.arrays[0][1], np.arange(7.0))
+    # the node's diagnostics and events come from the one queue and the one chain
+    level, message, values = node.features.report(*core.diagnostics())
+    keys = [k for k, _ in values]
+    assert keys.index('observer') < keys.index('gravity_source') < keys.index('payload_identification') \
+        < keys.index('dynamics_topics')
+    assert not node.events
+
+
+# ---------------------------------------------------------------------- the core pieces, without ROS
+def test_sample_result_is_immutable_and_maps_to_model_order():
+    core = Compensator({'stale_timeout': 60.0, 'ramp_time': 0.0})
+    core.on_joint_state(JOINTS, Q, stamp=3)
+    r = core.result
+    assert not r.accepted and r.reason == 'no_model' and r.stamp == 3
+    core.load(default_urdf_path())
+    order = JOINTS[::-1]
+    core.on_joint_state(order, Q[::-1], [np.inf] + list(range(6))[::-1], list(range(7))[::-1], stamp=5)
+    r = core.result
+    assert r.accepted and r.reason == '' and r.version == core.model.version and r.model is core.model
+    assert r.names is core.layout and r.q is core.last_q
+    np.testing.assert_array_equal(r.q, Q)
+    np.testing.assert_array_equal(r.effort, np.arange(7.0))
+    assert np.isinf(r.velocity[-1]) and np.array_equal(r.qd, [0, 1, 2, 3, 4, 5, 0])
+    assert r.qd is r.qd   # made once
+    with pytest.raises(AttributeError):
+        r.stamp = 6
+    for a in (r.q, r.velocity, r.qd, r.effort):
+        with pytest.raises(ValueError):
+            a[0] = 1.0
+    core.on_joint_state(JOINTS, Q, stamp=4)   # older: refused, and said why
+    r = core.result
+    assert not r.accepted and r.reason == 'old' and 'older than the last accepted' in r.why and r.q is None
+    core.refuse_malformed('joint_states', 'truncated')
+    assert core.result.reason == 'malformed' and not core.result.accepted
+    # without efforts: NaN in model order
+    core.on_joint_state(JOINTS, Q, stamp=7)
+    assert core.result.accepted and np.isnan(core.result.effort).all() and not core.result.qd.any()
+    assert isinstance(core.result, SampleResult)
+
+
+def test_use_gravity_blends_only_a_source_switch_after_a_command():
+    t = [0.0]
+    core = Compensator({'ramp_time': 1.0, 'stale_timeout': 60.0}, clock=lambda: t[0])
+    core.load(default_urdf_path())
+    version = core.model.version
+    core.use_gravity(np.array([0.0, 0.0, -9.81]), blend=True)   # the same vector, nothing sent yet
+    assert core.model.version == version and core.ramp.idle
+    g0 = core.on_joint_state(JOINTS, Q)
+    core.use_gravity(np.array([0.0, -9.81, 0.0]))
+    assert core.model.version > version and np.allclose(core.model.gravity_vector, [0, -9.81, 0])
+    assert core.ramp.idle
+    core.use_gravity(np.array([0.0, -9.81, 0.0]), blend=True)
+    assert not core.ramp.idle   # the next commands blend from the last one
+    assert np.allclose(core.on_joint_state(JOINTS, Q), g0)   # at the switch: still the old command
+
+
+def test_event_log_throttles_per_class_and_says_what_it_held_back():
+    t = [0.0]
+    lines = []
+    log = EventLog(lambda severity, text: lines.append((severity, text)), period=2.0, clock=lambda: t[0])
+    log.events([('warn', 'a', 'first'), ('warn', 'a', 'second'), ('warn', 'a', 'third'), ('info', 'b', 'other'),
+                ('error', None, 'x' * 5000)])
+    assert lines[:2] == [('warn', 'first'), ('info', 'other')] and lines[2][0] == 'error'
+    assert len(lines[2][1]) < 5000   # bounded
+    log.held()
+    assert len(lines) == 3   # the period is not over
+    t[0] = 2.5
+    log.held()
+    assert lines[3] == ('warn', 'third (1 more like this in the last 2 s)')
+    t[0] = 3.0
+    log.event('warn', 'a', 'fourth')   # within the period the held line opened
+    t[0] = 10.0
+    log.event('warn', 'a', 'fifth')
+    assert lines[4:] == [('warn', 'fifth (1 more like this in the last 2 s)')]
+
+
+def test_parameter_change_plans_checks_and_loads():
+    core = Compensator({'stale_timeout': 60.0})
+    core.load(default_urdf_path())
+    checked, prechecked = [], []
+
+    def check(settings):
+        checked.append(settings['mode'])
+        if settings['dynamics.link'] == 'nowhere':
+            raise ValueError('no such link')
+
+    def precheck(kind, text, settings):
+        prechecked.append((kind, text))
+        return 'too big' if text == 'big.urdf' else None
+
+    source = [('file', default_urdf_path())]
+    changes = ParameterChanges(core, check, precheck, lambda: source[0])
+    assert changes.validate({'mode': 'feedforward'}) is None and checked == ['feedforward']
+    cmd, load = changes.apply({'mode': 'feedforward'})
+    assert cmd is None and load is None and core.settings['mode'] == 'feedforward'
+    assert 'no such link' in changes.validate({'dynamics.link': 'nowhere'}) and changes.pending is None
+    assert core.settings['dynamics.link'] == ''
+    assert changes.validate({'urdf_path': 'big.urdf'}).endswith('too big')
+    plan, load = plan_change(core, {'urdf_path': 'other.urdf', 'mode': 'gravity'}, check, precheck, lambda: source[0])
+    assert load == ('file', 'other.urdf') and plan.settings['mode'] == 'gravity'
+    # another inertia policy reloads the running description, unless description_update forbids it
+    _, load = plan_change(core, {'inertia_policy': 'repair'}, check, precheck, lambda: source[0])
+    assert load == source[0]
+    with pytest.raises(ValueError, match="description_update is 'none'"):
+        plan_change(core, {'inertia_policy': 'repair', 'description_update': 'none'}, check, precheck,
+                    lambda: source[0])
+    # a change applied without its validation (or after another) is planned again
+    assert changes.validate({'mode': 'pd'}) is None
+    cmd, _ = changes.apply({'enabled': False})   # nothing was published: no zero command to send
+    assert core.settings['mode'] == 'feedforward' and not core.settings['enabled'] and cmd is None
+
+
+def test_tick_period_serves_the_watchdog_and_the_diagnostics():
+    assert tick_period(0.5, 1.0) == 0.25 and tick_period(10.0, 1.0) == 1.0 and tick_period(0.001, 1.0) == 0.002
+
+
+def test_start_source_and_reload_answer():
+    assert start_source({'robot_description': '', 'urdf_path': ''}) is None
+    assert start_source({'robot_description': '<robot/>', 'urdf_path': 'a.urdf'}) == ('parameter', '<robot/>')
+    assert start_source({'robot_description': '', 'urdf_path': 'a.urdf'}) == ('file', 'a.urdf')
+    assert reload_answer(None, None, None) == (False, 'no robot description to reload')
+    assert reload_answer('file', 'a.urdf', 'refused: too big') == (False, 'refused: too big')
+    ok, text = reload_answer('file', 'a.urdf', None)
+    assert ok and 'a.urdf' in text and 'the running model answers until it is ready' in text
