@@ -149,6 +149,7 @@ def test_dynamics_node_refuses_bad_arguments(args, fragments):
 @pytest.mark.parametrize('args, fragments', [
     (['--ros-args', '-p', 'home:=[0.0,1.0]', '-p', 'amplitude:=[0.1,0.2,0.3]'], ['different joint counts']),
     (['--ros-args', '-p', 'lead:=.nan'], ['lead must be finite']),
+    (['--ros-args', '-p', 'min_subscribers:=-1'], ['min_subscribers must be >= 0']),
     (['--ros-args', '--params-file', 'no_such.yaml'], ["Couldn't parse params file"]),
     (['home:=[0.0]'], ['unrecognized arguments']),  # forgot --ros-args -p
 ])

@@ -211,7 +211,9 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
             if with_traj:
                 stack.start('trajectory_source', 'lie_dynamics.sim.trajectory_source',
                             {'home': ros_array(HOME), 'amplitude': ros_array(AMPLITUDE),
-                             'frequency': ros_array(FREQUENCY)})
+                             'frequency': ros_array(FREQUENCY),
+                             # the dynamics node's desired reader matched before the first state
+                             'min_subscribers': str(int(node_params is not None))})
                 if not _wait(ex, lambda: node.count_subscribers('joint_states') >= 1 + (node_params is not None),
                              20.0, stack):
                     raise RuntimeError('trajectory_source did not come up')

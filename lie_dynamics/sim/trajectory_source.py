@@ -31,6 +31,7 @@ PARAMETERS = (
     ('lead', 1e-3, 's ahead of each joint_states stamp (one simulator step)'),
     ('desired_topic', 'dynamics_node/desired',
      'trajectory_msgs/JointTrajectory output (relative: the dynamics node of this namespace)'),
+    ('min_subscribers', 0, 'answer joint_states only once desired_topic has this many matched readers, >= 0'),
 )
 EXAMPLE = """
 python -m lie_dynamics.sim.trajectory_source --ros-args -p "home:=[0.0,-0.6,0.0,2.0,0.0,1.6,0.8]" \\
@@ -76,7 +77,21 @@ class TrajectorySource(Node):
             raise ValueError(f'lead must be finite, got {self.lead}')
         if not topic.strip():
             raise ValueError('desired_topic must not be empty')
+        self.min_subscribers = int(v['min_subscribers'])
+        if self.min_subscribers < 0:
+            raise ValueError(f'min_subscribers must be >= 0, got {self.min_subscribers}')
         self.pub = self.create_publisher(JointTrajectory, topic, 10)
+        # A desired state sent before the dynamics node's reader has matched is lost, and in a
+        # lockstep run the states it answered are then computed without it: joint_states is only
+        # read once the readers are there (a lockstep simulator waits for this node meanwhile).
+        self._wait = self.create_timer(0.01, self._subscribe_when_matched)
+        self._subscribe_when_matched()
+
+    def _subscribe_when_matched(self):
+        if self._wait is None or self.pub.get_subscription_count() < self.min_subscribers:
+            return
+        self.destroy_timer(self._wait)
+        self._wait = None
         self.create_subscription(JointState, 'joint_states', self._on_state, 10)
 
     def _on_state(self, msg):
