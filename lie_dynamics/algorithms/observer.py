@@ -26,9 +26,12 @@ p and C^T qd come from `generalized_momentum`: one O(n) recursive pass (a genera
 codegen/traced/rnea.py: trace_momentum) for the C of the Christoffel form (eqs 40-42), the one
 with Mdot - 2C skew; its reference is M(q) qd and C^T qd from those matrices.
 """
+import math
+
 import numpy as np
 
 from ..codegen import runtime
+from ..codegen.traced import observer as observer_kernel
 from ..codegen.traced import rnea as traced
 from ..laws import friction_torque
 
@@ -76,19 +79,27 @@ class MomentumObserver:
 
     gain: K_O, 1/s, one value or one per joint. friction: None, or (viscous, coulomb, eps) as
     `laws.Friction` / `laws.make_friction` give it: subtracted from the measured torque.
+
+    One sample is one call of the generated step kernel where the model has one
+    (codegen/traced/observer.py: the momentum terms, the friction and the trapezoid in one
+    pass, natively compiled where a C compiler works); `momentum_terms` and `advance` are its
+    reference, with the same state.
     """
 
     def __init__(self, model, gain, friction=None):
         self.model = model
         self.gain = _gains(gain, model.n)
         self.friction = friction
+        self._settings = _step_settings(self.gain, friction, model.n)
         self.reset()
 
     def reset(self):
         """Forget the history: the next update starts a new integral (estimate 0)."""
-        self._t = self._p0 = self._beta = None
-        self._integral = np.zeros(self.model.n)
-        self.estimate = np.zeros(self.model.n)
+        n = self.model.n
+        self._t = None
+        # p(0), the integral, beta + r of the last sample, then the step's dt (the kernel's Z)
+        self._state = np.zeros(3 * n + 1)
+        self.estimate = np.zeros(n)
 
     def momentum_terms(self, q, qd, tau_measured):
         """(p, beta) with p = M(q) qd and beta = tau + C^T qd - g, for one state (n,) or a batch."""
@@ -110,27 +121,88 @@ class MomentumObserver:
         t = float(t)
         if not np.isfinite(t):
             raise ValueError(f'observer time must be finite, got {t}')
+        n, z = self.model.n, self._state
         if self._t is None:
-            self._t, self._p0, self._beta = t, p, beta
-            self.estimate = np.zeros(self.model.n)
+            self._t = t
+            z[:n], z[n:2 * n], z[2 * n:3 * n] = p, 0.0, beta
+            self.estimate = np.zeros(n)
             return self.estimate
         dt = t - self._t
         if not dt > 0:
             raise ValueError(f'observer times must increase: {t} after {self._t}')
         half = 0.5 * dt * self.gain
         # I_k = I_{k-1} + dt/2 (beta_{k-1} + r_{k-1} + beta_k + r_k), r_k = K (p_k - p_0 - I_k)
-        partial = self._integral + 0.5 * dt * (self._beta + self.estimate + beta)
-        r = self.gain * (p - self._p0 - partial) / (1.0 + half)
-        self._integral = partial + 0.5 * dt * r
-        self._t, self._beta, self.estimate = t, beta, r
+        partial = z[n:2 * n] + 0.5 * dt * (z[2 * n:3 * n] + beta)
+        r = self.gain * (p - z[:n] - partial) / (1.0 + half)
+        z[n:2 * n] = partial + 0.5 * dt * r
+        z[2 * n:3 * n] = beta + r
+        self._t, self.estimate = t, r
+        return r
+
+    def step(self, t, q, qd, tau_measured):
+        """One sample through the generated step kernel: the estimate (as update), or None when
+        the kernel declines (no kernel for this model, arguments other than finite (n,)
+        float64 arrays, a time that is not finite or does not increase, a non-finite result),
+        and then nothing has changed: update validates, names the problem or runs the reference."""
+        m, n = self.model, self.model.n
+        if self._settings is None:
+            return None
+        t = float(t)
+        last = self._t
+        dt = 0.0 if last is None else t - last
+        if not (last is None or 0.0 < dt < math.inf) or t - t != 0.0:
+            return None
+        z = self._state
+        z[3 * n] = dt
+        nk = runtime.native(m, observer_kernel.OBSERVER_STEP)
+        if nk is not None:
+            out = nk(q, qd, tau_measured, z, self._settings)
+            if out is None:
+                return None
+        else:
+            lists = runtime.fast_states(n, q, qd, tau_measured)
+            b = runtime.single(m, observer_kernel.OBSERVER_STEP) if lists is not None else None
+            if not b:
+                return None
+            try:
+                vals = b[0](*lists, z.tolist(), self._settings.tolist(), *b[1])
+            except (ValueError, ZeroDivisionError, OverflowError):
+                return None
+            if not math.isfinite(sum(vals)):
+                return None
+            out = np.array(vals)
+        if last is None:   # the first sample starts the integral: p(0), beta
+            z[:n], z[n:2 * n], z[2 * n:3 * n] = out[3 * n:4 * n], 0.0, out[4 * n:]
+            r = np.zeros(n)
+        else:
+            z[n:3 * n] = out[n:3 * n]
+            r = out[:n]
+        self._t, self.estimate = t, r
         return r
 
     def update(self, t, q, qd, tau_measured):
         """Feed one sample (time t in s, measured q, qd and motor torque); returns the estimate
         of tau_ext (n,). The first sample starts the integral and returns zeros."""
+        r = self.step(t, q, qd, tau_measured)
+        if r is not None:
+            return r
         if np.ndim(q) != 1:
             raise ValueError(f'update takes one state: q must have shape ({self.model.n},), got {np.shape(q)}')
         return self.advance(t, *self.momentum_terms(q, qd, tau_measured))
+
+
+def _step_settings(gain, friction, n):
+    """The step kernel's settings (K, b, fc, 1/eps) as one float64 array, or None when they are
+    not finite numbers (the reference then runs and reports)."""
+    b, fc, eps = (None, None, 1.0) if friction is None else friction
+    try:
+        with np.errstate(all='ignore'):
+            o = np.concatenate([gain, np.zeros(n) + (0.0 if b is None else np.asarray(b, dtype=float)),
+                                np.zeros(n) + (0.0 if fc is None else np.asarray(fc, dtype=float)),
+                                [1.0 / float(eps) if fc is not None else 0.0]])
+    except (ValueError, TypeError, ZeroDivisionError):
+        return None
+    return o if o.shape == (3 * n + 1,) and np.all(np.isfinite(o)) else None
 
 
 def estimate_external_torques(model, t, q, qd, tau_measured, gain, friction=None):
