@@ -171,12 +171,12 @@ class MomentumObserver:
             if not math.isfinite(sum(vals)):
                 return None
             out = np.array(vals)
+        z = self._state = out[:3 * n + 1]   # the next state: where the next call reads it
         if last is None:   # the first sample starts the integral: p(0), beta
-            z[:n], z[n:2 * n], z[2 * n:3 * n] = out[3 * n:4 * n], 0.0, out[4 * n:]
+            z[:n], z[n:2 * n], z[2 * n:3 * n] = out[4 * n + 1:5 * n + 1], 0.0, out[5 * n + 1:]
             r = np.zeros(n)
         else:
-            z[n:3 * n] = out[n:3 * n]
-            r = out[:n]
+            r = out[3 * n + 1:4 * n + 1]
         self._t, self.estimate = t, r
         return r
 

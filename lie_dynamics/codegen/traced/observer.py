@@ -10,8 +10,9 @@ of the module docstring of algorithms/observer.py with the newest r implicit:
 
 Per-state arguments: Q, QD, TAU (the motor torque, model order), Z = (p_0, I, c, dt) (the
 observer's state, 3n + 1) and O = (K, b, fc, 1/eps) (its settings, 3n + 1: they belong to
-the observer, not to the model, so they are not bound with the model's parameters). Outputs,
-5n: r, I_k, c_k, p_k, beta_k (p and beta start the integral at the first sample).
+the observer, not to the model, so they are not bound with the model's parameters). Outputs, 6n + 1: the next
+state (p_0, I_k, c_k, a slot for the next dt), so that the next call reads it where this one
+wrote it, then r_k, p_k, beta_k (p and beta start the integral at the first sample).
 """
 from ..render import kernel
 from ..runtime import Spec
@@ -20,7 +21,7 @@ from .rnea import joint_torques, subtree_inputs, trace_gravity, trace_momentum, 
 
 
 def build_observer_step(fr):
-    """k(Q, QD, TAU, Z, O, P, S, A0, E0) -> (r, I, c, p, beta) tuple (module docstring); P the
+    """k(Q, QD, TAU, Z, O, P, S, A0, E0) -> (p_0, I, c, 0, r, p, beta) tuple (module docstring); P the
     inertias (trace_momentum), S the subtree parameters (trace_gravity)."""
     n = fr.n
     g = Graph()
@@ -56,7 +57,7 @@ def build_observer_step(fr):
         c_k.append(b + rj)
         beta.append(b)
     args = co['args'] + [(k, v) for k, v in lists.items()] + [parg, sarg, a0arg, co['offset_args']]
-    return kernel(g, 'observer_step_kernel', args, r + i_k + c_k + p + beta)
+    return kernel(g, 'observer_step_kernel', args, list(p0) + i_k + c_k + [0.0] + r + p + beta)
 
 
 # Single states only (the step is sequential); `inverse_dynamics` sets its size limits.

@@ -23,6 +23,7 @@ _ORDER = {b'\x00\x01': '<', b'\x00\x00': '>'}
 _U32 = {'<': struct.Struct('<I'), '>': struct.Struct('>I')}
 _STAMP = {'<': struct.Struct('<iII'), '>': struct.Struct('>iII')}   # sec, nanosec, frame_id length
 _F8 = {'<': np.dtype('<f8'), '>': np.dtype('>f8')}
+_STAMP_LE = struct.Struct('<iI')   # builtin_interfaces/Time, as Template writes it
 
 
 class Unsupported(ValueError):
@@ -256,5 +257,27 @@ class Template:
         for (a, b), x in zip(slots, arrays, strict=True):
             out[a:b] = np.ascontiguousarray(x, dtype='<f8').tobytes()
         if stamp_at is not None:
-            struct.pack_into('<iI', out, stamp_at, *stamp_parts(stamp))
+            _STAMP_LE.pack_into(out, stamp_at, *stamp_parts(stamp))
         return bytes(out)
+
+    def writer(self, slots, stamp_at=None):
+        """fill(slots, ., stamp_at, .) for a message published at every sample: a Writer."""
+        return Writer(self.buf, slots, stamp_at)
+
+
+class Writer:
+    """Template.fill with the slots and stamp offset fixed: one buffer kept and the arrays written
+    into it in place through numpy views of their slots (no per-message buffer or conversion).
+    writer(arrays, stamp) -> the message's bytes."""
+
+    def __init__(self, buf, slots, stamp_at=None):
+        self.buf = bytearray(buf)
+        self.views = [np.frombuffer(self.buf, dtype='<f8', count=(b - a) // 8, offset=a) for a, b in slots]
+        self.stamp_at = stamp_at
+
+    def __call__(self, arrays, stamp=0):
+        for v, x in zip(self.views, arrays, strict=True):
+            v[...] = x
+        if self.stamp_at is not None:
+            _STAMP_LE.pack_into(self.buf, self.stamp_at, *stamp_parts(stamp))
+        return bytes(self.buf)

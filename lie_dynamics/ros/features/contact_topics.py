@@ -4,14 +4,19 @@ Publishes   ~/external_torques (sensor_msgs/JointState: name = the command layou
             estimate, header.stamp = the joint_states stamp) and ~/collision (std_msgs/Bool),
             one of each per new accepted joint_states message with efforts, after its command.
 Depth 100: a reader whose acknowledgements lag a little (a recorder) loses no estimate.
+Both are published serialized (cdr.Template, as the dynamics topics; ~/external_torques through
+one cdr.Writer per joint layout): writing the estimate into a message serialized once costs less
+than rclpy's conversion of a message object.
 """
-import array
-
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
-from ..core.cdr import stamp_parts
 from .contact import ContactMonitor
+from .dynamics_topics import joint_state_template
+
+# ~/collision's two possible messages, serialized
+_FLAG = {v: serialize_message(Bool(data=v)) for v in (False, True)}
 
 
 class ContactTopics:
@@ -21,7 +26,7 @@ class ContactTopics:
         self.monitor = ContactMonitor()
         self._ext_pub = node.create_publisher(JointState, '~/external_torques', 100, event_callbacks=pub_events)
         self._flag_pub = node.create_publisher(Bool, '~/collision', 100, event_callbacks=pub_events)
-        self._ext, self._flag = JointState(), Bool()
+        self._names = self._ext = None   # the layout of ~/external_torques and its writer (cdr.Writer)
         self._accepted = 0  # core.count.accepted at the last message observed
 
     def observe(self, core, sample, names):
@@ -38,11 +43,8 @@ class ContactTopics:
         out = c.on_state(core.reader.map.idx, core.last_q, sample.velocity, sample.effort, sample.stamp)
         if out is None:
             return
-        ext = self._ext
-        ext.header.stamp.sec, ext.header.stamp.nanosec = stamp_parts(sample.stamp)
-        if ext.name is not names:  # the setter checks every name: only when the layout changes
-            ext.name = names
-        ext.effort = array.array('d', out[0].tobytes())
-        self._ext_pub.publish(ext)
-        self._flag.data = out[1]
-        self._flag_pub.publish(self._flag)
+        if names is not self._names:  # built when the layout changes: no position, no velocity
+            template, stamp_at, slots = joint_state_template(names, (0, 0, len(names)))
+            self._names, self._ext = names, template.writer(slots[2:], stamp_at)
+        self._ext_pub.publish(self._ext((out[0],), sample.stamp))
+        self._flag_pub.publish(_FLAG[out[1]])
