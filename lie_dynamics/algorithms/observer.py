@@ -35,6 +35,8 @@ from ..codegen.traced import observer as observer_kernel
 from ..codegen.traced import rnea as traced
 from ..laws import friction_torque
 
+_STEP = observer_kernel.OBSERVER_STEP
+
 
 def generalized_momentum(model, q, qd):
     """(p, C^T qd) with p = M(q) qd and C the Christoffel-form Coriolis matrix (eqs 40-42), for
@@ -91,6 +93,8 @@ class MomentumObserver:
         self.gain = _gains(gain, model.n)
         self.friction = friction
         self._settings = _step_settings(self.gain, friction, model.n)
+        n = model.n   # where the step kernel's outputs are: next state, estimate, p and beta
+        self._parts = (slice(0, 3 * n + 1), slice(3 * n + 1, 4 * n + 1), 4 * n + 1)
         self.reset()
 
     def reset(self):
@@ -144,41 +148,49 @@ class MomentumObserver:
         the kernel declines (no kernel for this model, arguments other than finite (n,)
         float64 arrays, a time that is not finite or does not increase, a non-finite result),
         and then nothing has changed: update validates, names the problem or runs the reference."""
-        m, n = self.model, self.model.n
-        if self._settings is None:
+        settings = self._settings
+        if settings is None:
             return None
         t = float(t)
         last = self._t
-        dt = 0.0 if last is None else t - last
-        if not (last is None or 0.0 < dt < math.inf) or t - t != 0.0:
-            return None
-        z = self._state
-        z[3 * n] = dt
-        nk = runtime.native(m, observer_kernel.OBSERVER_STEP)
-        if nk is not None:
-            out = nk(q, qd, tau_measured, z, self._settings)
-            if out is None:
+        if last is None:
+            if t - t != 0.0:
                 return None
+            dt = 0.0
         else:
-            lists = runtime.fast_states(n, q, qd, tau_measured)
-            b = runtime.single(m, observer_kernel.OBSERVER_STEP) if lists is not None else None
-            if not b:
+            dt = t - last
+            if not 0.0 < dt < math.inf:
                 return None
-            try:
-                vals = b[0](*lists, z.tolist(), self._settings.tolist(), *b[1])
-            except (ValueError, ZeroDivisionError, OverflowError):
-                return None
-            if not math.isfinite(sum(vals)):
-                return None
-            out = np.array(vals)
-        z = self._state = out[:3 * n + 1]   # the next state: where the next call reads it
+        z = self._state
+        z[-1] = dt
+        nk = runtime.native(self.model, _STEP)
+        out = nk(q, qd, tau_measured, z, settings) if nk is not None else self._python_step(q, qd, tau_measured)
+        if out is None:
+            return None
+        state, estimate, first = self._parts
+        self._state = out[state]   # the next state: where the next call reads it
         if last is None:   # the first sample starts the integral: p(0), beta
-            z[:n], z[n:2 * n], z[2 * n:3 * n] = out[4 * n + 1:5 * n + 1], 0.0, out[5 * n + 1:]
+            n = self.model.n
+            self._state[:n], self._state[n:2 * n], self._state[2 * n:3 * n] = out[first:first + n], 0.0, out[first + n:]
             r = np.zeros(n)
         else:
-            r = out[3 * n + 1:4 * n + 1]
-        self._t, self.estimate = t, r
+            r = out[estimate]
+        self._t = t
+        self.estimate = r
         return r
+
+    def _python_step(self, q, qd, tau_measured):
+        """The step kernel on Python floats (no native kernel): its outputs, or None."""
+        m = self.model
+        lists = runtime.fast_states(m.n, q, qd, tau_measured)
+        b = runtime.single(m, _STEP) if lists is not None else None
+        if not b:
+            return None
+        try:
+            vals = b[0](*lists, self._state.tolist(), self._settings.tolist(), *b[1])
+        except (ValueError, ZeroDivisionError, OverflowError):
+            return None
+        return np.array(vals) if math.isfinite(sum(vals)) else None
 
     def update(self, t, q, qd, tau_measured):
         """Feed one sample (time t in s, measured q, qd and motor torque); returns the estimate

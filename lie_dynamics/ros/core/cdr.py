@@ -266,18 +266,36 @@ class Template:
 
 
 class Writer:
-    """Template.fill with the slots and stamp offset fixed: one buffer kept and the arrays written
-    into it in place through numpy views of their slots (no per-message buffer or conversion).
-    writer(arrays, stamp) -> the message's bytes."""
+    """Template.fill with the slots and stamp offset fixed, for a message published at every
+    sample: the template cut into its constant pieces once, each message the pieces joined with
+    the packed stamp and the arrays' bytes (half the time of filling a copy of the buffer).
+    message(arrays, stamp) -> the message's bytes (a method, not __call__: an instance call
+    costs more); an array of another length than its slot raises ValueError. One caller at a
+    time (the pieces are reused)."""
 
     def __init__(self, buf, slots, stamp_at=None):
-        self.buf = bytearray(buf)
-        self.views = [np.frombuffer(self.buf, dtype='<f8', count=(b - a) // 8, offset=a) for a, b in slots]
-        self.stamp_at = stamp_at
+        cuts = sorted([(a, b, k) for k, (a, b) in enumerate(slots)]
+                      + ([] if stamp_at is None else [(stamp_at, stamp_at + 8, None)]))
+        self.parts, self.where, pos = [], [None] * len(slots), 0   # where: (part, size) per array
+        self.stamp_part = None
+        for a, b, k in cuts:
+            self.parts += [bytes(buf[pos:a]), bytes(buf[a:b])]
+            if k is None:
+                self.stamp_part = len(self.parts) - 1
+            else:
+                self.where[k] = (len(self.parts) - 1, b - a)
+            pos = b
+        self.parts.append(bytes(buf[pos:]))
 
-    def __call__(self, arrays, stamp=0):
-        for v, x in zip(self.views, arrays, strict=True):
-            v[...] = x
-        if self.stamp_at is not None:
-            _STAMP_LE.pack_into(self.buf, self.stamp_at, *stamp_parts(stamp))
-        return bytes(self.buf)
+    def message(self, arrays, stamp=0):
+        parts = self.parts
+        k = 0
+        for i, size in self.where:
+            data = np.asarray(arrays[k], dtype=_F8['<']).tobytes()
+            if len(data) != size:
+                raise ValueError(f'array {k} has {len(data) // 8} values, its slot {size // 8}')
+            parts[i] = data
+            k += 1
+        if self.stamp_part is not None:
+            parts[self.stamp_part] = _STAMP_LE.pack(*stamp_parts(stamp))
+        return b''.join(parts)

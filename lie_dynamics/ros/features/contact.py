@@ -214,7 +214,9 @@ class ContactMonitor:
                 now = self.clock() if now is None else now   # the full path reads the same time
             t = (stamp - t0) * 1e-9 if stamp else now - t0
             if 0.0 < t - last <= MAX_GAP_S:
-                e = motor_torque(self.model, q, np.asarray(effort, dtype=float)[idx], self.convention)
+                e = np.asarray(effort, dtype=float)[idx]
+                if self.convention != 'total':   # (total: the effort as it is)
+                    e = motor_torque(self.model, q, e, self.convention)
                 r = obs.step(t, q, np.asarray(velocity, dtype=float)[idx], e)
                 if r is not None:
                     return self._accept(r, t)
@@ -261,12 +263,12 @@ class ContactMonitor:
         self.estimate = r
         self.samples += 1
         self.state = 'running'
-        a = list(map(abs, r.tolist()))
-        top = max(a)
+        rl = r.tolist()
+        top = max(max(rl), -min(rl))
         if top > self._window_max:
-            k = a.index(top)
+            k = [abs(x) for x in rl].index(top)
             self._window_max, self._window_joint = top, self.layout[k] if self.layout else str(k)
-        over = top > self._threshold_min and any(map(float.__gt__, a, self._threshold_list))
+        over = top > self._threshold_min and any(abs(x) > y for x, y in zip(rl, self._threshold_list, strict=True))
         if self.debounce.update(over, t):
             self.collision = self.debounce.state
             if self.collision:

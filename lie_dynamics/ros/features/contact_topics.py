@@ -26,7 +26,7 @@ class ContactTopics:
         self.monitor = ContactMonitor()
         self._ext_pub = node.create_publisher(JointState, '~/external_torques', 100, event_callbacks=pub_events)
         self._flag_pub = node.create_publisher(Bool, '~/collision', 100, event_callbacks=pub_events)
-        self._names = self._ext = None   # the layout of ~/external_torques and its writer (cdr.Writer)
+        self._names = self._ext = None   # the layout of ~/external_torques, its cdr.Writer's message
         self._accepted = 0  # core.count.accepted at the last message observed
 
     def observe(self, core, sample, names):
@@ -45,6 +45,6 @@ class ContactTopics:
             return
         if names is not self._names:  # built when the layout changes: no position, no velocity
             template, stamp_at, slots = joint_state_template(names, (0, 0, len(names)))
-            self._names, self._ext = names, template.writer(slots[2:], stamp_at)
+            self._names, self._ext = names, template.writer(slots[2:], stamp_at).message
         self._ext_pub.publish(self._ext((out[0],), sample.stamp))
         self._flag_pub.publish(_FLAG[out[1]])
