@@ -279,6 +279,8 @@ def test_update_without_native_kernels_in_a_fresh_process():
             '    e = b.advance(0.001 * k, *b.momentum_terms(q, qd, tau))\n'
             '    assert r is not None and np.abs(r - e).max() <= 1e-9 * max(1.0, np.abs(e).max())\n'
             'print("ok")\n')
-    env = dict(os.environ, LIE_DYNAMICS_NATIVE='0')
+    here = os.path.dirname(os.path.abspath(__file__))
+    env = dict(os.environ, LIE_DYNAMICS_NATIVE='0',
+               PYTHONPATH=os.pathsep.join([os.path.join(here, '..'), os.environ.get('PYTHONPATH', '')]))
     out = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0 and out.stdout.strip() == 'ok', out.stderr[-2000:]
