@@ -25,6 +25,10 @@ trapezoid's response r_k = a r_{k-1} + (1 - a) tau_ext, a = (1 - K dt / 2) / (1 
 p and C^T qd come from `generalized_momentum`: one O(n) recursive pass (a generated kernel,
 codegen/traced/rnea.py: trace_momentum) for the C of the Christoffel form (eqs 40-42), the one
 with Mdot - 2C skew; its reference is M(q) qd and C^T qd from those matrices.
+
+A streaming sample (MomentumObserver.update) is one call of the traced step
+(codegen/traced/observer.py: these terms, g(q), the friction and the trapezoid together, in C
+where a compiler works); momentum_terms and advance are its numpy reference, on the same state.
 """
 import math
 
