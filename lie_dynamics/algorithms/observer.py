@@ -73,7 +73,7 @@ def generalized_momentum(model, q, qd):
 
 
 def _gains(gain, n):
-    k = np.asarray(gain, dtype=float)
+    k = np.array(gain, dtype=float)   # a copy: made read-only below, the caller's array is not
     k = np.full(n, float(k)) if k.ndim == 0 else k
     if k.shape != (n,) or not np.all(np.isfinite(k)) or np.any(k <= 0):
         raise ValueError(f'observer gain must be one positive number or {n} positive numbers (1/s), got {gain!r}')
@@ -84,7 +84,8 @@ class MomentumObserver:
     """Streaming estimate of the external joint torques (module docstring).
 
     gain: K_O, 1/s, one value or one per joint. friction: None, or (viscous, coulomb, eps) as
-    `laws.Friction` / `laws.make_friction` give it: subtracted from the measured torque.
+    `laws.Friction` / `laws.make_friction` give it: subtracted from the measured torque. Both
+    are fixed at construction (`gain` is read-only): other ones need another observer.
 
     One sample is one call of the generated step kernel where the model has one
     (codegen/traced/observer.py: the momentum terms, the friction and the trapezoid in one
@@ -95,6 +96,7 @@ class MomentumObserver:
     def __init__(self, model, gain, friction=None):
         self.model = model
         self.gain = _gains(gain, model.n)
+        self.gain.flags.writeable = False   # the step kernel holds a copy (its settings)
         self.friction = friction
         self._settings = _step_settings(self.gain, friction, model.n)
         n = model.n   # where the step kernel's outputs are: next state, estimate, p and beta
