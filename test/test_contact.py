@@ -1,11 +1,18 @@
 """contact.py without ROS: effort conventions, hold-time debouncing, the monitor's pauses and
 re-initialisations, against Pinocchio-made efforts with a known external torque."""
+import glob
 import math
+import os
+import sys
+import warnings
+import zlib
 
 import numpy as np
 import pytest
 
 from lie_dynamics import default_urdf_path, load_urdf
+from lie_dynamics.algorithms.observer import MomentumObserver
+from lie_dynamics.laws import friction_torque, make_friction
 from lie_dynamics.ros.features.contact import (MAX_GAP_S, ContactMonitor, Debounce, check_settings, motor_torque,
                                       thresholds)
 from lie_dynamics.ros.core.diagnostics import OK, WARN
@@ -238,3 +245,76 @@ def test_motor_torque_keeps_its_documented_path():
     """docs/node.md names lie_dynamics.ros.contact.motor_torque: the same function as the observer's."""
     from lie_dynamics.ros.contact import motor_torque as public
     assert public is motor_torque
+
+
+@pytest.mark.parametrize('name', ['arm', 'ur_description/urdf/ur5_robot.urdf'])
+def test_monitor_equals_the_reference_observer_step_by_step(name, monkeypatch):
+    """ContactMonitor.on_state (its one-kernel steady state) against the numpy reference
+    (MomentumObserver.momentum_terms + advance) on random states with friction, restarted where
+    the monitor pauses: a NaN effort and a gap beyond MAX_GAP_S. The flag follows |r_j| > threshold_j
+    with the hold time, the window maximum is the largest |r|; between restarts, one step each."""
+    if name == 'arm':
+        xml, joints = XML, JOINTS
+    else:
+        root = next(iter(glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-packages', 'cmeel.prefix',
+                                                'share', 'example-robot-data', 'robots'))), None)
+        if root is None:
+            pytest.skip('example-robot-data is not installed')
+        with open(os.path.join(root, name), encoding='utf-8') as fh:
+            xml = fh.read()
+        joints = None
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore')   # vendor inertias are warned about
+        model = load_urdf(xml)
+    joints = joints or model.joint_names
+    n = model.n
+    rng = np.random.default_rng(zlib.crc32(f'monitor {name}'.encode()))
+    friction = make_friction(rng.uniform(0.0, 1.0, n), rng.uniform(0.0, 0.5, n), 0.05)
+    thr = np.linspace(2.0, 8.0, n)                # per joint: the largest |r| is not always the one over
+    s = settings(observer__gain=40.0, collision__threshold=thr.tolist(), collision__hold_time=0.003)
+    mon = ContactMonitor(clock=lambda: 0.0)
+    mon.sync(s, model, friction, joints)
+    ref = MomentumObserver(model, 40.0, friction)
+    calls = {'update': 0}
+    update = MomentumObserver.update
+
+    def counted(self, *a):
+        calls['update'] += 1
+        return update(self, *a)
+    monkeypatch.setattr(MomentumObserver, 'update', counted)
+    idx = rng.permutation(n)                     # message columns in another order than the model's
+    amp, w, phase = rng.uniform(0.2, 1.0, n), rng.uniform(0.5, 3.0, n), rng.uniform(0, 6, n)   # the motion
+    stamp, top, flagged, flags = 7 * 10 ** 18, 0.0, 0, Debounce(0.003)   # flags: the reference flag
+    for k in range(300):
+        stamp += (int(MAX_GAP_S * 1e9) + 10 * MS) if k == 200 else int(rng.integers(MS // 2, 3 * MS // 2))
+        t = (stamp - 7 * 10 ** 18) * 1e-9
+        arg = w * t + phase
+        q, qd, qdd = amp * np.sin(arg), amp * w * np.cos(arg), -amp * w * w * np.sin(arg)
+        if k % 30 == 0:                          # a new external torque every 30 samples, around thr
+            ext = rng.uniform(-1.5, 1.5, n) * thr
+        tau = model.inverse_dynamics(q, qd, qdd) + friction_torque(qd, *friction) - ext
+        effort, velocity = np.empty(n), np.empty(n)
+        effort[idx], velocity[idx] = tau, qd     # message order: column idx[j] holds joint j
+        if k == 120:
+            effort[idx[2]] = math.nan
+            assert mon.on_state(idx, q, velocity, effort, stamp) is None
+            assert mon.state == f"paused: non-finite effort for ['{joints[2]}']"
+            ref.reset()
+            flags.reset()
+            continue
+        if k == 200:
+            ref.reset()                          # the gap: the monitor restarts with this sample
+        r, flag = mon.on_state(idx, q, velocity, effort, stamp)
+        expect = ref.advance(t, *ref.momentum_terms(q, qd, tau))
+        scale = max(1.0, np.abs(expect).max())
+        assert np.abs(r - expect).max() <= 1e-9 * scale, k
+        if k == 200:
+            flags.reset()
+        flags.update(bool(np.any(np.abs(expect) > thr)), t)
+        top = max(top, np.abs(expect).max())
+        assert flag == flags.state, k
+        flagged += flag
+    assert calls['update'] == 3                  # the full path only where the integral (re)starts
+    assert mon.resets == 2 and any('gap of' in e[2] for e in mon.events)
+    v = dict(mon.report(OK, '', [])[2])
+    assert float(v['external_torque_max']) == float(f'{top:.4g}') and 10 < flagged < 270   # both states, often

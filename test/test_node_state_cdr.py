@@ -308,3 +308,28 @@ def test_garbage_flood_is_logged_bounded_and_valid_states_answered(tmp_path):
     assert None not in order and order == sorted(order), str(order)   # each a valid state's gravity, in order
     assert len(cmds) >= 0.5 * len(qs), (len(cmds), len(qs))   # best effort, depth 1: garbage may displace a few
     assert proc.returncode == 0
+
+
+@pytest.mark.parametrize('names', [['joint1', 'j2é', 'a_longer_joint_name_3'], ['x'], []])
+def test_writer_messages_equal_the_template_and_read_back(names):
+    """cdr.Writer (the ~/external_torques path: a JointState with effort only) gives the bytes of
+    Template.fill, message after message with new stamps and values, that rclpy reads back; an
+    array of another length is refused rather than making a malformed message."""
+    from lie_dynamics.ros.features.dynamics_topics import joint_state_template
+    n = len(names)
+    rng = np.random.default_rng(3)
+    for sizes in ((0, 0, n), None):
+        t, stamp_at, slots = joint_state_template(names, sizes)
+        message = t.writer(slots[2:] if sizes else slots, stamp_at).message
+        for k in range(3):
+            arrays = tuple(rng.normal(size=(1 if sizes else 3, n)))
+            ns = 1_700_000_000 * 10 ** 9 + 123_456_789 + k * 1_000_000_007
+            data = message(arrays, ns)
+            assert data == t.fill(slots[2:] if sizes else slots, arrays, stamp_at, ns)
+            msg = deserialize_message(data, JointState)
+            assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == divmod(ns, 10 ** 9)
+            assert list(msg.name) == names and np.array_equal(msg.effort, arrays[-1])
+            assert len(msg.position) == (0 if sizes else n)
+    if n:
+        with pytest.raises(ValueError, match='values, its slot'):
+            message((np.zeros(n + 1),) * 3, 0)

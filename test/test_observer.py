@@ -1,5 +1,12 @@
 """The generalized-momentum observer against ground truth (known external torques added to
 Pinocchio-checked inverse dynamics) and against Pinocchio's M, C and g."""
+import glob
+import os
+import subprocess
+import sys
+import warnings
+import zlib
+
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -7,9 +14,10 @@ import pytest
 from lie_dynamics import default_urdf_path, load_urdf
 from lie_dynamics.algorithms.observer import MomentumObserver, estimate_external_torques, generalized_momentum
 from lie_dynamics.codegen import runtime
+from lie_dynamics.codegen.traced import observer as observer_kernel
 from lie_dynamics.laws import make_friction
 from oracle import Oracle
-from robots import named_urdf, with_payload
+from robots import NAMED_CASES, named_urdf, with_payload
 
 DT = 1e-3
 GAIN = 40.0
@@ -174,3 +182,105 @@ def test_bad_samples_are_refused_and_lose_nothing():
     with pytest.raises(ValueError, match=r't must have shape \(3,\)'):
         estimate_external_torques(model, [0.0, 1.0], np.zeros((3, model.n)), np.zeros((3, model.n)),
                                   np.zeros((3, model.n)), GAIN)
+
+
+REAL_ROOT = next(iter(glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-packages', 'cmeel.prefix', 'share',
+                                             'example-robot-data', 'robots'))), None)
+
+
+def step_model(name):
+    """The bundled arm, a random tree with mimic joints, or a vendor robot (example-robot-data)."""
+    if name == 'arm':
+        return load_urdf(default_urdf_path())
+    if name in NAMED_CASES:
+        return load_urdf(named_urdf(name))
+    if REAL_ROOT is None:
+        pytest.skip('example-robot-data is not installed')
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore')   # vendor inertias are warned about
+        return load_urdf(os.path.join(REAL_ROOT, name))
+
+
+@pytest.mark.parametrize('backend', ['native', 'python'])
+@pytest.mark.parametrize('name', ['arm', 'tree20_mimic', 'ur_description/urdf/ur5_robot.urdf'])
+def test_step_kernel_equals_the_reference_step_by_step(name, backend):
+    """MomentumObserver.step (the traced step: in C, or on Python floats with the native kernels
+    off) against the numpy reference (momentum_terms + advance) on random states, with viscous
+    and Coulomb friction, per-joint gains, jittered dt and a 0.3 s gap; a NaN effort, a time
+    that does not increase and a list argument are declined with the state untouched."""
+    model = step_model(name)
+    if backend == 'native':
+        if runtime.native(model, observer_kernel.OBSERVER_STEP) is None:
+            pytest.skip('no working C compiler')
+    else:
+        runtime.use_native(model, False)
+    n = model.n
+    rng = np.random.default_rng(zlib.crc32(f'step {name}'.encode()))
+    friction = make_friction(rng.uniform(0.0, 2.0, n), rng.uniform(0.0, 1.0, n), 0.05)
+    gain = rng.uniform(5.0, 200.0, n)
+    fast, ref = MomentumObserver(model, gain, friction), MomentumObserver(model, gain, friction)
+    t = 1.0
+    for k in range(150):
+        t += 0.3 if k == 80 else rng.uniform(0.5e-3, 1.5e-3)
+        q, qd = rng.uniform(-2, 2, (2, n))
+        tau = rng.normal(0.0, 5.0, n)
+        if k in (40, 41):   # a NaN effort, then a repeated time: declined, nothing changes
+            bad = tau.copy()
+            bad[k % n] = np.nan
+            state = fast._state[:3 * n].copy()   # p(0), the integral, beta + r (then the dt slot)
+            assert fast.step(t, q, qd, bad) is None
+            assert fast.step(fast._t, q, qd, tau) is None
+            if backend == 'native':   # the C call takes float64 arrays only (the Python floats: lists too)
+                assert fast.step(t, q.tolist(), qd, tau) is None
+            np.testing.assert_array_equal(fast._state[:3 * n], state)
+            with pytest.raises(ValueError, match='tau_measured contains non-finite'):
+                fast.update(t, q, qd, bad)
+            continue
+        r = fast.step(t, q, qd, tau)
+        assert r is not None, k
+        expect = ref.advance(t, *ref.momentum_terms(q, qd, tau))
+        scale = max(1.0, np.abs(expect).max())
+        assert np.abs(r - expect).max() <= 1e-9 * scale, (k, np.abs(r - expect).max() / scale)
+        assert np.abs(fast.estimate - ref.estimate).max() <= 1e-9 * scale
+    assert np.abs(r).max() > 1.0   # the estimates compared are not all near zero
+
+
+def test_step_kernel_in_c_equals_its_python_floats():
+    """The C rendering of the observer step against its Python-float rendering (same trace)."""
+    model = step_model('mixed_types')
+    nk = runtime.native(model, observer_kernel.OBSERVER_STEP)
+    if nk is None:
+        pytest.skip('no working C compiler')
+    n = model.n
+    rng = np.random.default_rng(zlib.crc32(b'step c python'))
+    q, qd, tau = (np.ascontiguousarray(x) for x in rng.uniform(-2, 2, (3, 6, n)))
+    z = rng.normal(size=(6, 3 * n + 1))
+    o = np.hstack([rng.uniform(1, 100, (6, n)), rng.uniform(0, 2, (6, 2 * n)), np.full((6, 1), 20.0)])
+    ref = runtime.evaluate(model, observer_kernel.OBSERVER_STEP, [q, qd, tau, z, o], 'loop')
+    for i in range(6):
+        out = nk(q[i], qd[i], tau[i], z[i], o[i])
+        assert np.abs(out - ref[i]).max() <= 1e-12 * max(1.0, np.abs(ref[i]).max())
+
+
+def test_update_without_native_kernels_in_a_fresh_process():
+    """LIE_DYNAMICS_NATIVE=0: the Python-float step, the same estimates as the reference."""
+    code = ('import numpy as np\n'
+            'from lie_dynamics import default_urdf_path, load_urdf\n'
+            'from lie_dynamics.algorithms.observer import MomentumObserver\n'
+            'from lie_dynamics.codegen import runtime\n'
+            'from lie_dynamics.codegen.traced.observer import OBSERVER_STEP\n'
+            'm = load_urdf(default_urdf_path())\n'
+            'assert runtime.native(m, OBSERVER_STEP) is None\n'
+            'a, b = MomentumObserver(m, 30.0), MomentumObserver(m, 30.0)\n'
+            'rng = np.random.default_rng(5)\n'
+            'for k in range(50):\n'
+            '    q, qd, tau = rng.normal(size=(3, m.n))\n'
+            '    r = a.step(0.001 * k, q, qd, tau)\n'
+            '    e = b.advance(0.001 * k, *b.momentum_terms(q, qd, tau))\n'
+            '    assert r is not None and np.abs(r - e).max() <= 1e-9 * max(1.0, np.abs(e).max())\n'
+            'print("ok")\n')
+    here = os.path.dirname(os.path.abspath(__file__))
+    env = dict(os.environ, LIE_DYNAMICS_NATIVE='0',
+               PYTHONPATH=os.pathsep.join([os.path.join(here, '..'), os.environ.get('PYTHONPATH', '')]))
+    out = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and out.stdout.strip() == 'ok', out.stderr[-2000:]

@@ -25,12 +25,21 @@ trapezoid's response r_k = a r_{k-1} + (1 - a) tau_ext, a = (1 - K dt / 2) / (1 
 p and C^T qd come from `generalized_momentum`: one O(n) recursive pass (a generated kernel,
 codegen/traced/rnea.py: trace_momentum) for the C of the Christoffel form (eqs 40-42), the one
 with Mdot - 2C skew; its reference is M(q) qd and C^T qd from those matrices.
+
+A streaming sample (MomentumObserver.update) is one call of the traced step
+(codegen/traced/observer.py: these terms, g(q), the friction and the trapezoid together, in C
+where a compiler works); momentum_terms and advance are its numpy reference, on the same state.
 """
+import math
+
 import numpy as np
 
 from ..codegen import runtime
+from ..codegen.traced import observer as observer_kernel
 from ..codegen.traced import rnea as traced
 from ..laws import friction_torque
+
+_STEP = observer_kernel.OBSERVER_STEP
 
 
 def generalized_momentum(model, q, qd):
@@ -52,7 +61,7 @@ def generalized_momentum(model, q, qd):
 
 
 def _gains(gain, n):
-    k = np.asarray(gain, dtype=float)
+    k = np.array(gain, dtype=float)   # a copy: made read-only below, the caller's array is not
     k = np.full(n, float(k)) if k.ndim == 0 else k
     if k.shape != (n,) or not np.all(np.isfinite(k)) or np.any(k <= 0):
         raise ValueError(f'observer gain must be one positive number or {n} positive numbers (1/s), got {gain!r}')
@@ -63,20 +72,32 @@ class MomentumObserver:
     """Streaming estimate of the external joint torques (module docstring).
 
     gain: K_O, 1/s, one value or one per joint. friction: None, or (viscous, coulomb, eps) as
-    `laws.Friction` / `laws.make_friction` give it: subtracted from the measured torque.
+    `laws.Friction` / `laws.make_friction` give it: subtracted from the measured torque. Both
+    are fixed at construction (`gain` is read-only): other ones need another observer.
+
+    One sample is one call of the generated step kernel where the model has one
+    (codegen/traced/observer.py: the momentum terms, the friction and the trapezoid in one
+    pass, natively compiled where a C compiler works); `momentum_terms` and `advance` are its
+    reference, with the same state.
     """
 
     def __init__(self, model, gain, friction=None):
         self.model = model
         self.gain = _gains(gain, model.n)
+        self.gain.flags.writeable = False   # the step kernel holds a copy (its settings)
         self.friction = friction
+        self._settings = _step_settings(self.gain, friction, model.n)
+        n = model.n   # where the step kernel's outputs are: next state, estimate, p and beta
+        self._parts = (slice(0, 3 * n + 1), slice(3 * n + 1, 4 * n + 1), 4 * n + 1)
         self.reset()
 
     def reset(self):
         """Forget the history: the next update starts a new integral (estimate 0)."""
-        self._t = self._p0 = self._beta = None
-        self._integral = np.zeros(self.model.n)
-        self.estimate = np.zeros(self.model.n)
+        n = self.model.n
+        self._t = None
+        # p(0), the integral, beta + r of the last sample, then the step's dt (the kernel's Z)
+        self._state = np.zeros(3 * n + 1)
+        self.estimate = np.zeros(n)
 
     def momentum_terms(self, q, qd, tau_measured):
         """(p, beta) with p = M(q) qd and beta = tau + C^T qd - g, for one state (n,) or a batch."""
@@ -98,27 +119,88 @@ class MomentumObserver:
         t = float(t)
         if not np.isfinite(t):
             raise ValueError(f'observer time must be finite, got {t}')
+        n, z = self.model.n, self._state
         if self._t is None:
-            self._t, self._p0, self._beta = t, p, beta
-            self.estimate = np.zeros(self.model.n)
+            self._t = t
+            z[:n], z[n:2 * n], z[2 * n:3 * n] = p, 0.0, beta
+            self.estimate = np.zeros(n)
             return self.estimate
         dt = t - self._t
         if not dt > 0:
             raise ValueError(f'observer times must increase: {t} after {self._t}')
         half = 0.5 * dt * self.gain
         # I_k = I_{k-1} + dt/2 (beta_{k-1} + r_{k-1} + beta_k + r_k), r_k = K (p_k - p_0 - I_k)
-        partial = self._integral + 0.5 * dt * (self._beta + self.estimate + beta)
-        r = self.gain * (p - self._p0 - partial) / (1.0 + half)
-        self._integral = partial + 0.5 * dt * r
-        self._t, self._beta, self.estimate = t, beta, r
+        partial = z[n:2 * n] + 0.5 * dt * (z[2 * n:3 * n] + beta)
+        r = self.gain * (p - z[:n] - partial) / (1.0 + half)
+        z[n:2 * n] = partial + 0.5 * dt * r
+        z[2 * n:3 * n] = beta + r
+        self._t, self.estimate = t, r
+        return r
+
+    def step(self, t, q, qd, tau_measured):
+        """One sample through the generated step kernel: the estimate (as update), or None when
+        the kernel declines (no kernel for this model, arguments other than finite (n,)
+        float64 arrays, a time that is not finite or does not increase, a non-finite result),
+        and then nothing has changed: update validates, names the problem or runs the reference."""
+        settings = self._settings
+        if settings is None:
+            return None
+        t = float(t)
+        last = self._t
+        if last is None:
+            if t - t != 0.0:
+                return None
+            dt = 0.0
+        else:
+            dt = t - last
+            if not 0.0 < dt < math.inf:
+                return None
+        z = self._state
+        z[-1] = dt
+        nk = runtime.native(self.model, _STEP)   # C checks its outputs; the float kernel's are checked here
+        if nk is not None:
+            out = nk(q, qd, tau_measured, z, settings)
+        else:
+            out = runtime.fast(self.model, _STEP)(q, qd, tau_measured, z, settings)
+            if out is not None and not math.isfinite(out.sum()):
+                out = None
+        if out is None:
+            return None
+        state, estimate, first = self._parts
+        self._state = out[state]   # the next state: where the next call reads it
+        if last is None:   # the first sample starts the integral: p(0), beta
+            n = self.model.n
+            self._state[:n], self._state[n:2 * n], self._state[2 * n:3 * n] = out[first:first + n], 0.0, out[first + n:]
+            r = np.zeros(n)
+        else:
+            r = out[estimate]
+        self._t = t
+        self.estimate = r
         return r
 
     def update(self, t, q, qd, tau_measured):
         """Feed one sample (time t in s, measured q, qd and motor torque); returns the estimate
         of tau_ext (n,). The first sample starts the integral and returns zeros."""
+        r = self.step(t, q, qd, tau_measured)
+        if r is not None:
+            return r
         if np.ndim(q) != 1:
             raise ValueError(f'update takes one state: q must have shape ({self.model.n},), got {np.shape(q)}')
         return self.advance(t, *self.momentum_terms(q, qd, tau_measured))
+
+
+def _step_settings(gain, friction, n):
+    """The step kernel's settings (K, b, fc, 1/eps) as one float64 array, or None when they are
+    not finite numbers (the reference then runs and reports)."""
+    b, fc, eps = (None, None, 1.0) if friction is None else friction
+    try:
+        with np.errstate(all='ignore'):
+            o = np.concatenate([gain, np.zeros(n) + (0.0 if b is None else np.asarray(b, dtype=float)),
+                                np.zeros(n) + (0.0 if fc is None else np.asarray(fc, dtype=float)),
+                                [1.0 / float(eps) if fc is not None else 0.0]])
+    except (ValueError, TypeError, ZeroDivisionError):
+        return None
+    return o if o.shape == (3 * n + 1,) and np.all(np.isfinite(o)) else None
 
 
 def estimate_external_torques(model, t, q, qd, tau_measured, gain, friction=None):

@@ -182,7 +182,7 @@ def _hot_locals(lines, seq, ret_leaves, names, inputs, k):
 
 
 def compile_function(src, fname):
-    ns = dict(sin_=math.sin, cos_=math.cos, sqrt_=math.sqrt)   # the defaults of sin, cos, sqrt
+    ns = dict(sin_=math.sin, cos_=math.cos, sqrt_=math.sqrt, tanh=math.tanh)   # the defaults of sin, cos, sqrt
     exec(compile(src, f'<lie_dynamics generated {fname}>', 'exec'), ns)
     return ns[fname]
 
@@ -251,7 +251,7 @@ def emit_rows(g, fname, arg_lists, outputs):
             lines.append(f'multiply({name(data[0])}, {name(data[1])}, out={R})')
         elif op == 'inv':
             lines.append(f'divide(1.0, {name(data)}, out={R})')
-        elif op in ('sin', 'cos', 'sqrt'):
+        elif op in ('sin', 'cos', 'sqrt', 'tanh'):
             lines.append(f'{op}({name(data)}, out={R})')
         else:
             terms, const = data
@@ -305,7 +305,8 @@ def emit_rows(g, fname, arg_lists, outputs):
 
 
 _ROWS_ENV = dict(multiply=np.multiply, add=np.add, subtract=np.subtract, divide=np.divide,
-                 sin=np.sin, cos=np.cos, sqrt=np.sqrt, sin_=math.sin, cos_=math.cos, sqrt_=math.sqrt)
+                 sin=np.sin, cos=np.cos, sqrt=np.sqrt, sin_=math.sin, cos_=math.cos, sqrt_=math.sqrt,
+                 tanh=np.tanh, tanh_=math.tanh)
 
 
 def rows_env():

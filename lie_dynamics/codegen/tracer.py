@@ -1,6 +1,6 @@
 """The tracer: an algorithm written on scalars, run on symbols, becomes an expression graph.
 
-Only +, -, *, unary minus, sin, cos, sqrt and 1/x are traced; no data-dependent branches.
+Only +, -, *, unary minus, sin, cos, tanh, sqrt and 1/x are traced; no data-dependent branches.
 Constants fold as they meet (zeros and ones of the home poses, joint axes and masks drop
 out) and repeated subexpressions are shared; render.py turns the graph into source.
 """
@@ -194,4 +194,7 @@ class Graph:
 
     def cos(self, a):
         return self.fn('cos', a)
+
+    def tanh(self, a):
+        return self.fn('tanh', a)
 

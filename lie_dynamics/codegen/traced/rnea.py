@@ -66,7 +66,8 @@ def _coordinates(fr, g, rates):
     return co, trig(fr, g, co['x'])
 
 
-def _torques(fr, tau_b):
+def joint_torques(fr, tau_b):
+    """Joint values from body values (the mimic map E): tau_j = sum_b E_bj tau_b."""
     return [sum((float(fr.E[b, j]) * tau_b[b] for b in range(fr.nb) if fr.E[b, j] != 0), 0.0)
             for j in range(fr.n)]
 
@@ -188,7 +189,7 @@ def build_momentum(fr):
     parg, params = fr.trace_params(g)
     p_b, c_b = trace_momentum(fr, cs, co['x'], co['xd'], params)
     return Trace(g, 'momentum_kernel', co['args'] + [parg, co['offset_args']],
-                  _torques(fr, p_b) + _torques(fr, c_b))
+                  joint_torques(fr, p_b) + joint_torques(fr, c_b))
 
 
 def build_inverse_dynamics(fr, wrench):
@@ -204,27 +205,20 @@ def build_inverse_dynamics(fr, wrench):
         fx = [g.input(nm) for nm in names]
     args += [parg, a0arg, co['offset_args']]
     tau_b = trace_inverse_dynamics(fr, cs, co['x'], co['xd'], co['xdd'], params, ga, fx)
-    return Trace(g, 'inverse_dynamics_kernel', args, _torques(fr, tau_b))
+    return Trace(g, 'inverse_dynamics_kernel', args, joint_torques(fr, tau_b))
 
 
-def build_gravity(fr):
-    """k(Q, P, A0, E0) -> g(q) tuple, P = Frames.subtree_params (as build_inverse_dynamics).
+def trace_gravity(fr, cs, x, params, ga):
+    """Body torques of g(q), traced: params per body (subtree mass, first moment: 4 symbols,
+    Frames.subtree_params), ga = -g (3 symbols), cs = trig(fr, g, x).
 
     With V = 0 and Vdot_0 = (0, -g), eq 19 leaves only the linear acceleration a_i = R^T a_p,
     and the subtree sum of eq 20 is (H_i x a_i, m_i a_i): subtree mass m_i (a parameter)
     and first moment H_i = h'_i + sum_c (R_c H_c + m_c p_c), its constant part folded into
     the parameters. Eq 21 is then one component.
     """
-    g = Graph()
-    co, cs = _coordinates(fr, g, 0)
-    x = co['x']
     nb = fr.nb
-    names = [f'p{b}_{k}' for b in range(nb) for k in range(4)]
-    syms = [g.input(nm) for nm in names]
-    params = [syms[4 * b:4 * b + 4] for b in range(nb)]
-    a0arg, ga = fr.trace_gravity(g)
     ga = tuple(ga)
-    args = co['args'] + [Params('P', names), a0arg, co['offset_args']]
     R0 = [np.array(R) for R in fr.R]
     acc = [None] * nb
     for b in range(nb):
@@ -244,7 +238,25 @@ def build_gravity(fr):
         else:  # H + m_sub z x
             u = (H[b][0], H[b][1], H[b][2] + params[b][0] * x[b])
         H[p] = _lin(R0[b], u, add=H[p])
-    return Trace(g, 'gravity_kernel', args, _torques(fr, tau_b))
+    return tau_b
+
+
+def subtree_inputs(g, nb, name='P', prefix='p'):
+    """(argument list, per-body symbols) of the gravity parameters (Frames.subtree_params)."""
+    names = [f'{prefix}{b}_{k}' for b in range(nb) for k in range(4)]
+    syms = [g.input(nm) for nm in names]
+    return Params(name, names), [syms[4 * b:4 * b + 4] for b in range(nb)]
+
+
+def build_gravity(fr):
+    """k(Q, P, A0, E0) -> g(q) tuple (trace_gravity), P = Frames.subtree_params (as
+    build_inverse_dynamics)."""
+    g = Graph()
+    co, cs = _coordinates(fr, g, 0)
+    parg, params = subtree_inputs(g, fr.nb)
+    a0arg, ga = fr.trace_gravity(g)
+    args = co['args'] + [parg, a0arg, co['offset_args']]
+    return Trace(g, 'gravity_kernel', args, joint_torques(fr, trace_gravity(fr, cs, co['x'], params, ga)))
 
 
 INVERSE_DYNAMICS = Spec('inverse_dynamics', lambda fr: build_inverse_dynamics(fr, False),

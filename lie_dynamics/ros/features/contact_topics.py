@@ -4,17 +4,20 @@ feature (base.py), its results published.
 Publishes   ~/external_torques (sensor_msgs/JointState: name = the command layout, effort = the
             estimate, header.stamp = the joint_states stamp) and ~/collision (std_msgs/Bool),
             one of each per new accepted joint_states message with efforts, after its command
-            (QoS: interfaces.py).
+            (QoS: interfaces.py). Both are published serialized (cdr.Template, as the dynamics
+topics; ~/external_torques through one cdr.Writer per joint layout): writing the estimate into
+a message serialized once costs less than rclpy's conversion of a message object.
 """
-import array
-
-from sensor_msgs.msg import JointState
+from rclpy.serialization import serialize_message
 from std_msgs.msg import Bool
 
 from .. import interfaces
-from ..core.cdr import stamp_parts
 from .base import Feature
 from .contact import ContactMonitor
+from .dynamics_topics import joint_state_template
+
+# ~/collision's two possible messages, serialized
+_FLAG = {v: serialize_message(Bool(data=v)) for v in (False, True)}
 
 
 class ContactTopics(Feature):
@@ -27,7 +30,7 @@ class ContactTopics(Feature):
         super().__init__()
         self._ext_pub = interfaces.publisher(node, '~/external_torques')
         self._flag_pub = interfaces.publisher(node, '~/collision')
-        self._ext, self._flag = JointState(), Bool()
+        self._names = self._ext = None   # the layout of ~/external_torques, its cdr.Writer's message
 
     @property
     def events(self):   # the monitor's queue is the feature's
@@ -47,14 +50,12 @@ class ContactTopics(Feature):
         out = self.monitor.on_state(s.columns, s.q, s.message_velocity, s.message_effort, s.stamp)
         if out is None:
             return
-        ext = self._ext
-        ext.header.stamp.sec, ext.header.stamp.nanosec = stamp_parts(s.stamp)
-        if ext.name is not s.names:  # the setter checks every name: only when the layout changes
-            ext.name = s.names
-        ext.effort = array.array('d', out[0].tobytes())
-        self._ext_pub.publish(ext)
-        self._flag.data = out[1]
-        self._flag_pub.publish(self._flag)
+        names = s.names
+        if names is not self._names:  # built when the layout changes: no position, no velocity
+            template, stamp_at, slots = joint_state_template(names, (0, 0, len(names)))
+            self._names, self._ext = names, template.writer(slots[2:], stamp_at).message
+        self._ext_pub.publish(self._ext((out[0],), s.stamp))
+        self._flag_pub.publish(_FLAG[out[1]])
 
     def report(self, level, message):
         return self.monitor.report(level, message, [])

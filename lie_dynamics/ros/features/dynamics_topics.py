@@ -55,15 +55,16 @@ def check_link(settings, model):
                          f'{exc}') from None
 
 
-def joint_state_template(names):
+def joint_state_template(names, sizes=None):
     """(Template, stamp offset, slots of position, velocity, effort) of a sensor_msgs/JointState
-    with these names and an empty frame_id."""
+    with these names and an empty frame_id; sizes: the three arrays' lengths (default: one
+    value per name each)."""
     t = Template()
     stamp_at = t.int32()
     t.uint32()
     t.string('')
     t.strings(names)
-    return t, stamp_at, [t.doubles(len(names)) for _ in range(3)]
+    return t, stamp_at, [t.doubles(len(names) if sizes is None else k) for k in (sizes or range(3))]
 
 
 def matrix_template(rows_label, cols_label, rows, cols):
