@@ -31,16 +31,22 @@ import sys
 import sysconfig
 import tempfile
 import threading
+import time
 import warnings
 
 import numpy as np
+
+from .thresholds import THRESHOLDS
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 FLAGS = ('-O2', '-ffp-contract=off', '-fno-math-errno', '-fPIC', '-shared', '-pipe')   # -pipe: no temporary files
 MAGIC = b'\nlie_dynamics native '
 _TRAILER = len(MAGIC) + 64 + 64
+# Between translation units in one C text (crender.emit_c; the whole text is valid C as well):
+# _build compiles the units in parallel and links them once.
+UNIT = '/* lie_dynamics: translation unit */\n'
 _LOCK = threading.Lock()
-_STATE = {'module': None, 'error': None, 'warned': False, 'compiles': 0}
+_STATE = {'module': None, 'error': None, 'warned': False, 'compiles': 0, 'seconds': 0.0}
 
 
 class NativeUnavailable(RuntimeError):
@@ -85,6 +91,11 @@ def compile_count():
     return _STATE['compiles']
 
 
+def compile_seconds():
+    """Wall-clock seconds this process has spent running the C compiler (and linker)."""
+    return _STATE['seconds']
+
+
 @functools.lru_cache(maxsize=1)
 def generator_hash():
     """Hash of the source that determines the C kernels (the tracer, renderers, traced forms)."""
@@ -122,6 +133,64 @@ def _first_error(text):
     return (errs or lines or ['(no output)'])[0]
 
 
+def _jobs():
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def _run(cmds):
+    """Run compiler commands in parallel; NativeUnavailable naming the first error."""
+    try:
+        procs = [subprocess.Popen(c, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for c in cmds]
+    except OSError as e:
+        raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: {e}') from None
+    try:
+        outs = [p.communicate(timeout=600)[0] for p in procs]
+    except subprocess.TimeoutExpired:
+        for p in procs:
+            p.kill()
+            p.communicate()
+        raise
+    for p, out in zip(procs, outs):
+        if p.returncode != 0:
+            raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: {_first_error(out)}')
+
+
+def _build(source, lib, work, extra):
+    """Compile C text `source` into the shared library `lib`. A text of several translation
+    units (UNIT between them) is compiled as up to one object per usable core, in
+    parallel, consecutive units together in pieces of about equal length, and linked once."""
+    units = source.split(UNIT)
+    jobs = min(len(units), _jobs())
+    pieces, acc, done, total = [], [], 0, sum(map(len, units))
+    for u in units:   # cut where the running length passes the next k/jobs of the total
+        acc.append(u)
+        done += len(u)
+        if done >= total * (len(pieces) + 1) / jobs:
+            pieces.append(acc)
+            acc = []
+    if acc:
+        pieces.append(acc)
+    srcs = []
+    for k, p in enumerate(pieces):
+        srcs.append(os.path.join(work, f'k{k}.c'))
+        with open(srcs[-1], 'w', encoding='utf-8') as fh:
+            fh.write(''.join(p))
+    try:
+        if len(srcs) == 1:   # one process, no separate link
+            _run([compiler() + list(FLAGS) + extra + ['-o', lib, srcs[0]]])
+        else:
+            objs = [s[:-2] + '.o' for s in srcs]
+            _run([compiler() + list(FLAGS) + extra + ['-c', '-o', o, s] for s, o in zip(srcs, objs)])
+            _run([compiler() + list(FLAGS) + ['-o', lib, *objs]])
+    except subprocess.TimeoutExpired as e:
+        raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: {e}') from None
+    if not os.path.exists(lib):
+        raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: no {os.path.basename(lib)} written')
+
+
 def _compile(source, key, suffix, extra=()):
     """Path of the verified library for key, compiling `source` (C text) on a miss."""
     d = cache_dir()
@@ -135,19 +204,13 @@ def _compile(source, key, suffix, extra=()):
     except OSError:   # read-only or unusable cache: compile in a temporary folder
         work = tmpdir = tempfile.mkdtemp(prefix='lie_dynamics_native_')
     try:
-        src = os.path.join(work, 'k.c')
         lib = os.path.join(work, 'k' + suffix)
-        with open(src, 'w', encoding='utf-8') as fh:
-            fh.write(source)
-        cmd = compiler() + list(FLAGS) + list(extra) + ['-o', lib, src]
+        t0 = time.perf_counter()
         try:
-            r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-        except (OSError, subprocess.SubprocessError) as e:
-            raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: {e}') from None
+            _build(source, lib, work, list(extra))
+        finally:
+            _STATE['seconds'] += time.perf_counter() - t0
         _STATE['compiles'] += 1
-        if r.returncode != 0 or not os.path.exists(lib):
-            raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: '
-                                    f'{_first_error(r.stderr + r.stdout)}')
         with open(lib, 'rb') as fh:
             body = fh.read()
         with open(lib, 'ab') as fh:
@@ -228,7 +291,7 @@ def library(structure, name, render):
     the backend is off or unavailable (module())."""
     if module() is None:
         return None
-    key = _key(generator_hash(), structure, name)
+    key = _key(generator_hash(), structure, name, THRESHOLDS['native_part'])
     d = cache_dir()
     path = os.path.join(d, key[:40] + '.so')
     tmp = None
@@ -241,7 +304,7 @@ def library(structure, name, render):
         if len(meta) > 64:
             return None
         meta = ', '.join(str(int(v)) for v in meta)
-        source = f'#include <math.h>\n{source}const long lie_meta[64] = {{{meta}}};\n'
+        source = f'{source}const long lie_meta[64] = {{{meta}}};\n'
         try:
             path, tmp = _compile(source, key, '.so')
         except NativeUnavailable as e:

@@ -78,6 +78,8 @@ THRESHOLDS = {
     # -O1 is no faster on the large ones). Above this many graph nodes a kernel stays Python
     # (an arm's whole family is below it: its largest, the forward-dynamics derivatives, 7,500).
     'native_nodes': 9000,
+    # Native kernels are cut into functions of at most this many graph nodes (crender.py).
+    'native_part': 1000,
     # Native batches release the GIL from this many states (below, the release costs more
     # than other threads gain).
     'native_gil_rows': 64,
