@@ -1,7 +1,9 @@
 """Native kernels: compile time of each kernel family at first use, load time from the cache,
 and the call time beside Pinocchio, kernels cut into parts (crender.py) against one function.
 
-    python -m bench.compile [--quick]        (python -m bench --only compile)
+    python -m bench.compile [--quick] [--parts 250,500,1000,none] [--robots arm7,ur5] [--out DIR]
+    python -m bench.compile --chains 8,12,16      (derivative kernels of random chains)
+    python -m bench --only compile
 
 For the bundled arm, the Panda (fingers folded), UR5 and Talos left arm, each family is built
 in a fresh temporary cache: `first use` is the first runtime.native call (trace, render,
@@ -9,9 +11,12 @@ compile, load), `compile` the C compiler's wall time in it (native.compile_secon
 is the same call in a new process that finds the library cached (the model already loaded).
 The same families are then built as one function each (THRESHOLDS['native_part'] = None:
 what every kernel was before the cut), and the two bound kernels and Pinocchio are timed
-per call, one state, in interleaved rounds (ratios: medians of per-round ratios). --quick:
-the arm only, no one-function build. The 1-minute load average is printed before and after
-(2 cores: above ~0.5 the compile times include waiting for the other work).
+per call, one state, in interleaved rounds (ratios: medians of per-round ratios); --parts
+compares other part sizes the same way. --quick: the arm only, no one-function build.
+--chains: compile time against kernel size beyond the arm (what THRESHOLDS['native_nodes']
+rests on), and the native kernel against the Python kernels per state. The 1-minute load
+average is printed (2 cores: above ~0.5 the wall times include waiting for other work; the
+compiler's CPU time much less so).
 """
 import argparse
 import json
@@ -124,55 +129,74 @@ def _nodes(model, spec):
     return len(g.live(outputs)[1])
 
 
-def run(quick=False, out=None, rounds=None):
+def _label(part):
+    return 'one function' if part is None else f'parts of {part}'
+
+
+def _with(part, cache):
+    """Set the part size and cache folder, and forget every kernel built so far."""
+    from lie_dynamics.codegen import runtime
+    os.environ['LIE_DYNAMICS_CACHE_DIR'] = cache
+    runtime.THRESHOLDS['native_part'] = part
+    runtime.clear()
+
+
+def _robot_rows(label, parts, work, rounds, quick):
+    """One row per family: first use, compile and load with parts[0]; compile and call time with
+    every part size in `parts`, the calls timed interleaved with Pinocchio."""
+    xml, kw, pm = _robot(label)
+    builds = {}
+    for k, part in enumerate(parts):
+        _with(part, os.path.join(work, f'{label}-{part}'))
+        builds[part] = _build(_load(xml, kw))
+        if k == 0:   # load from this cache in a new process
+            env = dict(os.environ, PYTHONPATH=os.pathsep.join([common.ROOT, os.environ.get('PYTHONPATH', '')]))
+            r = subprocess.run([sys.executable, '-m', 'bench.compile', '--load-child', label], env=env,
+                               capture_output=True, text=True, check=True)
+            loads = json.loads(r.stdout.strip().splitlines()[-1])
+    model = _load(xml, kw)
+    pm.gravity.linear = model.gravity_vector
+    pd = pm.createData()
+    q, qd, qdd = (x[0] for x in common.random_states(model, 1, seed=1))
+    tau = model.inverse_dynamics(q, qd, qdd)
+    peers = _pin_calls(pm, pd, q, qd, qdd, tau)
+    rows = []
+    for fam, spec in _specs().items():
+        fn, first = builds[parts[0]][fam][:2]
+        row = dict(robot=label, family=fam, nodes=_nodes(model, spec), first_s=first,
+                   load_ms=None if loads[fam] is None else loads[fam] * 1e3, loadavg=os.getloadavg()[0])
+        for part in parts:
+            row[f'compile_s[{part}]'], row[f'cpu_s[{part}]'] = builds[part][fam][2:]
+        if fn is not None:
+            args = _arguments(fam, q, qd, qdd, tau)
+            fns = {part: (lambda f=builds[part][fam][0]: f(*args)) for part in parts}
+            t = common.time_interleaved({**fns, 'pin': peers[fam]}, rounds, 0.002 if quick else 0.02)
+            row['us'] = float(np.median(t[parts[0]])) * 1e6
+            for part in parts:
+                row[f'ratio_pin[{part}]'] = float(np.median(t[part] / t['pin']))
+                if None in parts:
+                    row[f'over_one[{part}]'] = float(np.median(t[part] / t[None]))
+        rows.append(row)
+    return rows
+
+
+def run(quick=False, out=None, rounds=None, parts=None, robots=None):
+    """The robots' table (module docstring); parts: part sizes to compare (default: the
+    configured one and one function; --quick: the configured one), the first the one whose
+    first use and load are measured."""
     from lie_dynamics.codegen import native, runtime
     if native.module() is None:
         print('no working C compiler: nothing to measure')
         return []
+    saved = (os.environ.get('LIE_DYNAMICS_CACHE_DIR'), runtime.THRESHOLDS['native_part'])
+    parts = parts or ([saved[1]] if quick else [saved[1], None])
     rounds = rounds or (3 if quick else 15)
     load_before = os.getloadavg()[0]
-    rows, saved = [], (os.environ.get('LIE_DYNAMICS_CACHE_DIR'), runtime.THRESHOLDS['native_part'])
+    rows = []
     work = tempfile.mkdtemp(prefix='bench_compile_')
     try:
-        for label in ROBOTS[:1] if quick else ROBOTS:
-            xml, kw, pm = _robot(label)
-            builds = {}
-            for variant, part in (('split', saved[1]), ('one', None))[:1 if quick else 2]:
-                os.environ['LIE_DYNAMICS_CACHE_DIR'] = os.path.join(work, f'{label}-{variant}')
-                runtime.THRESHOLDS['native_part'] = part
-                runtime.clear()
-                builds[variant] = _build(_load(xml, kw))
-                if variant == 'split':
-                    env = dict(os.environ, PYTHONPATH=os.pathsep.join([common.ROOT, os.environ.get('PYTHONPATH', '')]))
-                    r = subprocess.run([sys.executable, '-m', 'bench.compile', '--load-child', label], env=env,
-                                       capture_output=True, text=True, check=True)
-                    loads = json.loads(r.stdout.strip().splitlines()[-1])
-            runtime.THRESHOLDS['native_part'] = saved[1]
-            model = _load(xml, kw)
-            pm.gravity.linear = model.gravity_vector
-            pd = pm.createData()
-            q, qd, qdd = (x[0] for x in common.random_states(model, 1, seed=1))
-            tau = model.inverse_dynamics(q, qd, qdd)
-            peers = _pin_calls(pm, pd, q, qd, qdd, tau)
-            for fam, spec in _specs().items():
-                fn, first, comp, cpu = builds['split'][fam]
-                row = dict(robot=label, family=fam, nodes=_nodes(model, spec), first_s=first, compile_s=comp, cpu_s=cpu,
-                           load_ms=None if loads[fam] is None else loads[fam] * 1e3)
-                if fn is not None:
-                    fns = {'split': fn}
-                    if 'one' in builds:
-                        row.update(compile_one_s=builds['one'][fam][2], cpu_one_s=builds['one'][fam][3])
-                        fns['one'] = builds['one'][fam][0]
-                    fns['pin'] = peers[fam]
-                    args = _arguments(fam, q, qd, qdd, tau)
-                    t = common.time_interleaved({k: (lambda f=f: f(*args)) if k != 'pin' else f
-                                                 for k, f in fns.items()}, rounds, 0.002 if quick else 0.02)
-                    row.update(split_us=float(np.median(t['split'])) * 1e6,
-                               ratio_pin=float(np.median(t['split'] / t['pin'])))
-                    if 'one' in t:
-                        row.update(ratio_pin_one=float(np.median(t['one'] / t['pin'])),
-                                   split_over_one=float(np.median(t['split'] / t['one'])))
-                rows.append(row)
+        for label in robots or (ROBOTS[:1] if quick else ROBOTS):
+            rows += _robot_rows(label, parts, work, rounds, quick)
     finally:
         if saved[0] is None:
             os.environ.pop('LIE_DYNAMICS_CACHE_DIR', None)
@@ -182,49 +206,113 @@ def run(quick=False, out=None, rounds=None):
         runtime.clear()
         shutil.rmtree(work, ignore_errors=True)
     meta = dict(load_before=load_before, load_after=os.getloadavg()[0], rounds=rounds, quick=quick,
-                part=saved[1], native_nodes=runtime.THRESHOLDS['native_nodes'])
+                parts=parts, native_nodes=runtime.THRESHOLDS['native_nodes'])
     md = markdown(rows, meta)
     print(md)
     if out:
         common.write_tables(out, 'compile', md, dict(rows=rows, meta=meta), rows,
-                           fields=list(dict.fromkeys(k for r in rows for k in r)))
+                            fields=list(dict.fromkeys(k for r in rows for k in r)))
     return rows
 
 
 def markdown(rows, meta):
     def f(v, fmt):
         return '–' if v is None else format(v, fmt)
-    one = any('compile_one_s' in r for r in rows)
-    head = ['robot', 'family', 'nodes', 'first use s', 'compile s (CPU s)'] + \
-        (['one function: compile s (CPU s)'] if one else []) + ['load ms', 'kernel / Pinocchio'] + \
-        (['one function / Pinocchio', 'cut / one function'] if one else [])
-    L = [f"Native kernels, first use in a fresh cache and load from it (parts of at most {meta['part']} nodes; "
-         f"1-minute load average {meta['load_before']:.2f} before, {meta['load_after']:.2f} after; "
-         f"{meta['rounds']} interleaved rounds per call, one state; kernel: the bound native kernel called "
-         "directly, without the Model method's checks).", '',
+    parts = meta['parts']
+    head = ['robot', 'family', 'nodes', 'first use s', 'load ms'] + \
+        [f'{_label(p)}: compile s (CPU s)' for p in parts] + [f'{_label(p)}: kernel / Pinocchio' for p in parts] + \
+        [f'{_label(p)} / one function' for p in parts if None in parts and p is not None]
+    L = [f"Native kernels: first use in a fresh cache (trace, render, compile, load; {_label(parts[0])}) and "
+         f"load from it in a new process; compile wall time (compiler CPU time) per part size; the bound kernel "
+         f"called directly (one state, no Model-method checks) against Pinocchio, {meta['rounds']} interleaved "
+         f"rounds. 1-minute load average {meta['load_before']:.2f} before, {meta['load_after']:.2f} after.", '',
          '| ' + ' | '.join(head) + ' |', '|' + '---|' * 2 + '---:|' * (len(head) - 2)]
     for r in rows:
-        cells = [r['robot'], r['family'], str(r['nodes']), f(r['first_s'], '.2f'),
-                 f"{r['compile_s']:.2f} ({r['cpu_s']:.2f})"]
-        if one:
-            cells.append(f"{r['compile_one_s']:.2f} ({r['cpu_one_s']:.2f})" if 'compile_one_s' in r else '–')
-        cells += [f(r['load_ms'], '.1f'), f(r.get('ratio_pin'), '.2f')]
-        if one:
-            cells += [f(r.get('ratio_pin_one'), '.2f'), f(r.get('split_over_one'), '.3f')]
+        cells = [r['robot'], r['family'], str(r['nodes']), f(r['first_s'], '.2f'), f(r['load_ms'], '.1f')]
+        cells += [f"{r[f'compile_s[{p}]']:.2f} ({r[f'cpu_s[{p}]']:.2f})" for p in parts]
+        cells += [f(r.get(f'ratio_pin[{p}]'), '.2f') for p in parts]
+        cells += [f(r.get(f'over_one[{p}]'), '.3f') for p in parts if None in parts and p is not None]
         L.append('| ' + ' | '.join(cells) + ' |')
     return '\n'.join(L) + '\n'
+
+
+def chains(sizes, out=None):
+    """Derivative kernels of random chains (bench.common.robot_urdf) with THRESHOLDS['native_nodes']
+    lifted: nodes, compile wall and CPU time, and per state the native kernel against the Python
+    kernels (the same model with the native backend off) at N = 1 and 1,000."""
+    from lie_dynamics import load_urdf
+    from lie_dynamics.codegen import native, runtime
+    from lie_dynamics.codegen.traced import derivatives as d
+    saved = (os.environ.get('LIE_DYNAMICS_CACHE_DIR'), runtime.THRESHOLDS['native_nodes'])
+    work = tempfile.mkdtemp(prefix='bench_compile_')
+    rows = []
+    try:
+        runtime.THRESHOLDS['native_nodes'] = 10 ** 9
+        for n in sizes:
+            _with(runtime.THRESHOLDS['native_part'], os.path.join(work, str(n)))
+            model = load_urdf(common.robot_urdf(n))
+            py = common.python_kernels(model)
+            for fam, spec in (('inverse_dynamics_derivatives', d.INVERSE_DYNAMICS_DERIVATIVES),
+                              ('forward_dynamics_derivatives', d.FORWARD_DYNAMICS_DERIVATIVES)):
+                c0, u0 = native.compile_seconds(), _cpu()
+                if runtime.native(model, spec) is None:
+                    continue
+                row = dict(n=n, family=fam, nodes=_nodes(model, spec), compile_s=native.compile_seconds() - c0,
+                           cpu_s=_cpu() - u0, loadavg=os.getloadavg()[0])
+                for N in (1, 1000):
+                    q, qd, qdd = common.random_states(model, N, seed=1)
+                    if N == 1:
+                        q, qd, qdd = q[0], qd[0], qdd[0]
+                    if fam.startswith('forward'):
+                        tau = model.inverse_dynamics(q, qd, qdd)
+                        calls = {m: (lambda m=m: m.forward_dynamics_derivatives(q, qd, tau)) for m in (model, py)}
+                    else:
+                        calls = {m: (lambda m=m: m.inverse_dynamics_derivatives(q, qd, qdd)) for m in (model, py)}
+                    t = common.time_interleaved({'native': calls[model], 'python': calls[py]}, 5, 0.05)
+                    row[f'native_us[{N}]'] = float(np.median(t['native'])) / N * 1e6
+                    row[f'python_us[{N}]'] = float(np.median(t['python'])) / N * 1e6
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+    finally:
+        if saved[0] is None:
+            os.environ.pop('LIE_DYNAMICS_CACHE_DIR', None)
+        else:
+            os.environ['LIE_DYNAMICS_CACHE_DIR'] = saved[0]
+        runtime.THRESHOLDS['native_nodes'] = saved[1]
+        runtime.clear()
+        shutil.rmtree(work, ignore_errors=True)
+    L = [f"Derivative kernels of random chains, parts of {runtime.THRESHOLDS['native_part']} nodes "
+         "(µs per state: native / Python kernels).", '',
+         '| joints | family | nodes | compile s (CPU s) | load avg | N = 1 | N = 1000 |',
+         '|---:|---|---:|---:|---:|---:|---:|']
+    for r in rows:
+        L.append(f"| {r['n']} | {r['family']} | {r['nodes']} | {r['compile_s']:.2f} ({r['cpu_s']:.2f}) | "
+                 f"{r['loadavg']:.2f} | {r['native_us[1]']:.1f} / {r['python_us[1]']:.0f} | "
+                 f"{r['native_us[1000]']:.1f} / {r['python_us[1000]']:.1f} |")
+    md = '\n'.join(L) + '\n'
+    print(md)
+    if out:
+        common.write_tables(out, 'compile_chains', md, dict(rows=rows), rows)
+    return rows
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='python -m bench.compile', description=__doc__.split('\n')[0])
     ap.add_argument('--quick', action='store_true')
     ap.add_argument('--out', default=None, help='also write compile.md/.csv/.json into this folder')
+    ap.add_argument('--parts', help="part sizes to compare, e.g. 250,500,1000,none (default: the configured "
+                                    "THRESHOLDS['native_part'] and none, one function)")
+    ap.add_argument('--robots', help=f"comma-separated, from {','.join(ROBOTS)}")
+    ap.add_argument('--chains', help='instead: derivative kernels of random chains of these joint counts')
     ap.add_argument('--load-child', metavar='ROBOT', help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.load_child:
         _load_child(args.load_child)
-        return
-    run(quick=args.quick, out=args.out)
+    elif args.chains:
+        chains([int(n) for n in args.chains.split(',')], out=args.out)
+    else:
+        parts = [None if p.strip().lower() == 'none' else int(p) for p in args.parts.split(',')] if args.parts else None
+        run(quick=args.quick, out=args.out, parts=parts, robots=args.robots.split(',') if args.robots else None)
 
 
 if __name__ == '__main__':

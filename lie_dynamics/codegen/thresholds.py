@@ -73,13 +73,21 @@ THRESHOLDS = {
     'regressor_rows_chunk': 8192,
     # Vectorised references: floats of work arrays per chunk of states (2^21: 16 MB).
     'vectorized_budget': 1 << 21,
-    # Native kernels: C compile time grows faster than the source (gcc -O2, this machine under
-    # load: 900 nodes 0.25 s, 4,200 1.0 s, 7,500 1.8-2.7 s, 10,000-13,000 3-33 s, 46,000 57 s;
-    # -O1 is no faster on the large ones). Above this many graph nodes a kernel stays Python
-    # (an arm's whole family is below it: its largest, the forward-dynamics derivatives, 7,500).
-    'native_nodes': 9000,
-    # Native kernels are cut into functions of at most this many graph nodes (crender.py).
-    'native_part': 1000,
+    # Native kernels are cut into functions of at most this many graph nodes (crender.py): gcc's
+    # register allocation grows faster than a straight-line body (one 7,500-node function: 1.6 s
+    # of compiler CPU; cut: 0.8 s, on both cores). 250-1,000 compile alike (0.8-0.9 s CPU for
+    # the arm's forward-dynamics derivatives); 500 calls as fast as one function or faster
+    # (0.92-1.01x on the arm's families, 40 interleaved rounds). None: one function.
+    # Measured with `python -m bench.compile` (the part-size sweep: --parts 250,500,1000).
+    'native_part': 500,
+    # Above this many graph nodes a kernel stays Python. Cut into parts, compile time grows
+    # linearly: ~0.13 s of compiler CPU per 1,000 nodes (random chains, derivatives of 8-16
+    # bodies, 6,400-49,000 nodes; one function: 12,000 nodes 4.6 s CPU, 46,000 57 s), half of it
+    # in wall time on 2 cores; and the native kernel beats the Python paths at every batch size
+    # (16-body chain, forward-dynamics derivatives: 16-20 us per state against 46-740).
+    # 50,000 takes every derivative kernel within its compile_max (a 16-body chain: 49,000;
+    # ~6.5 s CPU, ~3.5 s on 2 quiet cores). `python -m bench.compile --chains 8,12,16`.
+    'native_nodes': 50000,
     # Native batches release the GIL from this many states (below, the release costs more
     # than other threads gain).
     'native_gil_rows': 64,
