@@ -1,7 +1,7 @@
 """Native kernels: compile time of each kernel family at first use, load time from the cache,
 and the call time beside Pinocchio, kernels cut into parts (crender.py) against one function.
 
-    python -m bench.compile [--quick] [--parts 250,500,1000,none] [--robots arm7,ur5] [--out DIR]
+    python -m bench.compile [--quick] [--parts 250,500,500:-O2,none:-O2] [--robots arm7,ur5] [--out DIR]
     python -m bench.compile --chains 8,12,16      (derivative kernels of random chains)
     python -m bench --only compile
 
@@ -9,11 +9,11 @@ For the bundled arm, the Panda (fingers folded), UR5 and Talos left arm, each fa
 in a fresh temporary cache: `first use` is the first runtime.native call (trace, render,
 compile, load), `compile` the C compiler's wall time in it (native.compile_seconds). `load`
 is the same call in a new process that finds the library cached (the model already loaded).
-The same families are then built as one function each (THRESHOLDS['native_part'] = None:
-what every kernel was before the cut), and the two bound kernels and Pinocchio are timed
-per call, one state, in interleaved rounds (ratios: medians of per-round ratios); --parts
-compares other part sizes the same way. --quick: the arm only, no one-function build.
---chains: compile time against kernel size beyond the arm (what THRESHOLDS['native_nodes']
+The same families are then built as before the cut (one function each, -O2:
+THRESHOLDS['native_part'] = None), and the two bound kernels and Pinocchio are timed per
+call, one state, in interleaved rounds (ratios: medians of per-round ratios); --parts
+compares other part sizes and optimisation levels the same way. --quick: the arm only, no
+build before the cut. --chains: compile time against kernel size beyond the arm (what THRESHOLDS['native_nodes']
 rests on), and the native kernel against the Python kernels per state. The 1-minute load
 average is printed (2 cores: above ~0.5 the wall times include waiting for other work; the
 compiler's CPU time much less so).
@@ -36,6 +36,7 @@ from bench import common
 FAMILIES = ('inverse_dynamics', 'gravity', 'mass_matrix', 'forward_dynamics', 'aba', 'regressor',
             'inverse_dynamics_derivatives', 'coriolis', 'forward_dynamics_derivatives')
 ROBOTS = ('arm7', 'panda', 'ur5', 'talos_arm')
+_CONFIGURED = {}   # the kernel flags as configured, before any variant changed them
 
 
 def _specs():
@@ -86,9 +87,10 @@ def _build(model):
     return out
 
 
-def _load_child(label):
+def _load_child(label, variant):
     """In a new process with the cache filled: seconds of each family's first runtime.native."""
     from lie_dynamics.codegen import native, runtime
+    _with(variant, os.environ['LIE_DYNAMICS_CACHE_DIR'])
     xml, kw, _ = _robot(label)
     model = _load(xml, kw)
     t0 = time.perf_counter()
@@ -129,29 +131,40 @@ def _nodes(model, spec):
     return len(g.live(outputs)[1])
 
 
-def _label(part):
-    return 'one function' if part is None else f'parts of {part}'
+def _parse(variant):
+    """'500' or 'none', optionally ':-O2' (another optimisation level) -> (part, level)."""
+    part, _, level = str(variant).partition(':')
+    return (None if part.strip().lower() == 'none' else int(part)), (level.strip() or None)
 
 
-def _with(part, cache):
-    """Set the part size and cache folder, and forget every kernel built so far."""
-    from lie_dynamics.codegen import runtime
+def _label(variant):
+    part, level = _parse(variant)
+    return ('one function' if part is None else f'parts of {part}') + (f', {level}' if level else '')
+
+
+def _with(variant, cache):
+    """Set the part size, the kernels' optimisation level and the cache folder, and forget every
+    kernel built so far."""
+    from lie_dynamics.codegen import native, runtime
+    part, level = _parse(variant)
     os.environ['LIE_DYNAMICS_CACHE_DIR'] = cache
     runtime.THRESHOLDS['native_part'] = part
+    base = _CONFIGURED.setdefault('flags', native.KERNEL_FLAGS)
+    native.KERNEL_FLAGS = ((level,) + base[1:]) if level else base
     runtime.clear()
 
 
 def _robot_rows(label, parts, work, rounds, quick):
     """One row per family: first use, compile and load with parts[0]; compile and call time with
-    every part size in `parts`, the calls timed interleaved with Pinocchio."""
+    every variant in `parts` (_parse), the calls timed interleaved with Pinocchio."""
     xml, kw, pm = _robot(label)
     builds = {}
     for k, part in enumerate(parts):
-        _with(part, os.path.join(work, f'{label}-{part}'))
+        _with(part, os.path.join(work, f'{label}-{k}'))
         builds[part] = _build(_load(xml, kw))
         if k == 0:   # load from this cache in a new process
             env = dict(os.environ, PYTHONPATH=os.pathsep.join([common.ROOT, os.environ.get('PYTHONPATH', '')]))
-            r = subprocess.run([sys.executable, '-m', 'bench.compile', '--load-child', label], env=env,
+            r = subprocess.run([sys.executable, '-m', 'bench.compile', '--load-child', label, '--parts', part], env=env,
                                capture_output=True, text=True, check=True)
             loads = json.loads(r.stdout.strip().splitlines()[-1])
     model = _load(xml, kw)
@@ -174,22 +187,23 @@ def _robot_rows(label, parts, work, rounds, quick):
             row['us'] = float(np.median(t[parts[0]])) * 1e6
             for part in parts:
                 row[f'ratio_pin[{part}]'] = float(np.median(t[part] / t['pin']))
-                if None in parts:
-                    row[f'over_one[{part}]'] = float(np.median(t[part] / t[None]))
+                if part != parts[-1]:
+                    row[f'over_last[{part}]'] = float(np.median(t[part] / t[parts[-1]]))
         rows.append(row)
     return rows
 
 
 def run(quick=False, out=None, rounds=None, parts=None, robots=None):
-    """The robots' table (module docstring); parts: part sizes to compare (default: the
-    configured one and one function; --quick: the configured one), the first the one whose
-    first use and load are measured."""
+    """The robots' table (module docstring); parts: variants to compare (_parse; default: the
+    configured part size and level, and one function at -O2 as before the cut; --quick: the
+    configured one). The first is the one whose first use and load are measured; call times
+    are also given relative to the last."""
     from lie_dynamics.codegen import native, runtime
     if native.module() is None:
         print('no working C compiler: nothing to measure')
         return []
-    saved = (os.environ.get('LIE_DYNAMICS_CACHE_DIR'), runtime.THRESHOLDS['native_part'])
-    parts = parts or ([saved[1]] if quick else [saved[1], None])
+    saved = (os.environ.get('LIE_DYNAMICS_CACHE_DIR'), runtime.THRESHOLDS['native_part'], native.KERNEL_FLAGS)
+    parts = [str(p) for p in parts or ([saved[1]] if quick else [saved[1], 'none:-O2'])]
     rounds = rounds or (3 if quick else 15)
     load_before = os.getloadavg()[0]
     rows = []
@@ -203,10 +217,11 @@ def run(quick=False, out=None, rounds=None, parts=None, robots=None):
         else:
             os.environ['LIE_DYNAMICS_CACHE_DIR'] = saved[0]
         runtime.THRESHOLDS['native_part'] = saved[1]
+        native.KERNEL_FLAGS = _CONFIGURED.get('flags', saved[2])
         runtime.clear()
         shutil.rmtree(work, ignore_errors=True)
     meta = dict(load_before=load_before, load_after=os.getloadavg()[0], rounds=rounds, quick=quick,
-                parts=parts, native_nodes=runtime.THRESHOLDS['native_nodes'])
+                parts=parts, native_nodes=runtime.THRESHOLDS['native_nodes'], flags=' '.join(native.KERNEL_FLAGS))
     md = markdown(rows, meta)
     print(md)
     if out:
@@ -221,17 +236,18 @@ def markdown(rows, meta):
     parts = meta['parts']
     head = ['robot', 'family', 'nodes', 'first use s', 'load ms'] + \
         [f'{_label(p)}: compile s (CPU s)' for p in parts] + [f'{_label(p)}: kernel / Pinocchio' for p in parts] + \
-        [f'{_label(p)} / one function' for p in parts if None in parts and p is not None]
+        [f'{_label(p)} / {_label(parts[-1])}' for p in parts[:-1]]
     L = [f"Native kernels: first use in a fresh cache (trace, render, compile, load; {_label(parts[0])}) and "
-         f"load from it in a new process; compile wall time (compiler CPU time) per part size; the bound kernel "
+         f"load from it in a new process; compile wall time (compiler CPU time); the bound kernel "
          f"called directly (one state, no Model-method checks) against Pinocchio, {meta['rounds']} interleaved "
-         f"rounds. 1-minute load average {meta['load_before']:.2f} before, {meta['load_after']:.2f} after.", '',
+         f"rounds. Kernel flags {meta['flags']}. 1-minute load average {meta['load_before']:.2f} before, "
+         f"{meta['load_after']:.2f} after.", '',
          '| ' + ' | '.join(head) + ' |', '|' + '---|' * 2 + '---:|' * (len(head) - 2)]
     for r in rows:
         cells = [r['robot'], r['family'], str(r['nodes']), f(r['first_s'], '.2f'), f(r['load_ms'], '.1f')]
         cells += [f"{r[f'compile_s[{p}]']:.2f} ({r[f'cpu_s[{p}]']:.2f})" for p in parts]
         cells += [f(r.get(f'ratio_pin[{p}]'), '.2f') for p in parts]
-        cells += [f(r.get(f'over_one[{p}]'), '.3f') for p in parts if None in parts and p is not None]
+        cells += [f(r.get(f'over_last[{p}]'), '.3f') for p in parts[:-1]]
         L.append('| ' + ' | '.join(cells) + ' |')
     return '\n'.join(L) + '\n'
 
@@ -300,18 +316,19 @@ def main(argv=None):
     ap = argparse.ArgumentParser(prog='python -m bench.compile', description=__doc__.split('\n')[0])
     ap.add_argument('--quick', action='store_true')
     ap.add_argument('--out', default=None, help='also write compile.md/.csv/.json into this folder')
-    ap.add_argument('--parts', help="part sizes to compare, e.g. 250,500,1000,none (default: the configured "
-                                    "THRESHOLDS['native_part'] and none, one function)")
+    ap.add_argument('--parts', help="variants to compare: part sizes, 'none' for one function, each optionally "
+                                    "with another optimisation level, e.g. 500,500:-O2,1000,none:-O2 (default: the "
+                                    "configured THRESHOLDS['native_part'], and none:-O2, the kernels before the cut)")
     ap.add_argument('--robots', help=f"comma-separated, from {','.join(ROBOTS)}")
     ap.add_argument('--chains', help='instead: derivative kernels of random chains of these joint counts')
     ap.add_argument('--load-child', metavar='ROBOT', help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.load_child:
-        _load_child(args.load_child)
+        _load_child(args.load_child, args.parts)
     elif args.chains:
         chains([int(n) for n in args.chains.split(',')], out=args.out)
     else:
-        parts = [None if p.strip().lower() == 'none' else int(p) for p in args.parts.split(',')] if args.parts else None
+        parts = args.parts.split(',') if args.parts else None
         run(quick=args.quick, out=args.out, parts=parts, robots=args.robots.split(',') if args.robots else None)
 
 

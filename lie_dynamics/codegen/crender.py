@@ -24,6 +24,7 @@ from .native import UNIT
 from .render import form_text
 from .thresholds import THRESHOLDS
 from .tracer import Sym
+_INCLUDES = ['#include <math.h>', '#include <string.h>']
 _PART_ATTR = '__attribute__((noinline, visibility("hidden")))'
 
 
@@ -109,7 +110,7 @@ def emit_c_units(g, fname, arg_lists, roles, outputs, index=None, size=None, par
         if p < n_parts - 1:
             return lines
         if index is not None:
-            lines.append(f'  for (int k = 0; k < {size}; ++k) out[k] = 0.0;')
+            lines.append(f'  memset(out, 0, {int(size)} * sizeof(double));')
         for k, o in enumerate(outputs):   # after every read of the inputs, as `out` may alias them
             txt = form_text(tuple(o.terms.items()), o.const, ref, _literal)[0] if isinstance(o, Sym) else _literal(o)
             lines.append(f'  out[{k if index is None else int(index[k])}] = {txt};')
@@ -120,11 +121,11 @@ def emit_c_units(g, fname, arg_lists, roles, outputs, index=None, size=None, par
                 for role, arr in (('state', 'in'), ('param', 'par')) for k in range(ks[role])]
     head = f'void {fname}(const double *const *in, const double *const *par, double *out)'
     if n_parts == 1:
-        return ['#include <math.h>\n' + '\n'.join([head, '{'] + pointers() + body_of(0) + ['}']) + '\n']
+        return ['\n'.join(_INCLUDES + [head, '{'] + pointers() + body_of(0) + ['}']) + '\n']
     proto = [f'{_PART_ATTR} void {fname}_p{p}(const double *const *in, const double *const *par, '
              f'double *restrict s, double *out)' for p in range(n_parts)]
     units = n_parts if units is None else max(1, min(units, n_parts))
-    texts = [['#include <math.h>'] + [f'{pr};' for pr in proto] for _ in range(units)]
+    texts = [_INCLUDES + [f'{pr};' for pr in proto] for _ in range(units)]
     for p in range(n_parts):
         texts[p * units // n_parts] += [proto[p], '{'] + pointers() + body_of(p) + ['}']
     texts[-1] += [head, '{', f'  double s[{max(n_slots, 1)}];']

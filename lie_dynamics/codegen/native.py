@@ -5,12 +5,15 @@ or 'require' (raise NativeUnavailable when it does not, naming the compiler and 
 error line). Under 'auto' a failing or missing compiler gives one warning per process and
 the Python kernels, whose results are the same to rounding.
 
-Compiler: $CC, else the compiler Python was built with, else `cc`; flags FLAGS (no
--ffast-math, -ffp-contract=off: the C kernels compute what the Python kernels compute,
-operation for operation). Cache: $LIE_DYNAMICS_CACHE_DIR, else $XDG_CACHE_HOME/lie_dynamics,
-else ~/.cache/lie_dynamics; a file is named by a hash of everything that determines it
-(the generator's own source, the model structure and kernel name, or the call path's C
-source, with the compiler, its flags and the Python/numpy versions), so a cached kernel
+Compiler: $CC, else the compiler Python was built with, else `cc`; flags FLAGS for the call
+path, KERNEL_FLAGS for the kernels (no -ffast-math, -ffp-contract=off: the C kernels compute
+what the Python kernels compute, operation for operation). A kernel's C text of several
+translation units (crender.py) is compiled on every usable core and linked once.
+
+Cache: $LIE_DYNAMICS_CACHE_DIR, else $XDG_CACHE_HOME/lie_dynamics, else ~/.cache/lie_dynamics;
+a file is named by a hash of everything that determines it (the generator's own source, the
+model structure, kernel name and THRESHOLDS['native_part'], or the call path's C source,
+with the compiler, its flags and the Python/numpy versions), so a cached kernel
 loads without being traced. Every file ends with a trailer (MAGIC, its key, the SHA-256 of
 the bytes before it), checked before loading: a truncated or foreign file is rebuilt, never
 loaded. Files are written to a temporary name and renamed into place (two processes
@@ -40,6 +43,10 @@ from .thresholds import THRESHOLDS
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 FLAGS = ('-O2', '-ffp-contract=off', '-fno-math-errno', '-fPIC', '-shared', '-pipe')   # -pipe: no temporary files
+# The kernels: -O1 compiles in 20-50% less CPU time than -O2, and the straight-line parts run
+# as fast or 2-5% faster (no scheduling passes lengthening live ranges; every family on the
+# arm and the Talos arm, interleaved rounds: python -m bench.compile --parts 500,500:-O2).
+KERNEL_FLAGS = ('-O1',) + FLAGS[1:]
 MAGIC = b'\nlie_dynamics native '
 _TRAILER = len(MAGIC) + 64 + 64
 # Between translation units in one C text (crender.emit_c; the whole text is valid C as well):
@@ -107,9 +114,9 @@ def generator_hash():
     return h.hexdigest()
 
 
-def _key(*parts):
+def _key(flags, *parts):
     h = hashlib.sha256()
-    for p in parts + (' '.join(compiler()), ' '.join(FLAGS)):
+    for p in parts + (' '.join(compiler()), ' '.join(flags)):
         h.update(str(p).encode() + b'\0')
     return h.hexdigest()
 
@@ -158,7 +165,7 @@ def _run(cmds):
             raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: {_first_error(out)}')
 
 
-def _build(source, lib, work, extra):
+def _build(source, lib, work, flags):
     """Compile C text `source` into the shared library `lib`. A text of several translation
     units (UNIT between them) is compiled as up to one object per usable core, in
     parallel, consecutive units together in pieces of about equal length, and linked once."""
@@ -180,18 +187,18 @@ def _build(source, lib, work, extra):
             fh.write(''.join(p))
     try:
         if len(srcs) == 1:   # one process, no separate link
-            _run([compiler() + list(FLAGS) + extra + ['-o', lib, srcs[0]]])
+            _run([compiler() + flags + ['-o', lib, srcs[0]]])
         else:
             objs = [s[:-2] + '.o' for s in srcs]
-            _run([compiler() + list(FLAGS) + extra + ['-c', '-o', o, s] for s, o in zip(srcs, objs)])
-            _run([compiler() + list(FLAGS) + ['-o', lib, *objs]])
+            _run([compiler() + flags + ['-c', '-o', o, s] for s, o in zip(srcs, objs)])
+            _run([compiler() + flags + ['-o', lib, *objs]])
     except subprocess.TimeoutExpired as e:
         raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: {e}') from None
     if not os.path.exists(lib):
         raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: no {os.path.basename(lib)} written')
 
 
-def _compile(source, key, suffix, extra=()):
+def _compile(source, key, suffix, flags):
     """Path of the verified library for key, compiling `source` (C text) on a miss."""
     d = cache_dir()
     path = os.path.join(d, key[:40] + suffix)
@@ -207,7 +214,7 @@ def _compile(source, key, suffix, extra=()):
         lib = os.path.join(work, 'k' + suffix)
         t0 = time.perf_counter()
         try:
-            _build(source, lib, work, list(extra))
+            _build(source, lib, work, list(flags))
         finally:
             _STATE['seconds'] += time.perf_counter() - t0
         _STATE['compiles'] += 1
@@ -229,9 +236,10 @@ def _call_module():
     with open(os.path.join(HERE, 'native_call.c'), encoding='utf-8') as fh:
         source = fh.read()
     incs = [sysconfig.get_paths()['include'], np.get_include()]
-    key = _key(source, sys.version, np.__version__, *incs)
+    flags = FLAGS + tuple(f'-I{i}' for i in incs)
+    key = _key(flags, source, sys.version, np.__version__)
     suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
-    path, tmp = _compile(source, key, suffix, [f'-I{i}' for i in incs])
+    path, tmp = _compile(source, key, suffix, flags)
     try:
         spec = importlib.util.spec_from_file_location('lie_dynamics_native', path)
         mod = importlib.util.module_from_spec(spec)
@@ -291,7 +299,7 @@ def library(structure, name, render):
     the backend is off or unavailable (module())."""
     if module() is None:
         return None
-    key = _key(generator_hash(), structure, name, THRESHOLDS['native_part'])
+    key = _key(KERNEL_FLAGS, generator_hash(), structure, name, THRESHOLDS['native_part'])
     d = cache_dir()
     path = os.path.join(d, key[:40] + '.so')
     tmp = None
@@ -306,7 +314,7 @@ def library(structure, name, render):
         meta = ', '.join(str(int(v)) for v in meta)
         source = f'{source}const long lie_meta[64] = {{{meta}}};\n'
         try:
-            path, tmp = _compile(source, key, '.so')
+            path, tmp = _compile(source, key, '.so', KERNEL_FLAGS)
         except NativeUnavailable as e:
             _unavailable(str(e))
             return None
