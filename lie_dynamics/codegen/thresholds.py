@@ -74,19 +74,21 @@ THRESHOLDS = {
     # Vectorised references: floats of work arrays per chunk of states (2^21: 16 MB).
     'vectorized_budget': 1 << 21,
     # Native kernels are cut into functions of at most this many graph nodes (crender.py): gcc's
-    # register allocation grows faster than a straight-line body (one 7,500-node function: 1.6 s
-    # of compiler CPU; cut: 0.8 s, on both cores). 250-1,000 compile alike (0.8-0.9 s CPU for
-    # the arm's forward-dynamics derivatives); 500 calls as fast as one function or faster
-    # (0.92-1.01x on the arm's families, 40 interleaved rounds). None: one function.
-    # Measured with `python -m bench.compile` (the part-size sweep: --parts 250,500,1000).
+    # register allocation grows faster than a straight-line body. The arm's forward-dynamics
+    # derivatives (7,500 nodes), compiler CPU time: one function 1.6-1.8 s at -O2 (as before
+    # the cut), 1.3-1.5 s at -O1; parts of 250, 500 or 1,000 at -O1 (native.KERNEL_FLAGS)
+    # 0.6-0.7 s, spread over both cores. Parts of 250-500 call 0.85-1.0x the time of one
+    # function on every family of the arm and the Talos arm (1,000: up to 1.16x). None: one
+    # function. `python -m bench.compile --parts 500,250,1000,none --robots arm7,talos_arm`.
     'native_part': 500,
     # Above this many graph nodes a kernel stays Python. Cut into parts, compile time grows
-    # linearly: ~0.13 s of compiler CPU per 1,000 nodes (random chains, derivatives of 8-16
-    # bodies, 6,400-49,000 nodes; one function: 12,000 nodes 4.6 s CPU, 46,000 57 s), half of it
-    # in wall time on 2 cores; and the native kernel beats the Python paths at every batch size
-    # (16-body chain, forward-dynamics derivatives: 16-20 us per state against 46-740).
-    # 50,000 takes every derivative kernel within its compile_max (a 16-body chain: 49,000;
-    # ~6.5 s CPU, ~3.5 s on 2 quiet cores). `python -m bench.compile --chains 8,12,16`.
+    # linearly: ~0.08 s of compiler CPU per 1,000 nodes (derivative kernels of random chains of
+    # 8-16 joints, 6,400-49,000 nodes; before the cut 12,000 nodes took 4.6 s, 46,000 57 s),
+    # about half of it in wall time on 2 cores; the native kernel beats the Python kernels at
+    # every batch size (16-joint chain, forward-dynamics derivatives: 22-26 us per state against
+    # 91 us at N = 1,000 and 1.7 ms at N = 1). 50,000 lets every derivative kernel within its
+    # compile_max go native (a 16-joint chain: 49,000 nodes, ~4 s of CPU, ~2 s on 2 quiet
+    # cores). `python -m bench.compile --chains 8,12,16`.
     'native_nodes': 50000,
     # Native batches release the GIL from this many states (below, the release costs more
     # than other threads gain).
