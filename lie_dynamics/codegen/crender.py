@@ -24,6 +24,7 @@ from .native import UNIT
 from .render import form_text
 from .thresholds import THRESHOLDS
 from .tracer import Sym
+
 _INCLUDES = ['#include <math.h>', '#include <string.h>']
 _PART_ATTR = '__attribute__((noinline, visibility("hidden")))'
 
@@ -39,13 +40,12 @@ def emit_c(g, fname, arg_lists, roles, outputs, index=None, size=None, part='aut
     'param' (per-state lists first, in order, then parameters); part: nodes per function
     ('auto': THRESHOLDS['native_part'], None: one function)."""
     part = THRESHOLDS['native_part'] if part == 'auto' else part
-    return UNIT.join(emit_c_units(g, fname, arg_lists, roles, outputs, index, size, part, units=None))
+    return UNIT.join(emit_c_units(g, fname, arg_lists, roles, outputs, index, size, part))
 
 
-def emit_c_units(g, fname, arg_lists, roles, outputs, index=None, size=None, part=None, units=1):
-    """emit_c as at most `units` translation units (a list of C texts, each including what it
-    needs; the entry point `fname` is in the last), the parts spread over them in order
-    (units=None: one per part)."""
+def emit_c_units(g, fname, arg_lists, roles, outputs, index=None, size=None, part=None):
+    """emit_c as a list of translation units (C texts), one per part, the entry point `fname`
+    in the last; part: nodes per function (None: one function)."""
     where = {}
     ks = {'state': 0, 'param': 0}
     for (_, syms), role in zip(arg_lists, roles, strict=True):
@@ -124,10 +124,7 @@ def emit_c_units(g, fname, arg_lists, roles, outputs, index=None, size=None, par
         return ['\n'.join(_INCLUDES + [head, '{'] + pointers() + body_of(0) + ['}']) + '\n']
     proto = [f'{_PART_ATTR} void {fname}_p{p}(const double *const *in, const double *const *par, '
              f'double *restrict s, double *out)' for p in range(n_parts)]
-    units = n_parts if units is None else max(1, min(units, n_parts))
-    texts = [_INCLUDES + [f'{pr};' for pr in proto] for _ in range(units)]
-    for p in range(n_parts):
-        texts[p * units // n_parts] += [proto[p], '{'] + pointers() + body_of(p) + ['}']
-    texts[-1] += [head, '{', f'  double s[{max(n_slots, 1)}];']
+    texts = [_INCLUDES + [proto[p], '{'] + pointers() + body_of(p) + ['}'] for p in range(n_parts)]
+    texts[-1] += [f'{pr};' for pr in proto] + [head, '{', f'  double s[{max(n_slots, 1)}];']
     texts[-1] += [f'  {fname}_p{p}(in, par, s, out);' for p in range(n_parts)] + ['}']
     return ['\n'.join(t) + '\n' for t in texts]

@@ -43,9 +43,9 @@ from .thresholds import THRESHOLDS
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 FLAGS = ('-O2', '-ffp-contract=off', '-fno-math-errno', '-fPIC', '-shared', '-pipe')   # -pipe: no temporary files
-# The kernels: -O1 compiles in 20-50% less CPU time than -O2, and the straight-line parts run
-# as fast or 2-5% faster (no scheduling passes lengthening live ranges; every family on the
-# arm and the Talos arm, interleaved rounds: python -m bench.compile --parts 500,500:-O2).
+# The kernels: -O1 compiles in 30-40% less CPU time than -O2, and the straight-line parts run
+# in 0.92-1.0x the time (no scheduling passes lengthening live ranges; every family on the arm
+# and the Talos arm, interleaved rounds: python -m bench.compile --parts 500,500:-O2).
 KERNEL_FLAGS = ('-O1',) + FLAGS[1:]
 MAGIC = b'\nlie_dynamics native '
 _TRAILER = len(MAGIC) + 64 + 64
@@ -149,17 +149,16 @@ def _jobs():
 
 def _run(cmds):
     """Run compiler commands in parallel; NativeUnavailable naming the first error."""
+    procs = []
     try:
-        procs = [subprocess.Popen(c, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for c in cmds]
-    except OSError as e:
-        raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: {e}') from None
-    try:
+        for c in cmds:
+            procs.append(subprocess.Popen(c, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
         outs = [p.communicate(timeout=600)[0] for p in procs]
-    except subprocess.TimeoutExpired:
+    except (OSError, subprocess.SubprocessError) as e:   # no compiler, or one running too long
         for p in procs:
             p.kill()
             p.communicate()
-        raise
+        raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: {e}') from None
     for p, out in zip(procs, outs):
         if p.returncode != 0:
             raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: {_first_error(out)}')
@@ -185,15 +184,12 @@ def _build(source, lib, work, flags):
         srcs.append(os.path.join(work, f'k{k}.c'))
         with open(srcs[-1], 'w', encoding='utf-8') as fh:
             fh.write(''.join(p))
-    try:
-        if len(srcs) == 1:   # one process, no separate link
-            _run([compiler() + flags + ['-o', lib, srcs[0]]])
-        else:
-            objs = [s[:-2] + '.o' for s in srcs]
-            _run([compiler() + flags + ['-c', '-o', o, s] for s, o in zip(srcs, objs)])
-            _run([compiler() + flags + ['-o', lib, *objs]])
-    except subprocess.TimeoutExpired as e:
-        raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: {e}') from None
+    if len(srcs) == 1:   # one process, no separate link
+        _run([compiler() + flags + ['-o', lib, srcs[0]]])
+    else:
+        objs = [s[:-2] + '.o' for s in srcs]
+        _run([compiler() + flags + ['-c', '-o', o, s] for s, o in zip(srcs, objs)])
+        _run([compiler() + flags + ['-o', lib, *objs]])
     if not os.path.exists(lib):
         raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: no {os.path.basename(lib)} written')
 
