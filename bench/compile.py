@@ -313,8 +313,8 @@ def chains(sizes, out=None):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(prog='python -m bench.compile', description=__doc__.split('\n')[0])
-    ap.add_argument('--quick', action='store_true')
+    ap = argparse.ArgumentParser(prog='python -m bench.compile', description=' '.join(__doc__.split('\n\n')[0].split()))
+    ap.add_argument('--quick', action='store_true', help='the arm only, the configured variant only, 3 rounds')
     ap.add_argument('--out', default=None, help='also write compile.md/.csv/.json into this folder')
     ap.add_argument('--parts', help="variants to compare: part sizes, 'none' for one function, each optionally "
                                     "with another optimisation level, e.g. 500,500:-O2,1000,none:-O2 (default: the "
