@@ -106,6 +106,37 @@ def test_every_family_equals_the_python_kernels(name):
             assert _rel(one.reshape(-1), ref[i, :batch.shape[1]]) <= TOL, spec.name
 
 
+def test_kernels_cut_into_parts_equal_the_python_kernels_bit_for_bit(tmp_path, monkeypatch):
+    """Kernels above THRESHOLDS['native_part'] nodes are cut into functions that pass values
+    through the slots of one array, compiled as translation units in parallel and linked
+    (crender.py, native.py): their results are the Python float kernel's to the bit. The
+    arm at the default cut (its derivative kernels are cut), and a tree of every joint type
+    cut into parts of 40 nodes (hundreds of functions, slots reused across many parts; the
+    regressor's outputs scattered)."""
+    monkeypatch.setenv('LIE_DYNAMICS_CACHE_DIR', str(tmp_path / 'cache'))
+    specs = {'arm7': SPECS, 'mixed_types': [t_rnea.INVERSE_DYNAMICS, t_chol.FORWARD_DYNAMICS,
+                                            t_der.INVERSE_DYNAMICS_DERIVATIVES, t_reg.REGRESSOR]}
+    for name, part in (('arm7', runtime.THRESHOLDS['native_part']), ('mixed_types', 40)):
+        monkeypatch.setitem(runtime.THRESHOLDS, 'native_part', part)
+        runtime.clear()
+        model = _load(_xml(name))
+        q, qd, qdd = _states(model, 5, seed=9)
+        cut = []
+        for spec in specs[name]:
+            nk = runtime.native(model, spec)
+            assert nk is not None, spec.name
+            g, _, outputs = spec.build(runtime.frames(model))[0].trace
+            if len(g.live(outputs)[1]) > 2 * part:
+                cut.append(spec.name)
+            args = [q, qd, qdd][:len(runtime._native_library(model, spec).widths)]
+            ref = _python_outputs(model, spec, args)
+            got = nk(*args).reshape(len(q), -1)
+            assert np.array_equal(got, ref[:, :got.shape[1]]), spec.name
+            assert np.array_equal(nk(*[a[3] for a in args]).reshape(-1), got[3]), spec.name
+        assert 'inverse_dynamics_derivatives' in cut, name
+    runtime.clear()
+
+
 @pytest.mark.parametrize('name', ['arm7', 'mixed_types'] + REAL)
 def test_native_against_pinocchio(name):
     xml = _xml(name)

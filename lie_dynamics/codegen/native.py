@@ -5,12 +5,15 @@ or 'require' (raise NativeUnavailable when it does not, naming the compiler and 
 error line). Under 'auto' a failing or missing compiler gives one warning per process and
 the Python kernels, whose results are the same to rounding.
 
-Compiler: $CC, else the compiler Python was built with, else `cc`; flags FLAGS (no
--ffast-math, -ffp-contract=off: the C kernels compute what the Python kernels compute,
-operation for operation). Cache: $LIE_DYNAMICS_CACHE_DIR, else $XDG_CACHE_HOME/lie_dynamics,
-else ~/.cache/lie_dynamics; a file is named by a hash of everything that determines it
-(the generator's own source, the model structure and kernel name, or the call path's C
-source, with the compiler, its flags and the Python/numpy versions), so a cached kernel
+Compiler: $CC, else the compiler Python was built with, else `cc`; flags FLAGS for the call
+path, KERNEL_FLAGS for the kernels (no -ffast-math, -ffp-contract=off: the C kernels compute
+what the Python kernels compute, operation for operation). A kernel's C text of several
+translation units (crender.py) is compiled on every usable core and linked once.
+
+Cache: $LIE_DYNAMICS_CACHE_DIR, else $XDG_CACHE_HOME/lie_dynamics, else ~/.cache/lie_dynamics;
+a file is named by a hash of everything that determines it (the generator's own source, the
+model structure, kernel name and THRESHOLDS['native_part'], or the call path's C source,
+with the compiler, its flags and the Python/numpy versions), so a cached kernel
 loads without being traced. Every file ends with a trailer (MAGIC, its key, the SHA-256 of
 the bytes before it), checked before loading: a truncated or foreign file is rebuilt, never
 loaded. Files are written to a temporary name and renamed into place (two processes
@@ -31,16 +34,26 @@ import sys
 import sysconfig
 import tempfile
 import threading
+import time
 import warnings
 
 import numpy as np
 
+from .thresholds import THRESHOLDS
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 FLAGS = ('-O2', '-ffp-contract=off', '-fno-math-errno', '-fPIC', '-shared', '-pipe')   # -pipe: no temporary files
+# The kernels: -O1 compiles in 30-40% less CPU time than -O2, and the straight-line parts run
+# in 0.92-1.0x the time (no scheduling passes lengthening live ranges; every family on the arm
+# and the Talos arm, interleaved rounds: python -m bench.compile --parts 500,500:-O2).
+KERNEL_FLAGS = ('-O1',) + FLAGS[1:]
 MAGIC = b'\nlie_dynamics native '
 _TRAILER = len(MAGIC) + 64 + 64
+# Between translation units in one C text (crender.emit_c; the whole text is valid C as well):
+# _build compiles the units in parallel and links them once.
+UNIT = '/* lie_dynamics: translation unit */\n'
 _LOCK = threading.Lock()
-_STATE = {'module': None, 'error': None, 'warned': False, 'compiles': 0}
+_STATE = {'module': None, 'error': None, 'warned': False, 'compiles': 0, 'seconds': 0.0}
 
 
 class NativeUnavailable(RuntimeError):
@@ -85,6 +98,11 @@ def compile_count():
     return _STATE['compiles']
 
 
+def compile_seconds():
+    """Wall-clock seconds this process has spent running the C compiler (and linker)."""
+    return _STATE['seconds']
+
+
 @functools.lru_cache(maxsize=1)
 def generator_hash():
     """Hash of the source that determines the C kernels (the tracer, renderers, traced forms)."""
@@ -96,9 +114,9 @@ def generator_hash():
     return h.hexdigest()
 
 
-def _key(*parts):
+def _key(flags, *parts):
     h = hashlib.sha256()
-    for p in parts + (' '.join(compiler()), ' '.join(FLAGS)):
+    for p in parts + (' '.join(compiler()), ' '.join(flags)):
         h.update(str(p).encode() + b'\0')
     return h.hexdigest()
 
@@ -122,7 +140,61 @@ def _first_error(text):
     return (errs or lines or ['(no output)'])[0]
 
 
-def _compile(source, key, suffix, extra=()):
+def _jobs():
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def _run(cmds):
+    """Run compiler commands in parallel; NativeUnavailable naming the first error."""
+    procs = []
+    try:
+        for c in cmds:
+            procs.append(subprocess.Popen(c, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
+        outs = [p.communicate(timeout=600)[0] for p in procs]
+    except (OSError, subprocess.SubprocessError) as e:   # no compiler, or one running too long
+        for p in procs:
+            p.kill()
+            p.communicate()
+        raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: {e}') from None
+    for p, out in zip(procs, outs):
+        if p.returncode != 0:
+            raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: {_first_error(out)}')
+
+
+def _build(source, lib, work, flags):
+    """Compile C text `source` into the shared library `lib`. A text of several translation
+    units (UNIT between them) is compiled as up to one object per usable core, in
+    parallel, consecutive units together in pieces of about equal length, and linked once."""
+    units = source.split(UNIT)
+    jobs = min(len(units), _jobs())
+    pieces, acc, done, total = [], [], 0, sum(map(len, units))
+    for u in units:   # cut where the running length passes the next k/jobs of the total
+        acc.append(u)
+        done += len(u)
+        if done >= total * (len(pieces) + 1) / jobs:
+            pieces.append(acc)
+            acc = []
+    if acc:
+        pieces.append(acc)
+    srcs = []
+    for k, p in enumerate(pieces):
+        srcs.append(os.path.join(work, f'k{k}.c'))
+        with open(srcs[-1], 'w', encoding='utf-8') as fh:
+            fh.write(''.join(p))
+    if len(srcs) == 1:   # one process, no separate link
+        _run([compiler() + flags + ['-o', lib, srcs[0]]])
+    else:
+        objs = [s[:-2] + '.o' for s in srcs]
+        _run([compiler() + flags + ['-c', '-o', o, s] for s, o in zip(srcs, objs)])
+        _run([compiler() + flags + ['-o', lib, *objs]])
+    if not os.path.exists(lib):
+        raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: no {os.path.basename(lib)} written')
+
+
+def _compile(source, key, suffix, flags):
     """Path of the verified library for key, compiling `source` (C text) on a miss."""
     d = cache_dir()
     path = os.path.join(d, key[:40] + suffix)
@@ -135,19 +207,13 @@ def _compile(source, key, suffix, extra=()):
     except OSError:   # read-only or unusable cache: compile in a temporary folder
         work = tmpdir = tempfile.mkdtemp(prefix='lie_dynamics_native_')
     try:
-        src = os.path.join(work, 'k.c')
         lib = os.path.join(work, 'k' + suffix)
-        with open(src, 'w', encoding='utf-8') as fh:
-            fh.write(source)
-        cmd = compiler() + list(FLAGS) + list(extra) + ['-o', lib, src]
+        t0 = time.perf_counter()
         try:
-            r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-        except (OSError, subprocess.SubprocessError) as e:
-            raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: {e}') from None
+            _build(source, lib, work, list(flags))
+        finally:
+            _STATE['seconds'] += time.perf_counter() - t0
         _STATE['compiles'] += 1
-        if r.returncode != 0 or not os.path.exists(lib):
-            raise NativeUnavailable(f'C compiler {" ".join(compiler())!r} failed: '
-                                    f'{_first_error(r.stderr + r.stdout)}')
         with open(lib, 'rb') as fh:
             body = fh.read()
         with open(lib, 'ab') as fh:
@@ -166,9 +232,10 @@ def _call_module():
     with open(os.path.join(HERE, 'native_call.c'), encoding='utf-8') as fh:
         source = fh.read()
     incs = [sysconfig.get_paths()['include'], np.get_include()]
-    key = _key(source, sys.version, np.__version__, *incs)
+    flags = FLAGS + tuple(f'-I{i}' for i in incs)
+    key = _key(flags, source, sys.version, np.__version__)
     suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
-    path, tmp = _compile(source, key, suffix, [f'-I{i}' for i in incs])
+    path, tmp = _compile(source, key, suffix, flags)
     try:
         spec = importlib.util.spec_from_file_location('lie_dynamics_native', path)
         mod = importlib.util.module_from_spec(spec)
@@ -228,7 +295,7 @@ def library(structure, name, render):
     the backend is off or unavailable (module())."""
     if module() is None:
         return None
-    key = _key(generator_hash(), structure, name)
+    key = _key(KERNEL_FLAGS, generator_hash(), structure, name, THRESHOLDS['native_part'])
     d = cache_dir()
     path = os.path.join(d, key[:40] + '.so')
     tmp = None
@@ -241,9 +308,9 @@ def library(structure, name, render):
         if len(meta) > 64:
             return None
         meta = ', '.join(str(int(v)) for v in meta)
-        source = f'#include <math.h>\n{source}const long lie_meta[64] = {{{meta}}};\n'
+        source = f'{source}const long lie_meta[64] = {{{meta}}};\n'
         try:
-            path, tmp = _compile(source, key, '.so')
+            path, tmp = _compile(source, key, '.so', KERNEL_FLAGS)
         except NativeUnavailable as e:
             _unavailable(str(e))
             return None

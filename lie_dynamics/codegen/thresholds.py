@@ -73,11 +73,23 @@ THRESHOLDS = {
     'regressor_rows_chunk': 8192,
     # Vectorised references: floats of work arrays per chunk of states (2^21: 16 MB).
     'vectorized_budget': 1 << 21,
-    # Native kernels: C compile time grows faster than the source (gcc -O2, this machine under
-    # load: 900 nodes 0.25 s, 4,200 1.0 s, 7,500 1.8-2.7 s, 10,000-13,000 3-33 s, 46,000 57 s;
-    # -O1 is no faster on the large ones). Above this many graph nodes a kernel stays Python
-    # (an arm's whole family is below it: its largest, the forward-dynamics derivatives, 7,500).
-    'native_nodes': 9000,
+    # Native kernels are cut into functions of at most this many graph nodes (crender.py): gcc's
+    # register allocation grows faster than a straight-line body. The arm's forward-dynamics
+    # derivatives (7,500 nodes), compiler CPU time: one function 1.6-1.8 s at -O2 (as before
+    # the cut), 1.3-1.5 s at -O1; parts of 250, 500 or 1,000 at -O1 (native.KERNEL_FLAGS)
+    # 0.6-0.7 s, spread over both cores. Parts of 250-500 call 0.85-1.0x the time of one
+    # function on every family of the arm and the Talos arm (1,000: up to 1.16x). None: one
+    # function. `python -m bench.compile --parts 500,250,1000,none --robots arm7,talos_arm`.
+    'native_part': 500,
+    # Above this many graph nodes a kernel stays Python. Cut into parts, compile time grows
+    # linearly: ~0.08 s of compiler CPU per 1,000 nodes (derivative kernels of random chains of
+    # 8-16 joints, 6,400-49,000 nodes; before the cut 12,000 nodes took 4.6 s, 46,000 57 s),
+    # about half of it in wall time on 2 cores; the native kernel beats the Python kernels at
+    # every batch size (16-joint chain, forward-dynamics derivatives: 22-26 us per state against
+    # 91 us at N = 1,000 and 1.7 ms at N = 1). 50,000 lets every derivative kernel within its
+    # compile_max go native (a 16-joint chain: 49,000 nodes, ~4 s of CPU, ~2 s on 2 quiet
+    # cores). `python -m bench.compile --chains 8,12,16`.
+    'native_nodes': 50000,
     # Native batches release the GIL from this many states (below, the release costs more
     # than other threads gain).
     'native_gil_rows': 64,
