@@ -209,3 +209,18 @@ def test_fresh_and_its_users():
     core = Compensator({'desired_timeout': 0.5}, clock=lambda: 0.0)
     core.desired_time = 10.0
     assert core.desired_is_fresh(10.5) and not core.desired_is_fresh(10.6)
+
+
+def test_the_observer_gain_follows_the_per_joint_rule():
+    """The math core's observer expands its gain by the same rule as the node's parameters."""
+    from lie_dynamics import default_urdf_path, load_urdf
+    from lie_dynamics.algorithms.observer import MomentumObserver
+    from lie_dynamics.model import joint_names
+    assert broadcast_joints is joint_names.broadcast_joints
+    model = load_urdf(default_urdf_path())
+    n = model.n
+    for gain in (5.0, [5.0], np.full(n, 5.0)):
+        np.testing.assert_array_equal(MomentumObserver(model, gain).gain, np.full(n, 5.0))
+    for bad in ([1.0, 2.0], [0.0], [np.nan], np.ones((1, n))):
+        with pytest.raises(ValueError, match='observer gain must be one positive number'):
+            MomentumObserver(model, bad)

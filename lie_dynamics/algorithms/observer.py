@@ -38,6 +38,7 @@ from ..codegen import runtime
 from ..codegen.traced import observer as observer_kernel
 from ..codegen.traced import rnea as traced
 from ..laws import friction_torque
+from ..model.joint_names import broadcast_joints
 
 _STEP = observer_kernel.OBSERVER_STEP
 
@@ -61,9 +62,8 @@ def generalized_momentum(model, q, qd):
 
 
 def _gains(gain, n):
-    k = np.array(gain, dtype=float)   # a copy: made read-only below, the caller's array is not
-    k = np.full(n, float(k)) if k.ndim == 0 else k
-    if k.shape != (n,) or not np.all(np.isfinite(k)) or np.any(k <= 0):
+    k = broadcast_joints(gain, n)   # a copy: made read-only below, the caller's array is not
+    if k is None or not np.all(np.isfinite(k)) or np.any(k <= 0):
         raise ValueError(f'observer gain must be one positive number or {n} positive numbers (1/s), got {gain!r}')
     return k
 

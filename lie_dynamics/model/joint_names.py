@@ -1,5 +1,6 @@
-"""Joint names mapped to columns: the one rule by which a message's or a trajectory's name list
-is read in a model's joint order (sensor_msgs/JointState, the desired state, trajectories)."""
+"""Joints and their values: the one rule by which a message's or a trajectory's name list is read
+in a model's joint order (sensor_msgs/JointState, the desired state, trajectories), and the one
+rule of per-joint values (one value for every joint, or one per joint: gains, limits, friction)."""
 from typing import NamedTuple, Optional
 
 import numpy as np
@@ -26,3 +27,12 @@ def joint_columns(names, joints):
     missing = [j for j in joints if j not in index]
     columns = None if dup or missing else np.array([index[j] for j in joints], dtype=int)
     return JointColumns(index, columns, sorted(dup), missing)
+
+
+def broadcast_joints(values, n):
+    """The one rule of per-joint values: one value for every joint, or one per joint. values as
+    n floats (a new array), or None when there are neither 1 nor n of them."""
+    a = np.atleast_1d(np.asarray(values, dtype=float))
+    if a.ndim != 1 or len(a) not in (1, n):
+        return None
+    return np.full(n, a[0]) if len(a) == 1 and n != 1 else a.copy()

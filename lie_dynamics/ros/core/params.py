@@ -14,6 +14,7 @@ import numpy as np
 
 # MODES: the torque laws (lie_dynamics.laws). Every mode but `gravity` needs the desired-state stream.
 from ...laws import COULOMB_VELOCITY_EPSILON, MODES
+from ...model.joint_names import broadcast_joints  # noqa: F401 - the expansion rule, used by per_joint_values and re-exported
 from .diagnostics import clip
 
 STALE_ACTIONS = ('hold_gravity_at_last_state', 'zero')
@@ -298,15 +299,6 @@ def check_value(name, value):
         bound = '' if lo is None else f"{' ' if need else ''}{'>' if spec.above else '>='} {lo:g}"
         raise ValueError(f'{name} must be {need}{bound}, got {_shown(vals)}')
     return vals
-
-
-def broadcast_joints(values, n):
-    """The one rule of per-joint values: one value for every joint, or one per joint. values as
-    n floats (a new array), or None when there are neither 1 nor n of them."""
-    a = np.atleast_1d(np.asarray(values, dtype=float))
-    if a.ndim != 1 or len(a) not in (1, n):
-        return None
-    return np.full(n, a[0]) if len(a) == 1 and n != 1 else a.copy()
 
 
 def per_joint_values(name, values, n, urdf=None):
