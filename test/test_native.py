@@ -425,3 +425,40 @@ def test_two_processes_compiling_at_once(tmp_path):
         tau, _, on, warned = _parse(subprocess.CompletedProcess([], 0, out, err))
         assert on and warned == 0 and _rel(tau, ref) <= TOL
     assert not list((tmp_path / 'cache').glob('build-*'))
+
+
+def test_cache_eviction_removes_the_least_recently_used(tmp_path):
+    """evict: above the bound, the oldest libraries go until 3/4 of it remain, never a kept one;
+    abandoned build folders go, other files stay."""
+    now = 1e9
+    paths = []
+    for i in range(5):
+        p = tmp_path / f'k{i}.so'
+        p.write_bytes(b'x' * 1000)
+        os.utime(p, (now - 100 + i, now - 100 + i))   # k0 the least recently used
+        paths.append(p)
+    (tmp_path / 'notes.txt').write_bytes(b'y' * 10000)
+    old, new = tmp_path / 'build-old', tmp_path / 'build-new'
+    old.mkdir()
+    new.mkdir()
+    os.utime(old, (now - 2 * native.STALE_BUILD_S, now - 2 * native.STALE_BUILD_S))
+    os.utime(new, (now - 10, now - 10))
+    assert native.evict(tmp_path, 6000, now=now) == [str(old)]          # 5000 bytes: under the bound
+    removed = native.evict(tmp_path, 3000, keep=(paths[0],), now=now)
+    assert removed == [str(paths[1]), str(paths[2]), str(paths[3])]       # 5000 -> 2000 <= 2250
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['build-new', 'k0.so', 'k4.so', 'notes.txt']
+
+
+def test_cache_bound_from_the_environment(tmp_path, monkeypatch):
+    """LIE_DYNAMICS_CACHE_MAX_MB bounds the folder after every compile: with a bound below one
+    library only the newest stays, and the results are unchanged; a cache hit counts as a use."""
+    monkeypatch.setenv('LIE_DYNAMICS_CACHE_MAX_MB', 'not a number')
+    assert native.cache_max_bytes() == int(native.CACHE_MAX_MB * 2 ** 20)
+    ref = _reference_tau()
+    tau, count, on, _ = _parse(_probe({'LIE_DYNAMICS_CACHE_MAX_MB': '0.0001'}, tmp_path))
+    assert on and count >= 2 and _rel(tau, ref) <= TOL
+    libs = list((tmp_path / 'cache').glob('*.so'))
+    assert len(libs) == 1
+    os.utime(libs[0], (1e9, 1e9))
+    _parse(_probe({}, tmp_path))                       # default bound: nothing evicted, the survivor used
+    assert libs[0].exists() and libs[0].stat().st_mtime > 1e9 + 1

@@ -18,7 +18,9 @@ loads without being traced. Every file ends with a trailer (MAGIC, its key, the 
 the bytes before it), checked before loading: a truncated or foreign file is rebuilt, never
 loaded. Files are written to a temporary name and renamed into place (two processes
 compiling the same kernel both succeed); an unwritable cache folder means compiling in a
-temporary folder, removed after loading.
+temporary folder, removed after loading. The folder is bounded: $LIE_DYNAMICS_CACHE_MAX_MB
+(default CACHE_MAX_MB); a file's time is its last use, and after each compile the least
+recently used files go until the folder holds 3/4 of the bound (`evict`).
 """
 import ctypes
 import functools
@@ -122,7 +124,8 @@ def _key(flags, *parts):
 
 
 def _verified(path, key):
-    """True when path ends with the trailer of key and the SHA-256 of the bytes before it."""
+    """True when path ends with the trailer of key and the SHA-256 of the bytes before it; its
+    time is then set to now (its last use, which `evict` reads)."""
     try:
         with open(path, 'rb') as fh:
             data = fh.read()
@@ -131,7 +134,65 @@ def _verified(path, key):
     if len(data) <= _TRAILER or not data.endswith(MAGIC + key.encode() + hashlib.sha256(data[:-_TRAILER]).hexdigest()
                                                   .encode()):
         return False
+    try:
+        os.utime(path)
+    except OSError:   # a read-only cache is still used
+        pass
     return True
+
+
+CACHE_MAX_MB = 512.0   # about ten times what a busy development machine collects
+STALE_BUILD_S = 3600.0  # a build folder this old belongs to a process that died while compiling
+
+
+def cache_max_bytes():
+    """The bound of the cache folder: $LIE_DYNAMICS_CACHE_MAX_MB (a positive number), else CACHE_MAX_MB."""
+    text = os.environ.get('LIE_DYNAMICS_CACHE_MAX_MB', '').strip()
+    try:
+        mb = float(text) if text else CACHE_MAX_MB
+    except ValueError:
+        mb = CACHE_MAX_MB
+    return int((mb if mb > 0 else CACHE_MAX_MB) * 2 ** 20)
+
+
+def evict(folder, max_bytes, keep=(), now=None):
+    """Bound the cache folder: when its libraries hold more than max_bytes, remove the least
+    recently used (oldest time) until they hold at most 3/4 of it, never one in `keep`; build
+    folders older than STALE_BUILD_S go too. Returns the removed paths. Files another process
+    has loaded stay mapped there (removing only unlinks them)."""
+    now = time.time() if now is None else now
+    removed, files = [], []
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return removed
+    for name in names:
+        path = os.path.join(folder, name)
+        try:
+            st = os.stat(path)
+        except OSError:
+            continue
+        if name.startswith('build-') and now - st.st_mtime > STALE_BUILD_S:
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+        elif name.endswith('.so') and os.path.isfile(path):
+            files.append((st.st_mtime, st.st_size, path))
+    total = sum(size for _, size, _ in files)
+    if total <= max_bytes:
+        return removed
+    keep = {os.path.abspath(k) for k in keep}
+    for _, size, path in sorted(files):
+        if total <= 0.75 * max_bytes:
+            break
+        if os.path.abspath(path) in keep:
+            continue
+        try:
+            os.remove(path)
+        except OSError:
+            continue
+        total -= size
+        removed.append(path)
+    return removed
 
 
 def _first_error(text):
@@ -221,6 +282,7 @@ def _compile(source, key, suffix, flags):
         if tmpdir is not None:
             return lib, tmpdir
         os.replace(lib, path)   # atomic: a concurrent reader sees the old file or the whole new one
+        evict(d, cache_max_bytes(), keep=(path,))
         return path, None
     finally:
         if tmpdir is None:
@@ -296,29 +358,32 @@ def library(structure, name, render):
     if module() is None:
         return None
     key = _key(KERNEL_FLAGS, generator_hash(), structure, name, THRESHOLDS['native_part'])
-    d = cache_dir()
-    path = os.path.join(d, key[:40] + '.so')
-    tmp = None
-    if not _verified(path, key):
-        rendered = render()
-        if rendered is None:
-            return None
-        source, widths, par_lengths, n_out = rendered
-        meta = [len(widths), len(par_lengths), n_out, *widths, *par_lengths]
-        if len(meta) > 64:
-            return None
-        meta = ', '.join(str(int(v)) for v in meta)
-        source = f'{source}const long lie_meta[64] = {{{meta}}};\n'
+    path = os.path.join(cache_dir(), key[:40] + '.so')
+    for attempt in (0, 1):
+        tmp = None
+        if not _verified(path, key):
+            rendered = render()
+            if rendered is None:
+                return None
+            source, widths, par_lengths, n_out = rendered
+            meta = [len(widths), len(par_lengths), n_out, *widths, *par_lengths]
+            if len(meta) > 64:
+                return None
+            meta = ', '.join(str(int(v)) for v in meta)
+            source = f'{source}const long lie_meta[64] = {{{meta}}};\n'
+            try:
+                path, tmp = _compile(source, key, '.so', KERNEL_FLAGS)
+            except NativeUnavailable as e:
+                _unavailable(str(e))
+                return None
         try:
-            path, tmp = _compile(source, key, '.so', KERNEL_FLAGS)
-        except NativeUnavailable as e:
-            _unavailable(str(e))
-            return None
-    try:
-        return Library(path)
-    finally:
-        if tmp:
-            shutil.rmtree(tmp, ignore_errors=True)
+            return Library(path)
+        except OSError:   # evicted by another process between the check and the load: once more
+            if attempt:
+                raise
+        finally:
+            if tmp:
+                shutil.rmtree(tmp, ignore_errors=True)
 
 
 def bind(lib, params, n_res, out_dims, check=0, rtol=0.0, gil_rows=64):
