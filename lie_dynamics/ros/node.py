@@ -16,7 +16,8 @@ Subscribes  robot_description (std_msgs/String, reliable, transient local, depth
             <desired_topic>   (trajectory_msgs/JointTrajectory, one point; best effort, depth 1),
                               default ~/desired; taken serialized, like joint_states
             ~/trajectory_in   (trajectory_msgs/JointTrajectory from a planner; reliable, depth 1:
-                              only the newest matters; taken serialized, read off the control path)
+                              only the newest matters; taken, filled and published by a process
+                              of its own, trajectories/process.py)
 Publishes   <command_topic>   (std_msgs/Float64MultiArray, `joints` order), one per valid joint_states;
                               default effort_controller/commands (relative)
             ~/trajectory_out  (~/trajectory_in with `effort` filled, reliable, depth 1; remap it to
@@ -54,7 +55,6 @@ from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallba
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
@@ -169,10 +169,13 @@ class DynamicsNode(Node):
                                               event_callbacks=NO_PUB_EVENTS)
         self._js_pub = None
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10, event_callbacks=NO_PUB_EVENTS)
-        self._traj_pub = self.create_publisher(JointTrajectory, '~/trajectory_out', TRAJECTORY_QOS,
-                                               event_callbacks=NO_PUB_EVENTS)
-        self._bg = Background(self.core, self._sources, publish=self._traj_pub.publish,
-                              deserialize=lambda data: deserialize_message(data, JointTrajectory))
+        # ~/trajectory_in and ~/trajectory_out: served by a process of their own (trajectories/process.py)
+        self._bg = Background(self.core, self._sources, trajectories=dict(
+            domain_id=self.context.get_domain_id(), name=f'{self.get_name()}_trajectories',
+            namespace=self.get_namespace(), topic_in=self.resolve_topic_name('~/trajectory_in'),
+            topic_out=self.resolve_topic_name('~/trajectory_out'),
+            qos=dict(depth=TRAJECTORY_QOS.depth, history=TRAJECTORY_QOS.history,
+                     reliability=TRAJECTORY_QOS.reliability, durability=TRAJECTORY_QOS.durability)))
         self._start(values)
 
     def _start(self, values):
@@ -188,8 +191,6 @@ class DynamicsNode(Node):
         desired = self.create_subscription(JointTrajectory, values['desired_topic'], self._on_desired,
                                            DESIRED_QOS, raw=True, event_callbacks=NO_SUB_EVENTS)
         self.core.desired_topic = desired.topic_name
-        self.create_subscription(JointTrajectory, '~/trajectory_in', self._on_trajectory, TRAJECTORY_QOS, raw=True,
-                                 event_callbacks=NO_SUB_EVENTS)
         self.create_service(SetBool, '~/set_enabled', self._srv_set_enabled, qos_profile=SERVICE_QOS)
         self.create_service(Trigger, '~/reload_model', self._srv_reload, qos_profile=SERVICE_QOS)
         self._gp = GravityPayload(self, values, SERVICE_QOS, NO_SUB_EVENTS)  # gravity topic, payload services
@@ -296,12 +297,6 @@ class DynamicsNode(Node):
                 self.core.on_desired(names, points)
             if self.core.events:
                 self._drain_events()
-
-    @_guarded
-    def _on_trajectory(self, data):
-        with self.lock:
-            self._bg.fill(data)
-            self._drain_events()
 
     def _publish(self, tau, stamp=None):  # stamp: the input's (ns); None: now
         data = array.array('d', tau.tobytes())

@@ -34,8 +34,7 @@ from ..core.diagnostics import clip
 from ..core.messages import Rejected
 from .models import warm_up
 from .sources import open_source, resolve_path, source_label
-from ..trajectories.trajectory_cdr import Unsupported, arrays, head, read, write
-from ..trajectories.trajectory_msgs import set_point_efforts, trajectory_arrays
+from ..trajectories.process import TrajectoryProcess
 from .worker import Worker
 
 
@@ -72,18 +71,20 @@ def release_memory():
 
 
 class Background:
-    """Loads and trajectory fills for a Compensator `core`, whose running model's source `sources`
-    (sources.Sources) tracks. publish(bytes or message) sends a filled trajectory; deserialize(bytes)
-    -> JointTrajectory reads one in an encoding trajectory_cdr does not (rclpy's, in the node)."""
+    """Loads for a Compensator `core`, whose running model's source `sources` (sources.Sources)
+    tracks, and the trajectory process: `trajectories` is its start configuration
+    (trajectories/process.py; None: no trajectories served)."""
 
-    def __init__(self, core, sources, publish=None, deserialize=None):
+    def __init__(self, core, sources, trajectories=None):
         self.core = core
         self.sources = sources
-        self.publish = publish
-        self.deserialize = deserialize
         self.worker = Worker('lie_dynamics_loader')
         self.process = BuildProcess()   # its child starts with the first load after start-up
         self.running_xml = None         # the description text of the running model
+        self.trajectories = None
+        if trajectories is not None:
+            self.trajectories = TrajectoryProcess(trajectories, self._on_ask)
+            self.trajectories.start()
 
     # ------------------------------------------------------------------ robot descriptions
     def precheck(self, kind, text, settings=None):
@@ -171,68 +172,57 @@ class Background:
         return self.core.note_description_error(f'{label}: {str(error) or type(error).__name__}')
 
     # ------------------------------------------------------------------ trajectories
-    def fill(self, data):
-        """Fill a serialized JointTrajectory (bytes) in the background and publish it; refusals
-        are counted and logged by the core at once."""
-        core = self.core
-        try:
-            points = head(data)[1]
-        except Unsupported:
-            points = 0   # counted once deserialized, in the worker
-        except ValueError as exc:
-            return core.trajectory_done(str(exc))
-        job = core.trajectory_fill(points)
-        if isinstance(job, Rejected):
-            return core.trajectory_done(job.text, kind=job.kind)
-        cap = core.settings['max_trajectory_points']
-        if self.worker.submit('trajectory', 'trajectory', lambda: self._fill(job, data, cap)) is not None:
-            # the one still waiting is dropped: only the newest trajectory matters
-            core.trajectory_done('a newer trajectory arrived before it was filled', kind='replaced')
-        return None
+    def _on_ask(self, child, seq, points):
+        """The trajectory process has a trajectory of `points` points (its reader thread)."""
+        self.worker.submit('trajectory', 'trajectory', lambda: self._answer(child, seq, points))
 
-    def _fill(self, job, data, cap):
-        """(worker thread) -> clamp note; raises ValueError for a rejected trajectory."""
+    def _answer(self, child, seq, points):
+        """(worker thread) Answer the trajectory process: the fill of the running model and
+        settings, or a refusal, returned as (text, kind) for the control path to count."""
+        cap = self.core.settings['max_trajectory_points']
+        job = self.core.trajectory_fill(points)
+        refused = isinstance(job, Rejected)
         try:
-            with short_switch_interval():
-                return self._fill_message(job, data, cap)
-        finally:
-            if len(data) > TRIM_BYTES:
-                release_memory()
-
-    def _fill_message(self, job, data, cap):
-        try:
-            traj = read(data)
-        except Unsupported:
-            msg = self.deserialize(data)
-            if len(msg.points) > cap:
-                raise ValueError(f'{len(msg.points)} points, more than max_trajectory_points ({cap})') from None
-            efforts, note = job.fill(msg.joint_names, trajectory_arrays(msg.joint_names, msg.points))
-            set_point_efforts(msg.points, efforts)
-            self.publish(msg)
-            return note
-        efforts, note = job.fill(traj['joint_names'], arrays(traj))
-        self.publish(write(traj, efforts))
-        return note
+            with short_switch_interval():   # pickling a large model: milliseconds, in Python in part
+                self.trajectories.answer(child, seq, None if refused else job, cap)
+        except Exception:
+            self.trajectories.answer(child, seq, None, cap)   # it must not wait: refused, counted here
+            raise
+        return (job.text, job.kind) if refused else None
 
     # ------------------------------------------------------------------ control path
     def collect(self):
         """Swap in finished models and account for finished fills (control path, cheap)."""
-        worker = self.worker
+        worker, core = self.worker, self.core
         if worker.has_outcomes:
             for out in worker.outcomes():
                 if out.slot == 'model':
                     self._install(out.tag, out.value, out.error)
-                elif out.error is None:
-                    self.core.trajectory_done(None, out.value)
-                else:
-                    err = out.error
-                    self.core.trajectory_done(str(err) if isinstance(err, ValueError) else
-                                              f'{type(err).__name__}: {err}')
+                elif out.error is not None:   # the trajectory process was not answered: it waits for a fill
+                    core.trajectory_done(f'{type(out.error).__name__}: {out.error}')
+                elif out.value is not None:   # refused: counted here
+                    core.trajectory_done(out.value[0], kind=out.value[1])
         busy = worker.busy('model')
-        self.core.loading = busy[2] if busy is not None else ''
+        core.loading = busy[2] if busy is not None else ''
+        tp = self.trajectories
+        if tp is None:
+            return
+        for msg in tp.collect():
+            if msg[0] == 'done':
+                core.trajectory_done(msg[1], msg[2], kind=msg[3] or 'malformed')
+            elif msg[2]:   # a child lost during a fill: that trajectory is rejected
+                core.trajectory_done(msg[1] + ' while filling', kind='process')
+            else:
+                core.events.append(('warn', 'trajectory:process', f'{msg[1]}; a new one starts'))
+        if not tp.running and worker.busy('trajectory') is None:
+            worker.submit('trajectory', 'start', tp.start)
 
     def stop(self, timeout=2.0):
+        if self.trajectories is not None:
+            self.trajectories.stop()   # first: none starts again
         self.process.stop()   # first: a build waited for ends at once
         self.worker.stop(timeout)
         self.process.stop()   # one the thread may have started meanwhile
+        if self.trajectories is not None:
+            self.trajectories.stop()
 
