@@ -176,6 +176,10 @@ class Background:
         """The trajectory process has a trajectory of `points` points (its reader thread)."""
         self.worker.submit('trajectory', 'trajectory', lambda: self._answer(child, seq, points))
 
+    def _start_trajectories(self):
+        """(worker thread: the child dies with it) A new trajectory process, unless started too recently."""
+        self.trajectories.start()
+
     def _answer(self, child, seq, points):
         """(worker thread) Answer the trajectory process: the fill of the running model and
         settings, or a refusal, returned as (text, kind) for the control path to count."""
@@ -215,7 +219,7 @@ class Background:
             else:
                 core.events.append(('warn', 'trajectory:process', f'{msg[1]}; a new one starts'))
         if not tp.running and worker.busy('trajectory') is None:
-            worker.submit('trajectory', 'start', tp.start)
+            worker.submit('trajectory', 'start', self._start_trajectories)
 
     def stop(self, timeout=2.0):
         if self.trajectories is not None:
