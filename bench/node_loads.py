@@ -13,6 +13,9 @@ as its window (the reference):
     (they fold into the arm's bodies: the model that swaps in serves as fast as the arm);
   * chain: a chain of as many links, another robot: built in full, then refused (the
     running model stays);
+  * new structure: the arm with its first joint moved by a few micrometres, a kinematic structure
+    no kernel cache has seen yet (its kernels are generated: traced, rendered and, where a C
+    compiler works, compiled);
   * reloads: 20 ~/reload_model calls back to back;
   * trajectory: a 100,000-point trajectory on ~/trajectory_in (refused by the default
     max_trajectory_points from its header; filled and published with --raised).
@@ -78,6 +81,17 @@ def chain_description(links):
     for k in range(1, 8):
         xml = xml.replace(f'name="j{k:03d}"', f'name="joint{k}"')
     return xml
+
+
+def new_structure_description():
+    """The arm with joint1 moved by a few micrometres, different in every call (and every run):
+    a structure whose kernels no cache holds."""
+    nonce = 1e-6 * (1 + time.time_ns() % 999_983)
+    xml = arm_xml()
+    old = '<origin xyz="0 0 0.34" rpy="0 0 0"/>'
+    if old not in xml:
+        raise RuntimeError("the arm's joint1 origin is not where this benchmark expects it")
+    return xml.replace(old, f'<origin xyz="0 0 {0.34 + nonce!r}" rpy="0 0 0"/>', 1)
 
 
 def serialized_trajectory(n):
@@ -259,6 +273,10 @@ def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):
         for k in range(repeat):
             rows.append(_event(driver, f"chain, refused after its build ({caps['links']} links)",
                                lambda k=k: driver.desc.publish(String(data=chain + f'<!-- {k} -->')),
+                               lambda t0: driver.ready_after(t0 + 0.3), 300))
+        for _ in range(repeat):
+            rows.append(_event(driver, 'new structure (kernels generated)',
+                               lambda: driver.desc.publish(String(data=new_structure_description())),
                                lambda t0: driver.ready_after(t0 + 0.3), 300))
 
         def reloads():

@@ -1,27 +1,29 @@
 """The dynamics node's heavy work off the control path, in plain Python (no rclpy import).
 
 Reading a robot description and building its model run in a child process (build_process.py:
-the interpreter lock stays with the control path), driven by one worker thread (worker.py)
-that waits for the model without the lock, then generates its code (a warm-up call: once per
-robot structure, cached) and checks it against the settings; filling a trajectory with
-efforts runs in that thread too. The control path
-(the executor thread: joint_states callbacks and the timer) calls `collect()`, a plain
-attribute test while nothing has finished, and swaps a finished model in there, between two
-commands: until then the previous model answers every joint_states message. A description
-arriving while another one loads replaces the one waiting, so loads never pile up; the newest
-always loads last. The same holds for trajectories.
+the interpreter lock stays with the control path; it also compiles the model's native kernels
+into the disk cache), driven by one worker thread (worker.py) that waits for the model without
+the lock, then loads its code (a warm-up call: once per robot structure, cached) and checks it
+against the settings. The control path (the executor thread: joint_states callbacks and the
+timer) calls `collect()`, a plain attribute test while nothing has finished, and swaps a
+finished model in there, between two commands: until then the previous model answers every
+joint_states message. A description arriving while another one loads replaces the one
+waiting, so loads never pile up; the newest always loads last.
+
+Trajectories are taken, filled and published by the trajectory process
+(trajectories/process.py): the worker thread answers its questions with the fill of the
+running model and settings (or the refusal: more points than max_trajectory_points, no model,
+disabled), and `collect()` counts and logs its outcomes.
 
 Cheap refusals happen at once, on the control path: description_update 'none' with a model
 running, a description over max_description_bytes or max_description_links, text that is not
-XML, a file that does not exist; a trajectory with more points than max_trajectory_points,
-without a model or while disabled.
+XML, a file that does not exist.
 
 Python threads share one interpreter lock: a long call into C that keeps it (parsing XML,
-converting a message) delays the control path by its length. Descriptions are therefore
-parsed in another process, trajectories are read and written in their serialized form
-(trajectory_cdr.py: milliseconds for 100,000 points, where rclpy's conversion takes seconds
-under the lock), and the caps bound the rest. A build process that dies or hangs is reported
-like a refused description (the running model stays) and replaced at the next load.
+converting or taking a large message) delays the control path by its length. Descriptions are
+therefore parsed in another process, trajectories never enter the node's process, and the caps
+bound the rest. A build process that dies or hangs is reported like a refused description
+(the running model stays) and replaced at the next load.
 """
 import contextlib
 import ctypes
