@@ -176,7 +176,10 @@ class Background:
     # ------------------------------------------------------------------ trajectories
     def _on_ask(self, child, seq, points):
         """The trajectory process has a trajectory of `points` points (its reader thread)."""
-        self.worker.submit('trajectory', 'trajectory', lambda: self._answer(child, seq, points))
+        try:
+            self.worker.submit('trajectory', 'trajectory', lambda: self._answer(child, seq, points))
+        except RuntimeError:   # the node is stopping (and the child with it)
+            pass
 
     def _start_trajectories(self):
         """(worker thread: the child dies with it) A new trajectory process, unless started too recently."""
