@@ -37,6 +37,9 @@ BUILD_TIMEOUT_S = 120.0   # a build that takes longer is taken for hung (a 5,000
 _LEN = struct.Struct('<Q')
 _CHUNK = 1 << 20
 _PR_SET_PDEATHSIG = 1
+# Children yield the CPU to the node: on a machine with fewer free cores than busy threads, a
+# child working at the node's priority took time slices from the control path.
+CHILD_NICE = 5
 
 
 class BuildLost(RuntimeError):
@@ -116,8 +119,9 @@ def start_child(module):
 
 def child_setup(parent=None):
     """A child of start_child: dies with the thread that started it (Linux: SIGKILL), ignores
-    SIGINT (a terminal's Ctrl-C goes to the parent, which stops it), sends stray prints to
-    stderr. Returns the descriptor its answers go to, or None when the parent already died."""
+    SIGINT (a terminal's Ctrl-C goes to the parent, which stops it), runs CHILD_NICE steps
+    nicer than the node, sends stray prints to stderr. Returns the descriptor its answers go to,
+    or None when the parent already died."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         ctypes.CDLL(None).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
@@ -125,6 +129,10 @@ def child_setup(parent=None):
         pass
     if parent is not None and os.getppid() != parent:   # the parent died before prctl
         return None
+    try:
+        os.nice(CHILD_NICE)
+    except OSError:
+        pass
     out = os.dup(1)
     os.dup2(2, 1)   # stray prints go to stderr, never into the answers
     return out
