@@ -13,9 +13,13 @@ as its window (the reference):
     (they fold into the arm's bodies: the model that swaps in serves as fast as the arm);
   * chain: a chain of as many links, another robot: built in full, then refused (the
     running model stays);
+  * new structure: the arm with its first joint moved by a few micrometres, a kinematic structure
+    no kernel cache has seen yet (its kernels are generated: traced, rendered and, where a C
+    compiler works, compiled);
   * reloads: 20 ~/reload_model calls back to back;
   * trajectory: a 100,000-point trajectory on ~/trajectory_in (refused by the default
-    max_trajectory_points from its header; filled and published with --raised).
+    max_trajectory_points from its header; filled and published with --raised), sent and its
+    filled copy taken by a helper process (rclpy would stall this one while it takes 20 MB).
 --raised starts the node with max_description_links 5,000, max_trajectory_points 200,000 and
 max_description_bytes 20 MB (the description is then 5,000 links). An event's window lasts
 from its start until the node is done (its diagnostics, every 0.1 s, say model_state 'ready'
@@ -80,6 +84,17 @@ def chain_description(links):
     return xml
 
 
+def new_structure_description():
+    """The arm with joint1 moved by a few micrometres, different in every call (and every run):
+    a structure whose kernels no cache holds."""
+    nonce = 1e-6 * (1 + time.time_ns() % 999_983)
+    xml = arm_xml()
+    old = '<origin xyz="0 0 0.34" rpy="0 0 0"/>'
+    if old not in xml:
+        raise RuntimeError("the arm's joint1 origin is not where this benchmark expects it")
+    return xml.replace(old, f'<origin xyz="0 0 {0.34 + nonce!r}" rpy="0 0 0"/>', 1)
+
+
 def serialized_trajectory(n):
     """A serialized n-point trajectory of the arm at 1 kHz (written directly with trajectory_cdr)."""
     from rclpy.serialization import serialize_message
@@ -106,9 +121,8 @@ class Driver:
         from rclpy.serialization import serialize_message
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float64MultiArray, String
-        from trajectory_msgs.msg import JointTrajectory
 
-        from lie_dynamics.ros.node import DESCRIPTION_QOS, TRAJECTORY_QOS
+        from lie_dynamics.ros.node import DESCRIPTION_QOS
         self.node = rclpy.create_node('node_loads_driver', context=ctx)
         self.ex = SingleThreadedExecutor(context=ctx)
         self.ex.add_node(self.node)
@@ -117,8 +131,6 @@ class Driver:
         self.node.create_subscription(Float64MultiArray, CMD, lambda m: self.replies.append(time.monotonic()), deep)
         self.node.create_subscription(Log, '/rosout', self._on_log, deep)
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, deep)
-        self.node.create_subscription(JointTrajectory, f'{NODE}/trajectory_out',
-                                      lambda m: self.filled.append(time.monotonic()), TRAJECTORY_QOS, raw=True)
         self.js = self.node.create_publisher(JointState, 'joint_states', 1)
         self.desc = self.node.create_publisher(String, 'robot_description', DESCRIPTION_QOS)
         self.state = bytes(serialize_message(JointState(name=JOINTS, position=Q.tolist())))
@@ -260,6 +272,10 @@ def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):
             rows.append(_event(driver, f"chain, refused after its build ({caps['links']} links)",
                                lambda k=k: driver.desc.publish(String(data=chain + f'<!-- {k} -->')),
                                lambda t0: driver.ready_after(t0 + 0.3), 300))
+        for _ in range(repeat):
+            rows.append(_event(driver, 'new structure (kernels generated)',
+                               lambda: driver.desc.publish(String(data=new_structure_description())),
+                               lambda t0: driver.ready_after(t0 + 0.3), 300))
 
         def reloads():
             for _ in range(20):
@@ -274,18 +290,29 @@ def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):
             driver.reloads_sent = None
             rows.append(_event(driver, '20 reloads', reloads, reloads_done, 300))
         if not quick:
-            # sent by a process of its own: rclpy keeps the interpreter lock while it publishes
-            # 20 MB, which would stall this process's stream and reply times, not the node's
+            # sent, and the filled one taken, by a process of its own: rclpy keeps the interpreter
+            # lock while it publishes or takes 20 MB, which would stall this process's stream and
+            # reply times, not the node's
             sender = subprocess.Popen([sys.executable, '-m', 'bench.node_loads', '--send-trajectory'], env=env,
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
             helpers.append(sender)
             if sender.stdout.readline().strip() != 'ready':
                 raise RuntimeError('the trajectory sender did not start')
+            sent = threading.Event()
+
+            def read_sender():
+                for line in sender.stdout:
+                    if line.strip() == 'filled':
+                        driver.filled.append(time.monotonic())
+                    elif line.strip() == 'sent':
+                        sent.set()
+            threading.Thread(target=read_sender, daemon=True).start()
 
             def send():
+                sent.clear()
                 sender.stdin.write('send\n')
                 sender.stdin.flush()
-                sender.stdout.readline()
+                sent.wait(60)
             for _ in range(repeat):
                 n_filled = len(driver.filled)
                 rows.append(_event(driver, '100,000-point trajectory', send,
@@ -329,21 +356,34 @@ def markdown(rows, raised, busy):
 
 
 def send_trajectories():
-    """(--send-trajectory) Publish the 100,000-point trajectory once per line on stdin."""
+    """(--send-trajectory) Publish the 100,000-point trajectory once per line on stdin ('sent'
+    once published); 'filled' for every filled trajectory from the node."""
     import rclpy
+    from rclpy.executors import SingleThreadedExecutor
     from trajectory_msgs.msg import JointTrajectory
 
     from lie_dynamics.ros.node import TRAJECTORY_QOS
     rclpy.init()
     node = rclpy.create_node('node_loads_trajectory_sender')
     pub = node.create_publisher(JointTrajectory, f'{NODE}/trajectory_in', TRAJECTORY_QOS)
+    lock = threading.Lock()
+
+    def say(text):
+        with lock:
+            print(text, flush=True)
+    node.create_subscription(JointTrajectory, f'{NODE}/trajectory_out', lambda m: say('filled'), TRAJECTORY_QOS,
+                             raw=True)
+    ex = SingleThreadedExecutor()
+    ex.add_node(node)
+    threading.Thread(target=ex.spin, daemon=True).start()
     data = serialized_trajectory(100_000)
-    while not pub.get_subscription_count():
+    while not (pub.get_subscription_count() and node.count_publishers(f'{NODE}/trajectory_out')):
         time.sleep(0.05)
-    print('ready', flush=True)
+    say('ready')
     for _ in sys.stdin:
         pub.publish(data)
-        print('sent', flush=True)
+        say('sent')
+    ex.shutdown()
     node.destroy_node()
     rclpy.try_shutdown()
 

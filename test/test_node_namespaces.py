@@ -1,7 +1,8 @@
 """Several robots in one DDS domain: two dynamics_node processes started with -r __ns:=/robot1 and
 /robot2, for two different robots (the bundled arm and a UR5 from example-robot-data). Every
 default topic resolves in the node's namespace: each node answers only its own joint_states, on
-its own effort_controller/commands, and nothing reaches the global /effort_controller/commands."""
+its own effort_controller/commands, and nothing reaches the global /effort_controller/commands.
+Each node's trajectory process serves its namespaced ~/trajectory_in and ends with it."""
 import glob
 import os
 import signal
@@ -28,12 +29,36 @@ UR5 = next(iter(glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-pack
 ROBOTS = {'/robot1': default_urdf_path(), '/robot2': UR5}
 TOL = 1e-9
 QUIET = 1.0  # s to wait for a message that must not come
+TRAJECTORY_PROCESS = 'lie_dynamics.ros.trajectory_process'
 
 
 def _start(ns, urdf):
     return subprocess.Popen([sys.executable, '-m', 'lie_dynamics.dynamics_node', '--ros-args', '-r', f'__ns:={ns}',
                              '-p', f'urdf_path:={urdf}', '-p', 'ramp_time:=0.0', '-p', 'stale_timeout:=60.0'],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def _children(pid, module):
+    """Pids of the `python -m module <pid>` children of process `pid` (build_process.start_child)."""
+    out = []
+    for d in os.listdir('/proc'):
+        try:
+            with open(f'/proc/{d}/cmdline', 'rb') as fh:
+                argv = fh.read().split(b'\0')[:-1]
+        except OSError:
+            continue
+        if argv[-3:] == [b'-m', module.encode(), str(pid).encode()]:
+            out.append(int(d))
+    return out
+
+
+def _running(pid):
+    """The process exists and is not a zombie."""
+    try:
+        with open(f'/proc/{pid}/stat') as fh:
+            return fh.read().rsplit(')', 1)[1].split()[0] != 'Z'
+    except OSError:
+        return False
 
 
 def _stop(proc):
@@ -78,6 +103,13 @@ def test_two_namespaced_nodes_for_two_robots_in_one_domain():
                           and all(node.count_publishers(f'{ns}/effort_controller/commands') >= 1 for ns in ROBOTS)), \
             'the namespaced nodes did not come up'
         assert node.count_publishers('/effort_controller/commands') == 0
+        # the trajectory process of each node serves the node's namespaced topics
+        assert spin_until(lambda: all(node.count_subscribers(f'{ns}/dynamics_node/trajectory_in') == 1 and
+                                      node.count_publishers(f'{ns}/dynamics_node/trajectory_out') == 1
+                                      for ns in ROBOTS)), 'no trajectory process on the namespaced topics'
+        assert node.count_subscribers('/dynamics_node/trajectory_in') == 0
+        trajectory_children = [c for p in procs.values() for c in _children(p.pid, TRAJECTORY_PROCESS)]
+        assert len(trajectory_children) == 2, trajectory_children
         rng = np.random.default_rng(20)
         for ns, model in models.items():
             other = next(o for o in ROBOTS if o != ns)
@@ -110,3 +142,5 @@ def test_two_namespaced_nodes_for_two_robots_in_one_domain():
         logs = {ns: _stop(p) for ns, p in procs.items()}
     for ns, log in logs.items():
         assert procs[ns].returncode == 0, log
+    for pid in trajectory_children:   # gone with their node
+        assert not _running(pid), pid

@@ -1,7 +1,7 @@
 """The dynamics node. This folder is its rclpy shell (`node.py`: the callbacks and the FEATURES
-list, `interfaces.py`: the one table of topics, services and QoS, `outputs.py`, `run.py`); the
-parts below it are plain Python (no rclpy import, except the feature classes that publish) and
-testable without ROS:
+list, `interfaces.py`: the one table of topics, services and QoS, `outputs.py`, `run.py`, and
+`trajectory_process.py`, the child process serving ~/trajectory_in); the parts below it are
+plain Python (no rclpy import, except the feature classes that publish) and testable without ROS:
 
     core/          the decision core: one sample per joint_states message (cdr), the settings and
                    parameter table (params, settings), the torque command with its ramp, watchdog
@@ -9,5 +9,6 @@ testable without ROS:
     features/      per-sample features behind one interface (base.Feature): the dynamics topics,
                    the momentum observer and collision flag, the gravity source, payload services
     loading/       robot descriptions: sources, the update policy, the build process, the loader thread
-    trajectories/  ~/trajectory_in -> ~/trajectory_out: serialized trajectories and their effort fill
+    trajectories/  ~/trajectory_in -> ~/trajectory_out: serialized trajectories, their effort fill,
+                   the node's side of the trajectory process
 """

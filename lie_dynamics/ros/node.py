@@ -11,7 +11,8 @@ command and SampleResult (core/compensator.py, core/sample.py) -> the command pu
 accepted result to the features (FEATURES, features/base.py) -> one event queue into the
 throttled log (core/log.py); one diagnostics status every diagnostics_period. The timer runs on
 the steady clock (with use_sim_time a stopped /clock must not stop the watchdog); stamps of
-published messages are ROS time. Heavy work runs off the control path (loading/background.py).
+published messages are ROS time. Heavy work runs off the control path (loading/background.py);
+~/trajectory_in and ~/trajectory_out are served by a process of their own (trajectories/process.py).
 """
 import sys
 import threading
@@ -21,8 +22,6 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.serialization import deserialize_message
-from trajectory_msgs.msg import JointTrajectory
 
 from . import interfaces
 from .core.cdr import JointStateDecoder, read_desired, sample_of
@@ -84,10 +83,13 @@ class DynamicsNode(Node):
         self._decoder = JointStateDecoder()   # keeps the last name list: decoded once per stream
         self.outputs = Outputs(self, values['command_topic'])
         self.event_log = EventLog(self.outputs.log_line)
-        self._traj_pub = self.create_publisher(JointTrajectory, '~/trajectory_out', TRAJECTORY_QOS,
-                                               event_callbacks=NO_PUB_EVENTS)
-        self._bg = Background(self.core, self._sources, publish=self._traj_pub.publish,
-                              deserialize=lambda data: deserialize_message(data, JointTrajectory))
+        # ~/trajectory_in and ~/trajectory_out: served by a process of their own (trajectories/process.py)
+        self._bg = Background(self.core, self._sources, trajectories=dict(
+            domain_id=self.context.get_domain_id(), name=f'{self.get_name()}_trajectories',
+            namespace=self.get_namespace(), topic_in=self.resolve_topic_name('~/trajectory_in'),
+            topic_out=self.resolve_topic_name('~/trajectory_out'),
+            qos=dict(depth=TRAJECTORY_QOS.depth, history=TRAJECTORY_QOS.history,
+                     reliability=TRAJECTORY_QOS.reliability, durability=TRAJECTORY_QOS.durability)))
         self._start(values, features)
 
     def _start(self, values, features):
@@ -97,8 +99,6 @@ class DynamicsNode(Node):
         interfaces.subscription(self, 'joint_states', self.on_joint_state)   # raw: read by core/cdr.py
         desired = interfaces.subscription(self, '<desired_topic>', self._on_desired, values['desired_topic'])
         self.core.desired_topic = desired.topic_name
-        self.create_subscription(JointTrajectory, '~/trajectory_in', self._on_trajectory, TRAJECTORY_QOS, raw=True,
-                                 event_callbacks=NO_SUB_EVENTS)
         interfaces.service(self, '~/set_enabled', self._srv_set_enabled)
         interfaces.service(self, '~/reload_model', self._srv_reload)
         self._diag_period = values['diagnostics_period']
@@ -192,12 +192,6 @@ class DynamicsNode(Node):
                 self.core.on_desired(names, points)
             if self.events:
                 self.drain_events()
-
-    @guarded
-    def _on_trajectory(self, data):
-        with self.lock:
-            self._bg.fill(data)
-            self.drain_events()
 
     def _publish(self, tau, stamp=None):  # stamp: the input's (ns); None: now
         self.outputs.command(tau, self.core.layout, stamp)

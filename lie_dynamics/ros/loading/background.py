@@ -1,27 +1,29 @@
 """The dynamics node's heavy work off the control path, in plain Python (no rclpy import).
 
 Reading a robot description and building its model run in a child process (build_process.py:
-the interpreter lock stays with the control path), driven by one worker thread (worker.py)
-that waits for the model without the lock, then generates its code (a warm-up call: once per
-robot structure, cached) and checks it against the settings; filling a trajectory with
-efforts runs in that thread too. The control path
-(the executor thread: joint_states callbacks and the timer) calls `collect()`, a plain
-attribute test while nothing has finished, and swaps a finished model in there, between two
-commands: until then the previous model answers every joint_states message. A description
-arriving while another one loads replaces the one waiting, so loads never pile up; the newest
-always loads last. The same holds for trajectories.
+the interpreter lock stays with the control path; it also compiles the model's native kernels
+into the disk cache), driven by one worker thread (worker.py) that waits for the model without
+the lock, then loads its code (a warm-up call: once per robot structure, cached) and checks it
+against the settings. The control path (the executor thread: joint_states callbacks and the
+timer) calls `collect()`, a plain attribute test while nothing has finished, and swaps a
+finished model in there, between two commands: until then the previous model answers every
+joint_states message. A description arriving while another one loads replaces the one
+waiting, so loads never pile up; the newest always loads last.
+
+Trajectories are taken, filled and published by the trajectory process
+(trajectories/process.py): the worker thread answers its questions with the fill of the
+running model and settings (or the refusal: more points than max_trajectory_points, no model,
+disabled), and `collect()` counts and logs its outcomes.
 
 Cheap refusals happen at once, on the control path: description_update 'none' with a model
 running, a description over max_description_bytes or max_description_links, text that is not
-XML, a file that does not exist; a trajectory with more points than max_trajectory_points,
-without a model or while disabled.
+XML, a file that does not exist.
 
 Python threads share one interpreter lock: a long call into C that keeps it (parsing XML,
-converting a message) delays the control path by its length. Descriptions are therefore
-parsed in another process, trajectories are read and written in their serialized form
-(trajectory_cdr.py: milliseconds for 100,000 points, where rclpy's conversion takes seconds
-under the lock), and the caps bound the rest. A build process that dies or hangs is reported
-like a refused description (the running model stays) and replaced at the next load.
+converting or taking a large message) delays the control path by its length. Descriptions are
+therefore parsed in another process, trajectories never enter the node's process, and the caps
+bound the rest. A build process that dies or hangs is reported like a refused description
+(the running model stays) and replaced at the next load.
 """
 import contextlib
 import ctypes
@@ -34,8 +36,7 @@ from ..core.diagnostics import clip
 from ..core.messages import Rejected
 from .models import update_refusal, warm_up
 from .sources import open_source, resolve_path, source_label
-from ..trajectories.trajectory_cdr import Unsupported, arrays, head, read, write
-from ..trajectories.trajectory_msgs import set_point_efforts, trajectory_arrays
+from ..trajectories.process import TrajectoryProcess
 from .worker import Worker
 
 
@@ -72,18 +73,20 @@ def release_memory():
 
 
 class Background:
-    """Loads and trajectory fills for a Compensator `core`, whose running model's source `sources`
-    (sources.Sources) tracks. publish(bytes or message) sends a filled trajectory; deserialize(bytes)
-    -> JointTrajectory reads one in an encoding trajectory_cdr does not (rclpy's, in the node)."""
+    """Loads for a Compensator `core`, whose running model's source `sources` (sources.Sources)
+    tracks, and the trajectory process: `trajectories` is its start configuration
+    (trajectories/process.py; None: no trajectories served)."""
 
-    def __init__(self, core, sources, publish=None, deserialize=None):
+    def __init__(self, core, sources, trajectories=None):
         self.core = core
         self.sources = sources
-        self.publish = publish
-        self.deserialize = deserialize
         self.worker = Worker('lie_dynamics_loader')
         self.process = BuildProcess()   # its child starts with the first load after start-up
         self.running_xml = None         # the description text of the running model
+        self.trajectories = None
+        if trajectories is not None:
+            self.trajectories = TrajectoryProcess(trajectories, self._on_ask)
+            self.trajectories.start()
 
     # ------------------------------------------------------------------ robot descriptions
     def precheck(self, kind, text, settings=None):
@@ -172,68 +175,64 @@ class Background:
         return self.core.note_description_error(f'{label}: {str(error) or type(error).__name__}')
 
     # ------------------------------------------------------------------ trajectories
-    def fill(self, data):
-        """Fill a serialized JointTrajectory (bytes) in the background and publish it; refusals
-        are counted and logged by the core at once."""
-        core = self.core
+    def _on_ask(self, child, seq, points):
+        """The trajectory process has a trajectory of `points` points (its reader thread)."""
         try:
-            points = head(data)[1]
-        except Unsupported:
-            points = 0   # counted once deserialized, in the worker
-        except ValueError as exc:
-            return core.trajectory_done(str(exc))
-        job = core.trajectory_fill(points)
-        if isinstance(job, Rejected):
-            return core.trajectory_done(job.text, kind=job.kind)
-        cap = core.settings['max_trajectory_points']
-        if self.worker.submit('trajectory', 'trajectory', lambda: self._fill(job, data, cap)) is not None:
-            # the one still waiting is dropped: only the newest trajectory matters
-            core.trajectory_done('a newer trajectory arrived before it was filled', kind='replaced')
-        return None
+            self.worker.submit('trajectory', 'trajectory', lambda: self._answer(child, seq, points))
+        except RuntimeError:   # the node is stopping (and the child with it)
+            pass
 
-    def _fill(self, job, data, cap):
-        """(worker thread) -> clamp note; raises ValueError for a rejected trajectory."""
-        try:
-            with short_switch_interval():
-                return self._fill_message(job, data, cap)
-        finally:
-            if len(data) > TRIM_BYTES:
-                release_memory()
+    def _start_trajectories(self):
+        """(worker thread: the child dies with it) A new trajectory process, unless started too recently."""
+        self.trajectories.start()
 
-    def _fill_message(self, job, data, cap):
+    def _answer(self, child, seq, points):
+        """(worker thread) Answer the trajectory process: the fill of the running model and
+        settings, or a refusal, returned as (text, kind) for the control path to count."""
+        cap = self.core.settings['max_trajectory_points']
+        job = self.core.trajectory_fill(points)
+        refused = isinstance(job, Rejected)
         try:
-            traj = read(data)
-        except Unsupported:
-            msg = self.deserialize(data)
-            if len(msg.points) > cap:
-                raise ValueError(f'{len(msg.points)} points, more than max_trajectory_points ({cap})') from None
-            efforts, note = job.fill(msg.joint_names, trajectory_arrays(msg.joint_names, msg.points))
-            set_point_efforts(msg.points, efforts)
-            self.publish(msg)
-            return note
-        efforts, note = job.fill(traj['joint_names'], arrays(traj))
-        self.publish(write(traj, efforts))
-        return note
+            with short_switch_interval():   # pickling a large model: milliseconds, in Python in part
+                self.trajectories.answer(child, seq, None if refused else job, cap)
+        except Exception:
+            self.trajectories.answer(child, seq, None, cap)   # it must not wait: refused, counted here
+            raise
+        return (job.text, job.kind) if refused else None
 
     # ------------------------------------------------------------------ control path
     def collect(self):
         """Swap in finished models and account for finished fills (control path, cheap)."""
-        worker = self.worker
+        worker, core = self.worker, self.core
         if worker.has_outcomes:
             for out in worker.outcomes():
                 if out.slot == 'model':
                     self._install(out.tag, out.value, out.error)
-                elif out.error is None:
-                    self.core.trajectory_done(None, out.value)
-                else:
-                    err = out.error
-                    self.core.trajectory_done(str(err) if isinstance(err, ValueError) else
-                                              f'{type(err).__name__}: {err}')
+                elif out.error is not None:   # the trajectory process was not answered: it waits for a fill
+                    core.trajectory_done(f'{type(out.error).__name__}: {out.error}')
+                elif out.value is not None:   # refused: counted here
+                    core.trajectory_done(out.value[0], kind=out.value[1])
         busy = worker.busy('model')
-        self.core.loading = busy[2] if busy is not None else ''
+        core.loading = busy[2] if busy is not None else ''
+        tp = self.trajectories
+        if tp is None:
+            return
+        for msg in tp.collect():
+            if msg[0] == 'done':
+                core.trajectory_done(msg[1], msg[2], kind=msg[3] or 'malformed')
+            elif msg[2]:   # a child lost during a fill: that trajectory is rejected
+                core.trajectory_done(msg[1] + ' while filling', kind='process')
+            else:
+                core.events.append(('warn', 'trajectory:process', f'{msg[1]}; a new one starts'))
+        if not tp.running and worker.busy('trajectory') is None:
+            worker.submit('trajectory', 'start', self._start_trajectories)
 
     def stop(self, timeout=2.0):
+        if self.trajectories is not None:
+            self.trajectories.stop()   # first: none starts again
         self.process.stop()   # first: a build waited for ends at once
         self.worker.stop(timeout)
         self.process.stop()   # one the thread may have started meanwhile
+        if self.trajectories is not None:
+            self.trajectories.stop()
 

@@ -6,8 +6,10 @@ the node's process it would hold the interpreter lock that the control path need
 interpreter instead (`python -m lie_dynamics.ros.loading.build_process`, started with exec: no fork of
 a process with DDS threads), speaking pickle over a pipe: the request is the description text
 or path with the caps and the build options, the answer the finished Model (it pickles its
-constant data; kernels are generated where it is used) and the warnings to re-issue, or the
-error text. The node's loader thread waits on the pipe without the lock.
+constant data) and the warnings to re-issue, or the error text. Before it answers, the child
+compiles the model's native kernels into the on-disk cache (`warm_native`), so that the node
+loads them instead of tracing and rendering them under its interpreter lock. The node's loader
+thread waits on the pipe without the lock.
 
 A child that dies or does not answer within `timeout` s is killed and reported by a
 `BuildLost` error (the caller keeps its model); the next build starts a new child. The child
@@ -28,11 +30,16 @@ import warnings
 
 from ... import InertiaWarning, load_urdf
 from ... import SOURCE_ROOT
+from ...codegen import native
+from .models import warm_up
 
 BUILD_TIMEOUT_S = 120.0   # a build that takes longer is taken for hung (a 5,000-link chain: ~3 s)
 _LEN = struct.Struct('<Q')
 _CHUNK = 1 << 20
 _PR_SET_PDEATHSIG = 1
+# Children yield the CPU to the node: on a machine with fewer free cores than busy threads, a
+# child working at the node's priority took time slices from the control path.
+CHILD_NICE = 5
 
 
 class BuildLost(RuntimeError):
@@ -69,18 +76,19 @@ def build(source, caps=None, *, joints=None, gravity=(0.0, 0.0, -9.81), inertia=
     return model, other
 
 
-def _send(fd, obj):
+def send(fd, obj):
+    """Write obj to fd, pickled, with its length first."""
     data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
     view = memoryview(_LEN.pack(len(data)) + data)
     while view:
         view = view[os.write(fd, view):]
 
 
-_TIMEOUT = object()
+TIMEOUT = object()   # what receive returns when its deadline passes
 
 
-def _receive(fd, deadline=None, clock=None):
-    """The next object on fd; None at end of input, _TIMEOUT when `deadline` (clock()) passes."""
+def receive(fd, deadline=None, clock=None):
+    """The next object on fd; None at end of input, TIMEOUT when `deadline` (clock()) passes."""
     buf = bytearray()
     need = _LEN.size
     size = None
@@ -88,7 +96,7 @@ def _receive(fd, deadline=None, clock=None):
         if deadline is not None:
             left = deadline - clock()
             if left <= 0 or not select.select([fd], [], [], left)[0]:
-                return _TIMEOUT
+                return TIMEOUT
         chunk = os.read(fd, min(_CHUNK, need - len(buf)))
         if not chunk:
             return None
@@ -97,6 +105,37 @@ def _receive(fd, deadline=None, clock=None):
             size = _LEN.unpack_from(buf)[0]
             need = _LEN.size + size
     return pickle.loads(memoryview(buf)[_LEN.size:])
+
+
+def start_child(module):
+    """`python -m module <this pid>` with pipes on its stdin and stdout (exec, not a fork of a
+    process with DDS threads); the child calls child_setup first. The package's source root
+    leads its path, so that a source tree runs its own code."""
+    env = dict(os.environ)
+    env['PYTHONPATH'] = os.pathsep.join(p for p in (SOURCE_ROOT, env.get('PYTHONPATH')) if p)
+    return subprocess.Popen([sys.executable, '-m', module, str(os.getpid())], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, env=env, close_fds=True)
+
+
+def child_setup(parent=None):
+    """A child of start_child: dies with the thread that started it (Linux: SIGKILL), ignores
+    SIGINT (a terminal's Ctrl-C goes to the parent, which stops it), runs CHILD_NICE steps
+    nicer than the node, sends stray prints to stderr. Returns the descriptor its answers go to,
+    or None when the parent already died."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        ctypes.CDLL(None).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    except (OSError, AttributeError):   # not Linux: end of input still ends the child
+        pass
+    if parent is not None and os.getppid() != parent:   # the parent died before prctl
+        return None
+    try:
+        os.nice(CHILD_NICE)
+    except OSError:
+        pass
+    out = os.dup(1)
+    os.dup2(2, 1)   # stray prints go to stderr, never into the answers
+    return out
 
 
 class BuildProcess:
@@ -114,11 +153,7 @@ class BuildProcess:
         return proc.pid if proc is not None and proc.poll() is None else None
 
     def _start(self):
-        root = SOURCE_ROOT
-        env = dict(os.environ)
-        env['PYTHONPATH'] = os.pathsep.join(p for p in (root, env.get('PYTHONPATH')) if p)
-        self._proc = subprocess.Popen([sys.executable, '-m', __name__, str(os.getpid())], stdin=subprocess.PIPE,
-                                      stdout=subprocess.PIPE, env=env, close_fds=True)
+        self._proc = start_child(__name__)
         self.started += 1
         return self._proc
 
@@ -132,11 +167,11 @@ class BuildProcess:
         if proc is None:
             proc = self._start()
         try:
-            _send(proc.stdin.fileno(), (source, caps, joints, gravity, inertia))
-            answer = _receive(proc.stdout.fileno(), time.monotonic() + self.timeout, time.monotonic)
+            send(proc.stdin.fileno(), (source, caps, joints, gravity, inertia))
+            answer = receive(proc.stdout.fileno(), time.monotonic() + self.timeout, time.monotonic)
         except OSError:   # the pipe broke: the child is gone
             answer = None
-        if answer is _TIMEOUT:
+        if answer is TIMEOUT:
             self._end(proc, kill=True)
             raise BuildLost(f'the model build process did not answer within {self.timeout:g} s and was killed')
         if answer is None:   # end of its output: it ended
@@ -172,27 +207,32 @@ class BuildProcess:
             self._end(proc, kill=True)
 
 
+def warm_native(model):
+    """Compile the model structure's C kernels that the node calls (models.warm_up) into the
+    on-disk cache (codegen/native.py), here, before the model is sent: tracing the recursion and
+    rendering it is pure Python, which in the node would take the interpreter lock from the
+    control path; there the kernels then load from the cache. Nothing when the native backend
+    is off (the Python kernels are generated where they run)."""
+    if native.wanted():
+        warm_up(model)
+
+
 def serve(parent=None):
     """The child's loop: a request in, (True, (model, warnings)) or (False, error text) out."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        ctypes.CDLL(None).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
-    except (OSError, AttributeError):   # not Linux: end of input still ends the loop
-        pass
-    if parent is not None and os.getppid() != parent:   # the parent died before prctl
+    out = child_setup(parent)
+    if out is None:
         return
-    out = os.dup(1)
-    os.dup2(2, 1)   # stray prints go to stderr, never into the answers
     while True:
-        request = _receive(0)
+        request = receive(0)
         if request is None:
             return
         source, caps, joints, gravity, inertia = request
         try:
             answer = (True, build(source, caps, joints=joints, gravity=gravity, inertia=inertia))
+            warm_native(answer[1][0])
         except Exception as exc:  # noqa: BLE001 - any bad input: its reason goes back to the node
             answer = (False, str(exc) or type(exc).__name__)
-        _send(out, answer)
+        send(out, answer)
 
 
 if __name__ == '__main__':

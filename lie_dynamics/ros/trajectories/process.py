@@ -1,0 +1,185 @@
+"""The trajectory process: ~/trajectory_in -> ~/trajectory_out served by a child process, in
+plain Python (no rclpy import): this is the node's side; the child is ros/trajectory_process.py.
+
+rclpy holds the interpreter lock while it takes a serialized message and while it publishes
+one: 31-53 ms each for a 100,000-point trajectory (20 MB), before any code of the node runs,
+which delayed the node's replies by as much. The child has its own rclpy context and node; it
+subscribes and publishes the node's resolved topic names with the node's QoS, reads the point
+count from the message's header, asks the node for the fill (`Rejected`, or the
+`fill.TrajectoryFill` snapshot of the running model and settings, sent pickled only when it
+changed since the last one), fills and publishes there. The node decides and counts as
+before (`Compensator.trajectory_fill` / `trajectory_done`): the child's outcomes, log lines
+included, come back over the pipe and go through the node's one throttled log path.
+
+Messages (pickled, length first, build_process.send / receive). Node to child: the start
+configuration (dict: domain_id, name, namespace, topic_in, topic_out, qos), then per question
+('go', seq, TrajectoryFill or None (the last one still holds), max_trajectory_points) or
+('no', seq). Child to node: ('ask', seq, points), ('done', error, note, kind) as
+`trajectory_done` takes them.
+
+A child that dies, or whose fill takes longer than `timeout` s (hung: killed), is reported once
+(a fill under way is counted as rejected) and a new one starts; until it has subscribed,
+trajectories are not received. The child never outlives the node: `stop` ends it (end of input,
+then SIGKILL), and it asks the kernel for SIGKILL when the thread that started it ends.
+"""
+import pickle
+import subprocess
+import threading
+import time
+
+from ..loading.build_process import receive, send, start_child
+
+FILL_TIMEOUT_S = 120.0   # a fill that takes longer is taken for hung (100,000 points: about 1 s)
+RESTART_S = 5.0          # a child that keeps dying is started at most this often
+CHILD = 'lie_dynamics.ros.trajectory_process'
+
+
+class TrajectoryProcess:
+    """One child at a time. on_ask(child, seq, points) is called in the reader thread when the
+    child asks for a fill; `answer(child, ...)` replies (any thread); `collect` (control path) returns what came
+    back since: [('done', error, note, kind)] and the loss of a child as ('lost', text, busy)."""
+
+    def __init__(self, config, on_ask, timeout=FILL_TIMEOUT_S, clock=time.monotonic):
+        self.config = dict(config)
+        self.on_ask = on_ask
+        self.timeout = timeout
+        self.clock = clock
+        self.started = 0           # children started so far
+        self.has_messages = False  # a plain attribute test on the control path
+        self._lock = threading.Lock()
+        self._messages = []
+        self._proc = None
+        self._sent = None          # what the child holds: the last TrajectoryFill sent
+        self._busy = None          # when the answer that started the child's fill was sent
+        self._last_start = None
+        self._stopping = False
+
+    @property
+    def pid(self):
+        """The running child's pid, or None."""
+        proc = self._proc
+        return proc.pid if proc is not None and proc.poll() is None else None
+
+    @property
+    def busy(self):
+        """A fill is under way in the child."""
+        return self._busy is not None
+
+    def start(self):
+        """Start a child (none running); at most once every RESTART_S s after the first."""
+        now = self.clock()
+        if self._stopping or self._proc is not None or (
+                self._last_start is not None and now - self._last_start < RESTART_S):
+            return False
+        self._last_start = now
+        proc = start_child(CHILD)
+        self._proc, self._sent, self._busy = proc, None, None
+        self.started += 1
+        try:
+            send(proc.stdin.fileno(), self.config)
+        except OSError:   # died at once: the reader reports it
+            pass
+        threading.Thread(target=self._read, args=(proc, self.started), name='lie_dynamics_trajectories',
+                         daemon=True).start()
+        return True
+
+    @property
+    def running(self):
+        """A child was started and has not been found dead or stopped yet."""
+        return self._proc is not None
+
+    def answer(self, child, seq, job, cap):
+        """Answer question `seq` of `child` (the number on_ask gave; a child since replaced is
+        not answered): job a TrajectoryFill (fill, with max_trajectory_points `cap`)
+        or None (refused: the node counts it). The model is pickled only when the child does not
+        hold this snapshot yet. (Worker thread: pickling a large model takes milliseconds.)"""
+        proc = self._proc
+        if proc is None or child != self.started:
+            return
+        if job is None:
+            msg = ('no', seq)
+        else:
+            held = self._sent
+            same = held is not None and len(held[0]) == len(job) and all(
+                a is b for a, b in zip(held[0], job)) and held[1] == job.model.version
+            msg = ('go', seq, None if same else job, cap)
+            self._sent = (job, job.model.version)
+            self._busy = self.clock()   # before it is sent: its 'done' may come back at once
+        try:
+            send(proc.stdin.fileno(), msg)
+        except (OSError, ValueError):   # the child is gone (or its pipe closed): the reader reports it
+            pass
+
+    def _read(self, proc, child):
+        """The child's messages (this thread waits on the pipe without the interpreter lock)."""
+        fd = proc.stdout.fileno()
+        while True:
+            try:
+                msg = receive(fd)
+            except (OSError, ValueError, EOFError, pickle.UnpicklingError):
+                msg = None
+            if msg is None:
+                break
+            if msg[0] == 'ask':
+                self.on_ask(child, msg[1], msg[2])
+            else:
+                if msg[0] == 'done':
+                    self._busy = None
+                with self._lock:
+                    self._messages.append(msg)
+                    self.has_messages = True
+        try:
+            proc.stdout.close()   # here: closed by another thread, its number could be reused under this read
+        except OSError:
+            pass
+        with self._lock:
+            if self._proc is proc and not self._stopping:
+                self._messages.append(('ended', proc))
+                self.has_messages = True
+
+    def collect(self):
+        """The child's messages since the last call, a lost child reported (once) and a new one
+        started: [('done', error, note, kind) or ('lost', text, busy)] (control path)."""
+        out = []
+        if self.has_messages:
+            with self._lock:
+                msgs, self._messages = self._messages, []
+                self.has_messages = False
+            for m in msgs:
+                if m[0] != 'ended':
+                    out.append(m)
+                elif m[1] is self._proc:
+                    busy = self.busy
+                    code = self._end(m[1])
+                    why = f'signal {-code}' if code < 0 else f'exit status {code}'
+                    out.append(('lost', f'the trajectory process ended ({why})', busy))
+        proc, since = self._proc, self._busy
+        if proc is not None and since is not None and self.clock() - since > self.timeout:
+            self._end(proc, kill=True)
+            out.append(('lost', f'the trajectory process did not finish a fill within {self.timeout:g} s and was '
+                                'killed', True))
+        return out
+
+    def _end(self, proc, kill=False):
+        """End `proc` (end of input first; SIGKILL if asked or if it lingers): its exit code."""
+        if self._proc is proc:
+            self._proc, self._busy = None, None
+        if kill:
+            proc.kill()
+        try:
+            proc.stdin.close()
+        except OSError:
+            pass
+        try:
+            proc.wait(timeout=2.0)   # ends on end of input, after leaving the ROS graph
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        return proc.returncode
+
+    def stop(self):
+        """End the child; none starts again."""
+        self._stopping = True
+        proc = self._proc
+        if proc is not None:
+            self._end(proc)
