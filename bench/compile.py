@@ -39,6 +39,14 @@ ROBOTS = ('arm7', 'panda', 'ur5', 'talos_arm')
 _CONFIGURED = {}   # the kernel flags as configured, before any variant changed them
 
 
+def _restore_cache_dir(saved):
+    """$LIE_DYNAMICS_CACHE_DIR as it was before a measurement (None: unset)."""
+    if saved is None:
+        os.environ.pop('LIE_DYNAMICS_CACHE_DIR', None)
+    else:
+        os.environ['LIE_DYNAMICS_CACHE_DIR'] = saved
+
+
 def _specs():
     from lie_dynamics.codegen.traced import aba, cholesky, crba, derivatives, regressor, rnea
     return {'inverse_dynamics': rnea.INVERSE_DYNAMICS, 'gravity': rnea.GRAVITY, 'mass_matrix': crba.MASS_MATRIX,
@@ -212,10 +220,7 @@ def run(quick=False, out=None, rounds=None, parts=None, robots=None):
         for label in robots or (ROBOTS[:1] if quick else ROBOTS):
             rows += _robot_rows(label, parts, work, rounds, quick)
     finally:
-        if saved[0] is None:
-            os.environ.pop('LIE_DYNAMICS_CACHE_DIR', None)
-        else:
-            os.environ['LIE_DYNAMICS_CACHE_DIR'] = saved[0]
+        _restore_cache_dir(saved[0])
         runtime.THRESHOLDS['native_part'] = saved[1]
         native.KERNEL_FLAGS = _CONFIGURED.get('flags', saved[2])
         runtime.clear()
@@ -290,10 +295,7 @@ def chains(sizes, out=None):
                 rows.append(row)
                 print(json.dumps(row), flush=True)
     finally:
-        if saved[0] is None:
-            os.environ.pop('LIE_DYNAMICS_CACHE_DIR', None)
-        else:
-            os.environ['LIE_DYNAMICS_CACHE_DIR'] = saved[0]
+        _restore_cache_dir(saved[0])
         runtime.THRESHOLDS['native_nodes'] = saved[1]
         runtime.clear()
         shutil.rmtree(work, ignore_errors=True)

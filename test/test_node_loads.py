@@ -85,7 +85,7 @@ def test_build_process_answers_refuses_and_is_replaced():
 
 
 def _loading(node):
-    return node._bg.process.pid is not None and node.core.loading != ''
+    return node.background.process.pid is not None and node.core.loading != ''
 
 
 def test_a_build_process_that_dies_or_hangs_is_reported_once(ros):
@@ -94,7 +94,7 @@ def test_a_build_process_that_dies_or_hangs_is_reported_once(ros):
     big = folded_description(5000)   # seconds to build: time to kill its process mid-load
     ros.desc_pub.publish(String(data=big))
     wait_until(lambda: _loading(node), timeout=30, what='load running in the build process')
-    pid = node._bg.process.pid
+    pid = node.background.process.pid
     time.sleep(0.2)
     os.kill(pid, signal.SIGKILL)
     wait_until(lambda: node.core.loading == '', timeout=30, what='load over')
@@ -103,22 +103,22 @@ def test_a_build_process_that_dies_or_hangs_is_reported_once(ros):
     wait_until(lambda: any('build process' in m for m in ros.logs), what='log line')
     time.sleep(LOG_THROTTLE_S)   # the next failure is logged, not held back as one more like this
     # a hung build: timed out, killed, reported; the old model serves
-    node._bg.process.timeout = 0.3
+    node.background.process.timeout = 0.3
     ros.desc_pub.publish(String(data=big + '<!-- again -->'))
     wait_until(lambda: _loading(node), timeout=30, what='second load running')
-    pid2 = node._bg.process.pid
+    pid2 = node.background.process.pid
     wait_until(lambda: node.core.loading == '', timeout=30, what='second load over')
     assert 'did not answer within 0.3 s' in node.core.description_error and not _alive(pid2)
     np.testing.assert_allclose(ros.send(JOINTS, Q), g_arm, atol=1e-9)
     time.sleep(0.5)
     assert sum('build process' in m for m in ros.logs) == 2, ros.logs   # once each
     # the next load starts a new process and works
-    node._bg.process.timeout = 60.0
+    node.background.process.timeout = 60.0
     ros.desc_pub.publish(String(data=heavier(ARM, 2.0)))
-    wait_until(lambda: node._bg.process.started == 3 and node.core.loading == '', timeout=60, what='third load')
+    wait_until(lambda: node.background.process.started == 3 and node.core.loading == '', timeout=60, what='third load')
     np.testing.assert_allclose(ros.send(JOINTS, Q), load_urdf(heavier(ARM, 2.0)).gravity(Q), atol=1e-9)
     assert node.core.description_error == ''
-    last = node._bg.process.pid
+    last = node.background.process.pid
     node.destroy_node()   # no build process outlives the node
     ros.ex.remove_node(node)
     ros.node = None
@@ -135,7 +135,7 @@ def test_reload_service_during_loads_answers_with_the_old_model(ros):
         np.testing.assert_allclose(ros.send(JOINTS, Q), load_urdf(ARM).gravity(Q), atol=1e-9)
     wait_until(lambda: node.core.loading == '', timeout=120, what='loads done')
     # the topic's model swapped in, then the last reload (of the parameter: the running source then)
-    assert node.core.description_error == '' and node._bg.worker.replaced['model'] == 19
+    assert node.core.description_error == '' and node.background.worker.replaced['model'] == 19
     assert len(node.core.model.link_frames) == 11 and node.core.model_info == 'parameter robot_description'
 
 
@@ -146,7 +146,7 @@ def test_a_description_repeated_on_the_topic_keeps_the_running_model(ros):
     node = ros.start(urdf_path=os.path.join(ROOT, 'config', 'arm7.urdf'))
     model = node.core.model
     ros.desc_pub.publish(String(data=ARM))
-    wait_until(lambda: node._sources.current == ('topic', ARM), what='the topic as the source')
+    wait_until(lambda: node.sources.current == ('topic', ARM), what='the topic as the source')
     assert node.core.model is model and node.core.loading == ''
     np.testing.assert_allclose(ros.send(JOINTS, Q), model.gravity(Q), atol=1e-12)
     ros.desc_pub.publish(String(data=heavier(ARM, 2.0)))
@@ -175,7 +175,7 @@ def test_a_trajectory_process_that_dies_or_hangs_is_reported_once(ros):
     out = []
     ros.t.create_subscription(JointTrajectory, '/dynamics_node/trajectory_out', out.append, 10, raw=True)
     pub = ros.t.create_publisher(JointTrajectory, '/dynamics_node/trajectory_in', 10)
-    tp = node._bg.trajectories
+    tp = node.background.trajectories
     first = tp.pid
     assert first is not None and len(_fill_one(ros, pub, out)) == len(serialized(10))
     # killed (kill -9) while idle: reported once, a new one starts and fills; the model serves

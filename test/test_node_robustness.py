@@ -95,13 +95,13 @@ def test_loads_do_not_pile_up_and_services_answer_during_a_load(ros):
         if k == 0:
             wait_until(lambda: started, what='first load running')
     ros.desc_pub.publish(String(data=heavier(ARM, 3.0)))   # the newest: loads last
-    wait_until(lambda: node._bg.worker.waiting('model') is not None and
-               node._bg.worker.waiting('model')[0] == 'topic', what='topic load waiting')
+    wait_until(lambda: node.background.worker.waiting('model') is not None and
+               node.background.worker.waiting('model')[0] == 'topic', what='topic load waiting')
     np.testing.assert_allclose(ros.send(JOINTS, Q), load_urdf(ARM).gravity(Q), atol=1e-9)
     gate.set()
-    wait_until(lambda: node.core.loading == '' and not node._bg.worker.has_outcomes and len(started) == 2,
+    wait_until(lambda: node.core.loading == '' and not node.background.worker.has_outcomes and len(started) == 2,
                what='loads done')
-    assert len(started) == 2 and node._bg.worker.replaced['model'] == 19
+    assert len(started) == 2 and node.background.worker.replaced['model'] == 19
     np.testing.assert_allclose(ros.send(JOINTS, Q), load_urdf(heavier(ARM, 3.0)).gravity(Q), atol=1e-9)
 
 
@@ -213,6 +213,6 @@ def test_shutdown_during_a_load(ros):
     assert time.monotonic() - t0 < 5.0
     ros.node = None
     gate.set()
-    thread = node._bg.worker._thread
+    thread = node.background.worker._thread
     thread.join(TIMEOUT)
     assert not thread.is_alive()

@@ -79,8 +79,8 @@ INTERFACES = {
     '~/dynamics/coriolis': Interface('pub', JointState, OUT_QOS, 'features.dynamics_topics'),
     '~/dynamics/mass_matrix': Interface('pub', Float64MultiArray, OUT_QOS, 'features.dynamics_topics'),
     '~/dynamics/jacobian': Interface('pub', Float64MultiArray, OUT_QOS, 'features.dynamics_topics'),
-    '~/set_enabled': Interface('srv', SetBool, SERVICE_QOS, 'node'),
-    '~/reload_model': Interface('srv', Trigger, SERVICE_QOS, 'node'),
+    '~/set_enabled': Interface('srv', SetBool, SERVICE_QOS, 'control'),
+    '~/reload_model': Interface('srv', Trigger, SERVICE_QOS, 'control'),
     '~/set_payload': Interface('srv', SetParametersAtomically, SERVICE_QOS, 'features.gravity_payload'),
     '~/identify_payload': Interface('srv', Trigger, SERVICE_QOS, 'features.gravity_payload (its helper node)'),
 }

@@ -4,30 +4,26 @@ commands, and feedforward efforts for joint_trajectory_controller trajectories.
     ros2 run lie_dynamics dynamics_node --ros-args --params-file config/arm7_gravity.yaml
     python -m lie_dynamics.dynamics_node --ros-args -p urdf_path:=config/arm7.urdf
 
-The rclpy shell of the plain-Python parts below it (ros/__init__.py); behaviour, parameter by
-parameter: docs/node.md; every topic and service with its type and QoS: interfaces.py. Per
-joint_states message (drawn in docs/architecture.md): bytes -> core/cdr.py sample -> the core's
-command and SampleResult (core/compensator.py, core/sample.py) -> the command published -> each
-accepted result to the features (FEATURES, features/base.py) -> one event queue into the
-throttled log (core/log.py); one diagnostics status every diagnostics_period. The timer runs on
-the steady clock (with use_sim_time a stopped /clock must not stop the watchdog); stamps of
-published messages are ROS time. Heavy work runs off the control path (loading/background.py);
-~/trajectory_in and ~/trajectory_out are served by a process of their own (trajectories/process.py).
+The rclpy shell of the plain-Python parts below it (ros/__init__.py; behaviour: docs/node.md;
+topics, services, QoS: interfaces.py; parameters and the node's services: control.py). Per
+joint_states message (docs/architecture.md): bytes -> core/cdr.py sample -> the core's command and
+SampleResult -> the command published -> each accepted result to the FEATURES -> one event queue
+into the throttled log. The timer runs on the steady clock (a stopped /clock must not stop the
+watchdog). Heavy work runs off the control path (loading/background.py, trajectories/process.py).
 """
 import sys
 import threading
 import time
 
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 
 from . import interfaces
+from .control import Control
 from .core.cdr import JointStateDecoder, read_desired, sample_of
 from .core.compensator import Compensator
 from .core.log import LOG_THROTTLE_S, EventLog, guarded
-from .core.params import HELP_DESCRIPTION, HELP_EXAMPLE, PARAMS, SPECS, help_rows
+from .core.params import HELP_DESCRIPTION, HELP_EXAMPLE, PARAMS, help_rows
 from .core.watchdog import tick_period
 from .features.base import Features
 from .features.contact import check_settings
@@ -37,10 +33,11 @@ from .features.gravity_payload import GravityTopic, PayloadServices
 from .interfaces import (DESCRIPTION_QOS, JOINT_STATES_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SERVICE_QOS,
                          SERVICE_QUEUE, TRAJECTORY_QOS)
 from .loading.background import Background
-from .loading.parameter_change import ParameterChanges, reload_answer, start_source
+from .loading.parameter_change import start_source
 from .loading.sources import Sources
 from .outputs import Outputs
 from .run import node_parser, run
+from .trajectory_process import child_config
 
 __all__ = ['DESCRIPTION_QOS', 'FEATURES', 'JOINT_STATES_QOS', 'LOG_THROTTLE_S', 'NO_PUB_EVENTS', 'NO_SUB_EVENTS',
            'SERVICE_QOS', 'SERVICE_QUEUE', 'TRAJECTORY_QOS', 'DynamicsNode', 'main']
@@ -61,7 +58,7 @@ class DynamicsNode(Node):
 
     def __init__(self, node_name='dynamics_node', features=FEATURES, **kwargs):
         super().__init__(node_name, **kwargs)
-        self._bg = None
+        self.background = None
         self.features = Features()
         try:
             self._construct(features)
@@ -79,17 +76,12 @@ class DynamicsNode(Node):
         self.core = Compensator(values)  # ValueError on an invalid configuration
         self.events = self.core.events   # the one event queue: the core's and every feature's
         self.lock = threading.RLock()  # services/parameters vs. callbacks when spun by several threads
-        self._sources = Sources()      # the running model's source, the last topic message
+        self.sources = Sources()      # the running model's source, the last topic message
         self._decoder = JointStateDecoder()   # keeps the last name list: decoded once per stream
         self.outputs = Outputs(self, values['command_topic'])
         self.event_log = EventLog(self.outputs.log_line)
         # ~/trajectory_in and ~/trajectory_out: served by a process of their own (trajectories/process.py)
-        self._bg = Background(self.core, self._sources, trajectories=dict(
-            domain_id=self.context.get_domain_id(), name=f'{self.get_name()}_trajectories',
-            namespace=self.get_namespace(), topic_in=self.resolve_topic_name('~/trajectory_in'),
-            topic_out=self.resolve_topic_name('~/trajectory_out'),
-            qos=dict(depth=TRAJECTORY_QOS.depth, history=TRAJECTORY_QOS.history,
-                     reliability=TRAJECTORY_QOS.reliability, durability=TRAJECTORY_QOS.durability)))
+        self.background = Background(self.core, self.sources, trajectories=child_config(self))
         self._start(values, features)
 
     def _start(self, values, features):
@@ -99,8 +91,6 @@ class DynamicsNode(Node):
         interfaces.subscription(self, 'joint_states', self.on_joint_state)   # raw: read by core/cdr.py
         desired = interfaces.subscription(self, '<desired_topic>', self._on_desired, values['desired_topic'])
         self.core.desired_topic = desired.topic_name
-        interfaces.service(self, '~/set_enabled', self._srv_set_enabled)
-        interfaces.service(self, '~/reload_model', self._srv_reload)
         self._diag_period = values['diagnostics_period']
         self._next_diag = time.monotonic() + self._diag_period
         self._timer = self.create_timer(tick_period(values['stale_timeout'], self._diag_period), self._on_timer,
@@ -109,13 +99,11 @@ class DynamicsNode(Node):
         self.features = Features(events=self.events)
         for make in features:
             self.features.add(make(self))
-        self._changes = ParameterChanges(self.core, self._check, self._bg.precheck, self._current_source)
-        self.add_on_set_parameters_callback(self._validate_parameters)
-        self.add_post_set_parameters_callback(self._apply_parameters)
+        self.control = Control(self, self._check)   # parameters, ~/set_enabled, ~/reload_model
 
         source = start_source(values)   # loaded in this thread: nothing to keep answering yet
         if source is not None:
-            err = self._bg.load_now(*source)   # one that cannot load (a typo in a launch file): exit 2
+            err = self.background.load_now(*source)   # one that cannot load (a typo in a launch file): exit 2
             if err is not None:
                 raise ValueError(err)
         self._check(self.core.settings)  # exit 2
@@ -131,15 +119,20 @@ class DynamicsNode(Node):
         check_settings(settings, len(self.core.layout) if self.core.layout else None)
         self.features.check(settings, self.core.model)
 
+    def set_tick_period(self):
+        """The timer's period after a stale_timeout change (tick_period)."""
+        period = tick_period(self.core.settings['stale_timeout'], self._diag_period)
+        self._timer.timer_period_ns = int(period * 1e9)
+
     def note_executor(self, kind):
         """The executor that spins the node (run.py), shown in the diagnostics."""
         self.core.executor = kind
 
     def destroy_node(self):
-        if self._bg is not None:
-            self._bg.stop()  # before the publishers go: a fill in progress may still publish
+        if self.background is not None:
+            self.background.stop()  # before the publishers go: a fill in progress may still publish
         self.features.stop()
-        if self._bg is not None:   # lines still held back are said before the node goes
+        if self.background is not None:   # lines still held back are said before the node goes
             self.event_log.held(float('inf'))
         return super().destroy_node()
 
@@ -152,8 +145,8 @@ class DynamicsNode(Node):
     @guarded
     def _on_description(self, msg):
         with self.lock:
-            self._sources.topic_xml = msg.data
-            self._bg.request('topic', msg.data, skip_identical=True)
+            self.sources.topic_xml = msg.data
+            self.background.request('topic', msg.data, skip_identical=True)
             self.drain_events()
 
     @guarded
@@ -169,8 +162,8 @@ class DynamicsNode(Node):
                 core.refuse_malformed('joint_states', str(exc))
                 self.drain_events()
                 return
-            if self._bg.worker.has_outcomes:
-                self._bg.collect()   # a new model swaps in here, between two commands
+            if self.background.worker.has_outcomes:
+                self.background.collect()   # a new model swaps in here, between two commands
             features = self.features
             features.before_command(core)
             tau = core.on_sample(sample)
@@ -209,7 +202,7 @@ class DynamicsNode(Node):
     @guarded
     def _on_timer(self):
         with self.lock:
-            self._bg.collect()
+            self.background.collect()
             self.features.before_command(self.core)
             cmd = self.core.tick()
             if cmd is not None:
@@ -221,7 +214,7 @@ class DynamicsNode(Node):
         if now >= self._next_diag:
             self._next_diag = max(self._next_diag + self._diag_period, now)
             self._publish_diagnostics()
-            if self._sources.topic_xml is None:
+            if self.sources.topic_xml is None:
                 self.outputs.check_description_publishers(self._warned_publishers)
 
     def _publish_diagnostics(self):
@@ -229,61 +222,6 @@ class DynamicsNode(Node):
             level, message, values = self.features.report(*self.core.diagnostics())
             m = self.core.model
         self.outputs.diagnostics(level, message, values, m.name if m is not None else '')
-
-    # ------------------------------------------------------------------ parameters and services
-    # rclpy: on-set validates the whole change, post-set applies it (loading/parameter_change.py)
-    def _validate_parameters(self, params):
-        with self.lock:
-            reason = self._changes.validate({p.name: p.value for p in params if p.name in SPECS})
-            if reason is not None:
-                self.drain_events()
-        return SetParametersResult(successful=reason is None, reason=reason or '')
-
-    def _apply_parameters(self, params):
-        changes = {p.name: p.value for p in params if p.name in SPECS}
-        if not changes:
-            return
-        with self.lock:
-            try:
-                cmd, load = self._changes.apply(changes)
-            except ValueError as exc:  # only if the state moved between validation and now
-                self.log_event('error', 'parameters', f'parameter change {sorted(changes)} not applied: {exc}')
-                self.drain_events()
-                return
-            if cmd is not None:
-                self._publish(cmd)
-            if load is not None:
-                self._bg.request(*load)
-            if 'stale_timeout' in changes:
-                period = tick_period(self.core.settings['stale_timeout'], self._diag_period)
-                self._timer.timer_period_ns = int(period * 1e9)
-            if 'publish_joint_state' in changes:
-                self.outputs.joint_state(self.core.settings['publish_joint_state'])
-            self.features.sync(self.core)  # publishers made here, not on the control path
-            self.drain_events()
-
-    @guarded
-    def _srv_set_enabled(self, request, response):
-        result = self.set_parameters([Parameter('enabled', Parameter.Type.BOOL, bool(request.data))])[0]
-        response.success = result.successful
-        response.message = ('enabled' if request.data else 'disabled') if result.successful else result.reason
-        return response
-
-    def _current_source(self):
-        """(kind, text) to reload (Sources.reload_source), or (None, None)."""
-        return self._sources.reload_source(self.get_parameter('robot_description').value,
-                                           self.get_parameter('urdf_path').value)
-
-    @guarded
-    def _srv_reload(self, request, response):
-        """Starts the reload (answered at once): the running model answers until the new one is
-        ready; the result is in the log and the diagnostics (model_state, description_error)."""
-        with self.lock:
-            kind, text = self._current_source()
-            err = None if kind is None else self._bg.request(kind, text)
-            self.drain_events()
-        response.success, response.message = reload_answer(kind, text, err)
-        return response
 
     def shutdown_command(self):
         """Publish the stale_action command once (the effort controller holds the last command)."""

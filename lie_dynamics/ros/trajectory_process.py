@@ -20,6 +20,7 @@ from rclpy.serialization import deserialize_message
 from rclpy.signals import SignalHandlerOptions
 from trajectory_msgs.msg import JointTrajectory
 
+from . import interfaces
 from .loading.background import TRIM_BYTES, release_memory
 from .loading.build_process import child_setup, receive, send
 from .loading.worker import Worker
@@ -27,6 +28,17 @@ from .trajectories.trajectory_cdr import Unsupported, arrays, head, read, write
 from .trajectories.trajectory_msgs import set_point_efforts, trajectory_arrays
 
 REPLACED = 'a newer trajectory arrived before it was filled'
+
+
+def child_config(node):
+    """What the trajectory process of the dynamics node `node` needs to stand in for it: its DDS
+    domain, a name and namespace, the node's resolved ~/trajectory_in and ~/trajectory_out and
+    their QoS (interfaces.py)."""
+    q = interfaces.INTERFACES['~/trajectory_in'].qos
+    return dict(domain_id=node.context.get_domain_id(), name=f'{node.get_name()}_trajectories',
+                namespace=node.get_namespace(), topic_in=node.resolve_topic_name('~/trajectory_in'),
+                topic_out=node.resolve_topic_name('~/trajectory_out'),
+                qos=dict(depth=q.depth, history=q.history, reliability=q.reliability, durability=q.durability))
 
 
 class Filler:
