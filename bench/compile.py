@@ -135,7 +135,8 @@ def _arguments(fam, q, qd, qdd, tau):
 
 def _nodes(model, spec):
     from lie_dynamics.codegen import runtime
-    g, _, outputs = spec.build(runtime.frames(model))[0].trace
+    trace = spec.build(runtime.frames(model))
+    g, outputs = trace.graph, trace.outputs
     return len(g.live(outputs)[1])
 
 

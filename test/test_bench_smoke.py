@@ -147,3 +147,17 @@ def test_ab_times_two_package_copies_in_one_process(tmp_path):
         assert r['status'] == 'ok', r
         assert r['max_rel_diff'] <= ab.AGREE_RTOL
         assert r['ratio'] > 0 and r['before_us'] > 0 and r['after_us'] > 0 and r['pin_us'] > 0
+
+
+def test_compile_section_measures_every_family_of_the_arm(tmp_path):
+    """bench.compile --quick on the arm: a row per kernel family with its first use, its load
+    from the cache and a call-time ratio (no timing threshold); nothing left in the temp folder."""
+    from bench import compile as compile_bench
+    if native.module() is None:
+        pytest.skip('no working C compiler')
+    rows = compile_bench.run(quick=True, out=str(tmp_path), robots=['arm7'])
+    assert {r['family'] for r in rows} == set(compile_bench.FAMILIES)
+    for r in rows:
+        assert r['nodes'] > 0 and r['first_s'] > 0 and r['load_ms'] > 0, r
+    table = (tmp_path / 'compile.md').read_text(encoding='utf-8')
+    assert all(f'| arm7 | {fam} |' in table for fam in compile_bench.FAMILIES)
