@@ -68,6 +68,13 @@ def test_build_process_answers_refuses_and_is_replaced():
             proc.build(ARM, (False, 10**6, 3), joints=JOINTS)
         with pytest.raises(ValueError, match='not-a-joint'):
             proc.build(ARM, None, joints=['not-a-joint'])
+        # description_update applied where the model is built: another robot is refused there
+        # (no model travels back only to be refused), the same robot is answered
+        name = load_urdf(ARM).name
+        with pytest.raises(ValueError, match="is not the running robot 'other'.*same_robot"):
+            proc.build(ARM, None, joints=JOINTS, running=('same_robot', 'other'))
+        assert proc.build(ARM, None, joints=JOINTS, running=('same_robot', name))[0].name == name
+        assert proc.build(ARM, None, joints=JOINTS, running=('any', 'other'))[0].name == name
         first = proc.pid
         os.kill(first, signal.SIGKILL)
         with pytest.raises(BuildLost, match='signal 9'):

@@ -222,9 +222,11 @@ class Compensator(TrajectoryInput):
         for a strict refusal). builder: build_process.build (the default: in this process) or
         another callable with its signature (BuildProcess.build: in a child process)."""
         policy = check_value('inertia_policy', self.settings['inertia_policy'] if inertia is None else inertia)
-        # InertiaWarnings are recorded: set_model reports the model's own report once per link
+        # InertiaWarnings are recorded: set_model reports the model's own report once per link;
+        # a model description_update refuses is refused where it is built (plan checks it again)
+        running = None if self.model is None else (self.settings['description_update'], self.model.name)
         model, other = (builder or build)(source, joints=self.layout, gravity=self.settings['gravity'],
-                                          inertia=policy)
+                                          inertia=policy, running=running)
         for message, category, filename, lineno in other:  # other warnings are not ours to swallow
             warnings.warn_explicit(message, category, filename, lineno)
         return model

@@ -31,7 +31,7 @@ import warnings
 from ... import InertiaWarning, load_urdf
 from ... import SOURCE_ROOT
 from ...codegen import native
-from .models import warm_up
+from .models import update_refusal, warm_up
 
 BUILD_TIMEOUT_S = 120.0   # a build that takes longer is taken for hung (a 5,000-link chain: ~3 s)
 _LEN = struct.Struct('<Q')
@@ -62,18 +62,33 @@ def read_description(source, caps=None):
     return source
 
 
-def build(source, caps=None, *, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn'):
+def build(source, caps=None, *, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn', running=None):
     """(model, other warnings) of a description: read_description, then load_urdf with its
     InertiaWarnings recorded (the model's physical_consistency() report carries them; the
     caller logs that once) and any other warning returned as (message, category, filename,
-    lineno) for the caller to re-issue. Raises ValueError."""
+    lineno) for the caller to re-issue. running: None, or (description_update, the running
+    robot's name): a model that policy refuses is refused here (models.update_refusal), so a
+    child never sends back a model (thousands of bodies, perhaps) only to have it refused.
+    Raises ValueError."""
     text = read_description(source, caps)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter('always', InertiaWarning)
         model = load_urdf(text, joints=joints, gravity=gravity, inertia=inertia)
+    if running is not None:
+        refusal = update_refusal(running[0], _Running(running[1]), model)
+        if refusal:
+            raise ValueError(refusal)
     other = [(str(w.message), w.category, w.filename, w.lineno) for w in caught
              if not issubclass(w.category, InertiaWarning)]
     return model, other
+
+
+class _Running:
+    """What update_refusal reads of the running model."""
+    __slots__ = ('name',)
+
+    def __init__(self, name):
+        self.name = name
 
 
 def send(fd, obj):
@@ -157,7 +172,7 @@ class BuildProcess:
         self.started += 1
         return self._proc
 
-    def build(self, source, caps=None, *, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn'):
+    def build(self, source, caps=None, *, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn', running=None):
         """`build` in the child: (model, other warnings). Raises ValueError (the description),
         BuildLost (the child died or timed out: killed; the next call starts another)."""
         proc = self._proc
@@ -167,7 +182,7 @@ class BuildProcess:
         if proc is None:
             proc = self._start()
         try:
-            send(proc.stdin.fileno(), (source, caps, joints, gravity, inertia))
+            send(proc.stdin.fileno(), (source, caps, joints, gravity, inertia, running))
             answer = receive(proc.stdout.fileno(), time.monotonic() + self.timeout, time.monotonic)
         except OSError:   # the pipe broke: the child is gone
             answer = None
@@ -226,9 +241,9 @@ def serve(parent=None):
         request = receive(0)
         if request is None:
             return
-        source, caps, joints, gravity, inertia = request
+        source, caps, joints, gravity, inertia, running = request
         try:
-            answer = (True, build(source, caps, joints=joints, gravity=gravity, inertia=inertia))
+            answer = (True, build(source, caps, joints=joints, gravity=gravity, inertia=inertia, running=running))
             warm_native(answer[1][0])
         except Exception as exc:  # noqa: BLE001 - any bad input: its reason goes back to the node
             answer = (False, str(exc) or type(exc).__name__)
