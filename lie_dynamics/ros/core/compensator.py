@@ -151,7 +151,10 @@ class Compensator(TrajectoryInput):
         elif self.layout is not None:  # gains are checked against the layout early
             gains(new['kp'], len(self.layout), 'kp')
             gains(new['kd'], len(self.layout), 'kd')
-        return Plan(new, changes, model, info, derived, (self.model, self.settings))
+        report = None
+        if model is not None:
+            report = (model_changes(self.model, model) if self.model is not None else [], model.physical_consistency())
+        return Plan(new, changes, model, info, derived, (self.model, self.settings), report)
 
     def apply(self, plan, now=None):
         """Make `plan` current. Returns the command to publish once (the zero command when it
@@ -166,7 +169,7 @@ class Compensator(TrajectoryInput):
         self.settings = s = plan.settings
         self.ramp.set_duration(s['ramp_time'])
         if plan.model is not None:
-            self._install(plan.model, plan.info)
+            self._install(plan.model, plan.info, plan.report)
         if plan.derived is not None:
             self._adopt(plan.derived)
         self.watchdog.timeout = s['stale_timeout']
@@ -187,8 +190,12 @@ class Compensator(TrajectoryInput):
         vt = self.settings['include_velocity_terms']
         self.needs_velocity = {mode: uses_velocity(mode, self.kd, self.friction, vt) for mode in LAWS}
 
-    def _install(self, model, info):
+    def _install(self, model, info, report=None):
+        """report: the plan's (model_changes against the running model, physical_consistency),
+        or None: computed here."""
         old = self.model
+        if report is None:
+            report = (model_changes(old, model) if old is not None else [], model.physical_consistency())
         self.model = model
         self.layout = list(model.joint_names)
         self.model_info = info
@@ -197,14 +204,13 @@ class Compensator(TrajectoryInput):
         self._event('info', 'model', f"model '{model.name}' loaded{' from ' + info if info else ''}: "
                                      f'{model.n} controlled joints {names_text(model.joint_names)}, '
                                      f'locked {names_text(model.locked_joint_names)}')
-        if old is not None:
-            for k, (severity, text) in enumerate(model_changes(old, model)):
-                self._event(severity, f'model:change:{k}', f'model update: {text}')
+        for k, (severity, text) in enumerate(report[0]):
+            self._event(severity, f'model:change:{k}', f'model update: {text}')
         lim = np.asarray(model.effort_limits)
         unlimited = [j for j, e in zip(model.joint_names, lim, strict=True) if not np.isfinite(e)]
         if unlimited:
             self._event('warn', 'model:unlimited', f'no URDF effort limit for {names_text(unlimited)}: not clamped')
-        self._note_inertia(model.physical_consistency())
+        self._note_inertia(report[1])
 
     def update(self, changes):
         """Validate and apply parameter changes atomically (plan + apply). Raises ValueError with

@@ -95,3 +95,6 @@ class Plan(NamedTuple):
     info: str                  # where the new model comes from
     derived: Optional[Derived]  # for the model after the change
     base: tuple                # (model, settings) the plan was made against
+    # for a new model: (what changed against the running one, its inertia report), computed
+    # with the plan (off the control path) for the log lines of the swap
+    report: Optional[tuple] = None
