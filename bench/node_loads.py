@@ -328,8 +328,15 @@ def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+        for h in helpers:   # end of its input: it leaves the DDS graph (a kill -9 would leave its
+            try:            # shared-memory files behind)
+                h.stdin.close()
+                h.wait(timeout=20)
+            except (OSError, subprocess.TimeoutExpired):
+                pass
         for b in burners + helpers:
-            b.kill()
+            if b.poll() is None:
+                b.kill()
             b.wait()
         shutil.rmtree(tmp, ignore_errors=True)
     return _medians(rows)

@@ -44,6 +44,45 @@ def _alive(pid):
     return True
 
 
+SHM = '/dev/shm'
+
+
+def _shm_files():
+    return set(os.listdir(SHM)) if os.path.isdir(SHM) else set()
+
+
+def _shm_in_use():
+    """Names of the /dev/shm files some live process maps or holds open."""
+    used = set()
+    for pid in filter(str.isdigit, os.listdir('/proc')):
+        try:
+            with open(f'/proc/{pid}/maps') as fh:
+                used.update(line.split(SHM + '/', 1)[1].split()[0] for line in fh if SHM + '/' in line)
+            for fd in os.listdir(f'/proc/{pid}/fd'):
+                target = os.readlink(f'/proc/{pid}/fd/{fd}')
+                if target.startswith(SHM + '/'):
+                    used.add(target[len(SHM) + 1:].split()[0])
+        except OSError:   # a process that ended meanwhile, or one we may not read
+            continue
+    return used
+
+
+def _remove_files_of_killed_processes(before):
+    """A process killed with -9 leaves its Fast DDS shared-memory files behind (no participant
+    cleanup runs): remove those this test made that no live process maps or holds, with their
+    `_el` and `sem.<name>_mutex` companions (only when the file they belong to goes too)."""
+    new = _shm_files() - before
+    dead = {n for n in new - _shm_in_use() if 'fastrtps' in n}
+    owners = {n for n in dead if not n.endswith('_el') and not n.startswith('sem.')}
+    for name in dead:
+        base = name[len('sem.'):-len('_mutex')] if name.startswith('sem.') else name.removesuffix('_el')
+        if base in owners or base not in new:
+            try:
+                os.remove(os.path.join(SHM, name))
+            except OSError:
+                pass
+
+
 def test_a_built_model_pickles_whole():
     model = load_urdf(folded_description(300), joints=JOINTS)
     copy = pickle.loads(pickle.dumps(model))
@@ -176,7 +215,16 @@ def _fill_one(ros, pub, out, timeout=60.0):
     return out[-1]
 
 
-def test_a_trajectory_process_that_dies_or_hangs_is_reported_once(ros):
+@pytest.fixture
+def killed_dds_process():
+    """For a test that kills a DDS process with -9: its shared-memory files are removed once the
+    test's own participants are gone too (this fixture is set up first, so torn down last)."""
+    before = _shm_files()
+    yield
+    _remove_files_of_killed_processes(before)
+
+
+def test_a_trajectory_process_that_dies_or_hangs_is_reported_once(killed_dds_process, ros):
     node = ros.start(robot_description=ARM, max_trajectory_points=200_000)
     g_arm = load_urdf(ARM).gravity(Q)
     out = []
