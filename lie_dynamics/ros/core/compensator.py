@@ -190,12 +190,8 @@ class Compensator(TrajectoryInput):
         vt = self.settings['include_velocity_terms']
         self.needs_velocity = {mode: uses_velocity(mode, self.kd, self.friction, vt) for mode in LAWS}
 
-    def _install(self, model, info, report=None):
-        """report: the plan's (model_changes against the running model, physical_consistency),
-        or None: computed here."""
-        old = self.model
-        if report is None:
-            report = (model_changes(old, model) if old is not None else [], model.physical_consistency())
+    def _install(self, model, info, report):
+        """report: the plan's (model_changes against the running model, physical_consistency)."""
         self.model = model
         self.layout = list(model.joint_names)
         self.model_info = info
