@@ -452,8 +452,11 @@ def test_cache_eviction_removes_the_least_recently_used(tmp_path):
 def test_cache_bound_from_the_environment(tmp_path, monkeypatch):
     """LIE_DYNAMICS_CACHE_MAX_MB bounds the folder after every compile: with a bound below one
     library only the newest stays, and the results are unchanged; a cache hit counts as a use."""
-    monkeypatch.setenv('LIE_DYNAMICS_CACHE_MAX_MB', 'not a number')
-    assert native.cache_max_bytes() == int(native.CACHE_MAX_MB * 2 ** 20)
+    for bad in ('not a number', '0', '-5', 'nan', 'inf', ''):   # unusable: the default bound
+        monkeypatch.setenv('LIE_DYNAMICS_CACHE_MAX_MB', bad)
+        assert native.cache_max_bytes() == int(native.CACHE_MAX_MB * 2 ** 20), bad
+    monkeypatch.setenv('LIE_DYNAMICS_CACHE_MAX_MB', '1.5')
+    assert native.cache_max_bytes() == int(1.5 * 2 ** 20)
     ref = _reference_tau()
     tau, count, on, _ = _parse(_probe({'LIE_DYNAMICS_CACHE_MAX_MB': '0.0001'}, tmp_path))
     assert on and count >= 2 and _rel(tau, ref) <= TOL

@@ -146,13 +146,13 @@ STALE_BUILD_S = 3600.0  # a build folder this old belongs to a process that died
 
 
 def cache_max_bytes():
-    """The bound of the cache folder: $LIE_DYNAMICS_CACHE_MAX_MB (a positive number), else CACHE_MAX_MB."""
+    """The bound of the cache folder: $LIE_DYNAMICS_CACHE_MAX_MB (a positive finite number), else CACHE_MAX_MB."""
     text = os.environ.get('LIE_DYNAMICS_CACHE_MAX_MB', '').strip()
     try:
         mb = float(text) if text else CACHE_MAX_MB
     except ValueError:
         mb = CACHE_MAX_MB
-    return int((mb if mb > 0 else CACHE_MAX_MB) * 2 ** 20)
+    return int((mb if 0 < mb < float('inf') else CACHE_MAX_MB) * 2 ** 20)   # nan, inf, <= 0: the default
 
 
 def evict(folder, max_bytes, keep=(), now=None):
