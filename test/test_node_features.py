@@ -150,6 +150,48 @@ def test_each_accepted_state_once_in_order_across_a_model_swap(node_in_context):
     assert not node.events
 
 
+def test_a_new_structure_swaps_in_without_generating_kernels_on_the_control_path(node_in_context, tmp_path,
+                                                                                   monkeypatch):
+    """Every kernel the command and the features call for a new kinematic structure (the laws,
+    the observer, each ~/dynamics term) is generated where the model is built, not in the
+    joint_states callback that swaps it in (the observer's kernel compiled there: 0.5-0.8 s)."""
+    from rclpy.parameter import Parameter
+
+    from lie_dynamics.codegen import kernel
+    monkeypatch.setenv('LIE_DYNAMICS_CACHE_DIR', str(tmp_path))   # nothing cached: the build process compiles
+    node, rec, order = node_in_context
+    core = node.core
+    assert all(r.successful for r in node.set_parameters([
+        Parameter('dynamics.publish', value=['gravity', 'coriolis', 'mass_matrix', 'jacobian']),
+        Parameter('dynamics.rate', value=0.0)]))
+    stamp = 10**9
+    for _ in range(5):
+        stamp += 1_000_000
+        node.on_joint_state(serialized(Q, stamp))
+    assert node.contact_monitor.active
+    first = core.model
+    with open(default_urdf_path()) as fh:
+        xml = fh.read()
+    old = '<origin xyz="0 0 0.34" rpy="0 0 0"/>'
+    assert old in xml
+    # joint1 moved by 3.217 micrometres: a structure no other test uses
+    xml = xml.replace(old, '<origin xyz="0 0 0.340003217" rpy="0 0 0"/>', 1)
+    assert node.set_parameters([Parameter('robot_description', value=xml)])[0].successful
+    deadline = time.monotonic() + 120
+    while not node.background.worker.has_outcomes and time.monotonic() < deadline:
+        time.sleep(0.01)
+    published = dict(node.features.get('dynamics').published)
+    for k in range(5):   # the swap, then the first samples on the new model
+        stamp += 1_000_000
+        builds = kernel.builds()
+        node.on_joint_state(serialized(Q + 0.01 * k, stamp))
+        assert kernel.builds() == builds, k
+    assert core.model is not first and rec.seen[-1][2] is core.model
+    assert node.contact_monitor.active and node.contact_monitor.samples > 0
+    after = node.features.get('dynamics').published
+    assert all(after[t] > published[t] for t in published), (published, after)
+
+
 # ---------------------------------------------------------------------- the core pieces, without ROS
 def test_sample_result_is_immutable_and_maps_to_model_order():
     core = Compensator({'stale_timeout': 60.0, 'ramp_time': 0.0})

@@ -81,7 +81,8 @@ class DynamicsNode(Node):
         self.outputs = Outputs(self, values['command_topic'])
         self.event_log = EventLog(self.outputs.log_line)
         # ~/trajectory_in and ~/trajectory_out: served by a process of their own (trajectories/process.py)
-        self.background = Background(self.core, self.sources, trajectories=child_config(self))
+        self.background = Background(self.core, self.sources, trajectories=child_config(self),
+                                     kernels=lambda settings: self.features.kernels(settings))
         self._start(values, features)
 
     def _start(self, values, features):

@@ -9,6 +9,9 @@ from the one table, interfaces.py) and then calls, through `Features`:
 
   * `check(settings, model)` on every parameter change (on-set) and at start-up: ValueError with
     the reason refuses the change (the old values stay) or the start-up (exit 2);
+  * `kernels(settings)`: the keys of the generated kernels its on_sample calls under these
+    settings (loading/models.py: warm_up), run once for a new model where it is built and in the
+    loading thread, so that their code is never generated on the control path;
   * `configure(settings, model, derived)` when the settings or the model object changed (before
     the next sample; derived: core.settings.Derived, None without a model). The model's own
     setters (gravity, locked values) bump `model.version` instead, which the sample carries;
@@ -35,6 +38,10 @@ class Feature:
 
     def check(self, settings, model):
         """Validation of a planned change that needs the model (None: not loaded yet)."""
+
+    def kernels(self, settings):
+        """Keys of the kernels on_sample calls under `settings` (loading/models.py: warm_up)."""
+        return ()
 
     def configure(self, settings, model, derived):
         """The settings or the model changed."""
@@ -79,6 +86,10 @@ class Features:
     def check(self, settings, model):
         for f in self.all:
             f.check(settings, model)
+
+    def kernels(self, settings):
+        """The kernel keys every feature calls under `settings`, each once, in order."""
+        return tuple(dict.fromkeys(k for f in self.all for k in f.kernels(settings)))
 
     def sync(self, core):
         """Configure the features if core's settings or model changed since the last call."""

@@ -32,7 +32,7 @@ from ..core.diagnostics import OK, WARN, clip, names_text
 from ..core.params import EFFORT_CONVENTIONS, PAYLOAD_KEYS, per_joint_values
 
 __all__ = ['EFFORT_CONVENTIONS', 'ContactMonitor', 'Debounce', 'check_settings', 'effort_convention', 'motor_torque',
-           'thresholds']
+           'observer_on', 'thresholds']
 # A longer gap between two samples is not integrated (the trapezoid would spread garbage over it).
 MAX_GAP_S = 0.5
 # Settings whose change starts a new integral: the model's dynamics or the observer itself.
@@ -47,6 +47,11 @@ def effort_convention(settings):
     that echoes the command while the robot adds gravity reports gravity_removed; a torque
     sensor, as Franka's tau_J or KUKA's measured torque, reports total)."""
     return settings.get('measured_effort', 'total')
+
+
+def observer_on(settings):
+    """Whether the settings run the observer (with a model): observer.enabled and a usable effort."""
+    return bool(settings['observer.enabled']) and effort_convention(settings) != 'none'
 
 
 def motor_torque(model, q, effort, convention):
@@ -146,7 +151,7 @@ class ContactMonitor:
             return
         self.observer, self.error = None, ''
         self.convention = effort_convention(settings)
-        if model is None or not settings['observer.enabled'] or self.convention == 'none':
+        if model is None or not observer_on(settings):
             self._restart('off')
             return
         try:

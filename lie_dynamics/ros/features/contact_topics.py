@@ -13,7 +13,7 @@ from std_msgs.msg import Bool
 
 from .. import interfaces
 from .base import Feature
-from .contact import ContactMonitor
+from .contact import ContactMonitor, observer_on
 from .dynamics_topics import joint_state_template
 
 # ~/collision's two possible messages, serialized
@@ -39,6 +39,9 @@ class ContactTopics(Feature):
     @events.setter
     def events(self, queue):
         self.monitor.events = queue
+
+    def kernels(self, settings):
+        return (('observer',),) if observer_on(settings) else ()
 
     def configure(self, settings, model, derived):
         m = self.monitor

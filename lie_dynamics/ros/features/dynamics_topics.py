@@ -29,18 +29,11 @@ import numpy as np
 from .. import interfaces
 from ..core.cdr import Template
 from ..core.diagnostics import clip
+from ..loading.models import tip_link
 from .base import Feature
 
 TOPICS = {term: f'~/dynamics/{term}' for term in ('gravity', 'coriolis', 'mass_matrix', 'jacobian')}
 ROWS = ('vx', 'vy', 'vz', 'wx', 'wy', 'wz')
-
-
-def tip_link(model):
-    """The default Jacobian link: the last link (URDF order) carried by the model's last body,
-    the end of the controlled chain of a serial arm."""
-    last = model.nb - 1
-    links = [name for name, (b, _) in model.link_frames.items() if b == last]
-    return links[-1]
 
 
 def check_link(settings, model):
@@ -121,6 +114,10 @@ class DynamicsTopics(Feature):
 
     def check(self, settings, model):
         check_link(settings, model)
+
+    def kernels(self, settings):
+        return tuple(('jacobian', settings['dynamics.link'] or None, settings['dynamics.jacobian_frame'])
+                     if t == 'jacobian' else (t,) for t in TOPICS if t in settings['dynamics.publish'])
 
     def configure(self, settings, model, derived):
         terms = tuple(t for t in TOPICS if t in settings['dynamics.publish'])

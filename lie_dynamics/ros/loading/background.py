@@ -75,11 +75,13 @@ def release_memory():
 class Background:
     """Loads for a Compensator `core`, whose running model's source `sources` (sources.Sources)
     tracks, and the trajectory process: `trajectories` is its start configuration
-    (trajectories/process.py; None: no trajectories served)."""
+    (trajectories/process.py; None: no trajectories served). kernels(settings): the keys of the
+    kernels the node's features call (features/base.py), warmed with every new model."""
 
-    def __init__(self, core, sources, trajectories=None):
+    def __init__(self, core, sources, trajectories=None, kernels=None):
         self.core = core
         self.sources = sources
+        self.kernels = kernels or (lambda settings: ())
         self.worker = Worker('lie_dynamics_loader')
         self.process = BuildProcess()   # its child starts with the first load after start-up
         self.running_xml = None         # the description text of the running model
@@ -118,12 +120,14 @@ class Background:
         source, label = open_source(kind, text)
         caps = (kind == 'file', s['max_description_bytes'], s['max_description_links'])
         xml = read_description(source, caps) if kind == 'file' else text   # what a repeat is compared with
-        builder = functools.partial(self.process.build if remote else build, caps=caps)
+        keys = self.kernels(s)
+        builder = (functools.partial(self.process.build, caps=caps, warm=keys) if remote
+                   else functools.partial(build, caps=caps))
         try:
             with short_switch_interval():
                 model = core.build_model(source, inertia, builder=builder)
                 plan = core.plan(None, model, label)
-                warm_up(model)
+                warm_up(model, keys)
         finally:
             if not remote and len(source) > TRIM_BYTES:
                 release_memory()

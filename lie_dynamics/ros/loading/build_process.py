@@ -172,9 +172,11 @@ class BuildProcess:
         self.started += 1
         return self._proc
 
-    def build(self, source, caps=None, *, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn', running=None):
-        """`build` in the child: (model, other warnings). Raises ValueError (the description),
-        BuildLost (the child died or timed out: killed; the next call starts another)."""
+    def build(self, source, caps=None, *, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn', running=None,
+              warm=()):
+        """`build` in the child: (model, other warnings); `warm`: the keys of the kernels to
+        compile there besides the base ones (models.warm_up). Raises ValueError (the
+        description), BuildLost (the child died or timed out: killed; the next call starts another)."""
         proc = self._proc
         if proc is not None and proc.poll() is not None:
             self._end(proc)   # it ended between builds: close its pipes before the next child
@@ -182,7 +184,7 @@ class BuildProcess:
         if proc is None:
             proc = self._start()
         try:
-            send(proc.stdin.fileno(), (source, caps, joints, gravity, inertia, running))
+            send(proc.stdin.fileno(), (source, caps, joints, gravity, inertia, running, tuple(warm)))
             answer = receive(proc.stdout.fileno(), time.monotonic() + self.timeout, time.monotonic)
         except OSError:   # the pipe broke: the child is gone
             answer = None
@@ -222,14 +224,14 @@ class BuildProcess:
             self._end(proc, kill=True)
 
 
-def warm_native(model):
+def warm_native(model, kernels=()):
     """Compile the model structure's C kernels that the node calls (models.warm_up) into the
     on-disk cache (codegen/native.py), here, before the model is sent: tracing the recursion and
     rendering it is pure Python, which in the node would take the interpreter lock from the
     control path; there the kernels then load from the cache. Nothing when the native backend
     is off (the Python kernels are generated where they run)."""
     if native.wanted():
-        warm_up(model)
+        warm_up(model, kernels)
 
 
 def serve(parent=None):
@@ -241,10 +243,10 @@ def serve(parent=None):
         request = receive(0)
         if request is None:
             return
-        source, caps, joints, gravity, inertia, running = request
+        source, caps, joints, gravity, inertia, running, kernels = request
         try:
             answer = (True, build(source, caps, joints=joints, gravity=gravity, inertia=inertia, running=running))
-            warm_native(answer[1][0])
+            warm_native(answer[1][0], kernels)
         except Exception as exc:  # noqa: BLE001 - any bad input: its reason goes back to the node
             answer = (False, str(exc) or type(exc).__name__)
         send(out, answer)

@@ -4,6 +4,8 @@ warm-up that moves code generation off the control path.
 """
 import numpy as np
 
+from ...algorithms.observer import MomentumObserver
+
 from ..core.diagnostics import clip, names_text
 
 
@@ -61,12 +63,36 @@ def model_changes(old, new):
     return out
 
 
-def warm_up(model):
-    """Run the kernels the control path uses once, so that their code is generated here (in the
-    loading thread) and not at the first joint_states after the swap."""
+def tip_link(model):
+    """The default Jacobian link: the last link (URDF order) carried by the model's last body,
+    the end of the controlled chain of a serial arm."""
+    last = model.nb - 1
+    links = [name for name, (b, _) in model.link_frames.items() if b == last]
+    return links[-1]
+
+
+# What the control path calls per kernel key (Feature.kernels): run once, each generates its
+# kernel's code (or loads it from the disk cache). 'jacobian' keys carry (link or None: tip_link, frame).
+_WARM = {
+    'gravity': lambda m, z: m.gravity(z),
+    'inverse_dynamics': lambda m, z: m.inverse_dynamics(z, z, z),
+    'coriolis': lambda m, z: m.coriolis_term(z, z),
+    'mass_matrix': lambda m, z: m.mass_matrix(z),
+    'observer': lambda m, z: MomentumObserver(m, 1.0).update(0.0, z, z, z),
+    'jacobian': lambda m, z, link, frame: m.jacobian(z, link or tip_link(m), frame),
+}
+# Every model's: the command's laws.
+BASE_KERNELS = (('gravity',), ('inverse_dynamics',))
+
+
+def warm_up(model, kernels=BASE_KERNELS):
+    """Run once the kernels the control path will call (keys as Feature.kernels gives them;
+    BASE_KERNELS always), so that their code is generated here (the loading thread, or the
+    build process, which compiles them into the disk cache) and not at the first joint_states
+    after the swap (a new structure's observer kernel compiled there took 0.5-0.8 s)."""
     z = np.zeros(model.n)
-    try:
-        model.gravity(z)
-        model.inverse_dynamics(z, z, z)
-    except Exception:  # noqa: BLE001 - the control path reports a model that cannot compute
-        pass
+    for key in dict.fromkeys(BASE_KERNELS + tuple(kernels)):
+        try:
+            _WARM[key[0]](model, z, *key[1:])
+        except Exception:  # noqa: BLE001 - the control path reports a model that cannot compute
+            pass
