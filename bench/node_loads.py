@@ -5,10 +5,13 @@ stretch just before it.
     python -m bench.node_loads [--raised] [--busy N] [--repeat R] [--node-src DIR] [--nice N] [--quick]
 
 The node runs as `python -m lie_dynamics.dynamics_node` on the bundled arm (its own process,
-default parameters: the EventsExecutor). This process publishes serialized joint_states at
-500 Hz from one thread and stamps each reply (std_msgs/Float64MultiArray) as it arrives in
-another. Events, each after a pause of QUIET_S seconds and followed by a quiet stretch as long
-as its window (the reference):
+default parameters: the EventsExecutor, the momentum observer on). A streaming process (Stream)
+publishes serialized joint_states with velocities and efforts at 500 Hz from one thread and
+stamps each reply (std_msgs/Float64MultiArray) as it arrives in another; nothing else runs
+there, so its times show the node and not the work of making the events (publishing a 5,000-link
+description from the measuring process widened its own send gaps by several ms). This process
+makes the events and reads the node's log and diagnostics. Events, each after a pause of
+QUIET_S seconds and followed by a quiet stretch as long as its window (the reference):
   * description: the arm with extra links on fixed joints up to the node's max_description_links
     (they fold into the arm's bodies: the model that swaps in serves as fast as the arm);
   * chain: a chain of as many links, another robot: built in full, then refused (the
@@ -26,7 +29,9 @@ from its start until the node is done (its diagnostics, every 0.1 s, say model_s
 again; a trajectory: ~/trajectory_out or its rejection in the log) plus 0.2 s. --busy N runs N
 busy-loop processes beside it all along (killed at the end). Reported per event: the largest
 gap in the event window and in the quiet stretch after it, their difference (the target: at
-most 2 ms), replies against states sent, and how long the event took; with --repeat R every
+most 2 ms), the largest latency from a state sent to the next reply in each (the node's own
+delay, whatever the streaming thread's pace), replies against states sent, and how long the
+event took; with --repeat R every
 event runs R times and each column is the median. --nice N (negative: needs the privilege)
 runs this process and the node at that niceness, the busy loops at the usual one: on a machine
 that others load, the gaps then show the node rather than the scheduler. --node-src DIR runs
@@ -35,6 +40,7 @@ under the same conditions.
 This is a benchmark, not a test: the numbers depend on the machine and its load.
 """
 import argparse
+import json
 import os
 import re
 import shutil
@@ -109,8 +115,93 @@ def serialized_trajectory(n):
     return cdr.write(traj, np.zeros((n, 7)))
 
 
+class Stream:
+    """The measuring side, a process of its own (`--stream`): one thread publishes serialized
+    joint_states at RATE, an executor thread stamps each reply as it arrives; nothing else runs
+    there (events are made by the benchmark's main process and the trajectory sender), so its
+    send and reply times show the node, not this benchmark's own work. It says 'ready' once
+    replies flow; at the end of its input it prints its send and reply times (JSON)."""
+
+    def __init__(self, env):
+        self.proc = subprocess.Popen([sys.executable, '-m', 'bench.node_loads', '--stream'], env=env,
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        line = self.proc.stdout.readline().strip()
+        if line != 'ready':
+            raise RuntimeError(f'the streaming process did not start ({line!r})')
+
+    def times(self):
+        """Ends the stream: (send times, reply times), time.monotonic() seconds."""
+        out, _ = self.proc.communicate('', timeout=60)
+        data = json.loads(out.strip().splitlines()[-1])
+        return np.array(data['sends']), np.array(data['replies'])
+
+    def close(self):
+        if self.proc.poll() is None:
+            try:
+                self.proc.communicate('', timeout=20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.communicate()
+
+
+def stream():
+    """(--stream) The streaming process of Stream."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray
+
+    rclpy.init()
+    node = rclpy.create_node('node_loads_stream')
+    sends, replies = [], []
+    deep = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(Float64MultiArray, CMD, lambda m: replies.append(time.monotonic()), deep, raw=True)
+    js = node.create_publisher(JointState, 'joint_states', 1)
+    # with velocities and efforts, as a robot sends them: the observer runs (production defaults)
+    state = bytes(serialize_message(JointState(name=JOINTS, position=Q.tolist(), velocity=[0.0] * 7,
+                                               effort=[0.0] * 7)))
+    ex = SingleThreadedExecutor()
+    ex.add_node(node)
+    stop = threading.Event()
+
+    def spin():
+        while not stop.is_set():
+            ex.spin_once(timeout_sec=0.05)
+
+    def publish():
+        period, t = 1.0 / RATE, time.monotonic()
+        while not stop.is_set():
+            js.publish(state)
+            sends.append(time.monotonic())
+            t += period
+            pause = t - time.monotonic()
+            if pause > 0:
+                time.sleep(pause)
+            else:
+                t = time.monotonic()
+    threads = [threading.Thread(target=spin), threading.Thread(target=publish)]
+    threads[0].start()
+    end = time.monotonic() + 60
+    while not (js.get_subscription_count() and node.count_publishers(CMD)) and time.monotonic() < end:
+        time.sleep(0.01)
+    threads[1].start()
+    while len(replies) <= 100 and time.monotonic() < end:
+        time.sleep(0.01)
+    print('ready' if len(replies) > 100 else 'no replies', flush=True)
+    sys.stdin.read()   # until the end of input
+    stop.set()
+    for th in threads:
+        th.join()
+    print(json.dumps({'sends': sends, 'replies': replies}), flush=True)
+    ex.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
 class Driver:
-    """The streaming side: publisher thread, executor thread, reply times, the node's log."""
+    """The event side: the node's log and diagnostics, robot_description, the reload client."""
 
     def __init__(self, ctx):
         import rclpy
@@ -118,26 +209,20 @@ class Driver:
         from rcl_interfaces.msg import Log
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
-        from rclpy.serialization import serialize_message
-        from sensor_msgs.msg import JointState
-        from std_msgs.msg import Float64MultiArray, String
+        from std_msgs.msg import String
 
         from lie_dynamics.ros.node import DESCRIPTION_QOS
         self.node = rclpy.create_node('node_loads_driver', context=ctx)
         self.ex = SingleThreadedExecutor(context=ctx)
         self.ex.add_node(self.node)
-        self.replies, self.logs, self.filled, self.states = [], [], [], []
+        self.logs, self.filled, self.states = [], [], []
         deep = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-        self.node.create_subscription(Float64MultiArray, CMD, lambda m: self.replies.append(time.monotonic()), deep)
         self.node.create_subscription(Log, '/rosout', self._on_log, deep)
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, deep)
-        self.js = self.node.create_publisher(JointState, 'joint_states', 1)
         self.desc = self.node.create_publisher(String, 'robot_description', DESCRIPTION_QOS)
-        self.state = bytes(serialize_message(JointState(name=JOINTS, position=Q.tolist())))
-        self.sent = 0
         self.stop = threading.Event()
-        self.threads = [threading.Thread(target=self._spin, daemon=True)]
-        self.threads[0].start()
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
 
     def _on_log(self, msg):
         if msg.name == NODE.strip('/'):
@@ -157,22 +242,6 @@ class Driver:
         while not self.stop.is_set():
             self.ex.spin_once(timeout_sec=0.05)
 
-    def stream(self):
-        def run():
-            period, t = 1.0 / RATE, time.monotonic()
-            while not self.stop.is_set():
-                self.js.publish(self.state)
-                self.sent += 1
-                t += period
-                pause = t - time.monotonic()
-                if pause > 0:
-                    time.sleep(pause)
-                else:
-                    t = time.monotonic()
-        th = threading.Thread(target=run, daemon=True)
-        th.start()
-        self.threads.append(th)
-
     def wait(self, pred, timeout, what):
         end = time.monotonic() + timeout
         while time.monotonic() < end:
@@ -181,40 +250,58 @@ class Driver:
             time.sleep(0.01)
         raise RuntimeError(f'timed out waiting for {what}')
 
-    def gap(self, t0, t1):
-        """(largest gap between replies in [t0, t1], replies in it)."""
-        r = np.array([t for t in list(self.replies) if t0 <= t <= t1])
-        return (float(np.max(np.diff(r))) if len(r) > 1 else float('inf')), len(r)
-
     def log_after(self, t0, pattern):
         return next((t for t, m in list(self.logs) if t >= t0 and re.search(pattern, m)), None)
 
     def close(self):
         self.stop.set()
-        for th in self.threads:
-            th.join(timeout=5)
+        self.thread.join(timeout=5)
         self.node.destroy_node()
 
 
-def _event(driver, name, start, done, timeout):
+def _window(times, t0, t1):
+    return times[(times >= t0) & (times <= t1)]
+
+
+def gap(replies, t0, t1):
+    """(largest gap between replies in [t0, t1] in s, replies in it)."""
+    r = _window(replies, t0, t1)
+    return (float(np.max(np.diff(r))) if len(r) > 1 else float('inf')), len(r)
+
+
+def latency(sends, replies, t0, t1):
+    """The largest time from a state sent to the next reply, for replies in [t0, t1] (s): the
+    node's own delay, whatever the sender's pace."""
+    r = _window(replies, t0, t1)
+    k = np.searchsorted(sends, r) - 1
+    ok = k >= 0
+    return float(np.max(r[ok] - sends[k[ok]])) if ok.any() else float('inf')
+
+
+def _row(name, t0, t_done, t1, sends, replies):
+    """The event's window [t0, t1] against the quiet stretch as long right after it."""
+    t2 = 2 * t1 - t0
+    busy, n_busy = gap(replies, t0, t1)
+    quiet, n_quiet = gap(replies, t1, t2)
+    return {'event': name, 'quiet_gap_ms': quiet * 1e3, 'event_gap_ms': busy * 1e3, 'widened_ms': (busy - quiet) * 1e3,
+            'quiet_latency_ms': latency(sends, replies, t1, t2) * 1e3,
+            'event_latency_ms': latency(sends, replies, t0, t1) * 1e3,
+            'replies': n_busy, 'sent': len(_window(sends, t0, t1)), 'event_s': t_done - t0,
+            'quiet_replies': n_quiet, 'quiet_sent': len(_window(sends, t1, t2))}
+
+
+def _event(driver, windows, name, start, done, timeout):
     """The event, then a quiet stretch as long as its window (the largest gap grows with the
-    window's length): one result row."""
+    window's length): its window is kept for a result row."""
     time.sleep(QUIET_S)
-    sent0 = driver.sent
     t0 = time.monotonic()
     start()
     driver.wait(lambda: done(t0) is not None, timeout, name)
     t_done = done(t0)
     time.sleep(0.2)
     t1 = time.monotonic()
-    busy, replies = driver.gap(t0, t1)
-    sent1 = driver.sent
-    sent = sent1 - sent0
     time.sleep(t1 - t0)
-    quiet, quiet_replies = driver.gap(t1, 2 * t1 - t0)
-    return {'event': name, 'quiet_gap_ms': quiet * 1e3, 'event_gap_ms': busy * 1e3, 'widened_ms': (busy - quiet) * 1e3,
-            'replies': replies, 'sent': sent, 'event_s': t_done - t0,
-            'quiet_replies': quiet_replies, 'quiet_sent': driver.sent - sent1}
+    windows.append((name, t0, t_done, t1))
 
 
 def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):
@@ -252,30 +339,27 @@ def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     ctx = Context()
     rclpy.init(context=ctx)
-    driver = None
-    rows = []
+    driver = streamer = None
+    windows = []
     try:
         driver = Driver(ctx)
-        driver.wait(lambda: driver.js.get_subscription_count() and driver.node.count_publishers(CMD), 60, 'discovery')
-        driver.stream()
-        driver.wait(lambda: len(driver.replies) > 100, 60, 'replies')
+        streamer = Stream(env)
         cli = driver.node.create_client(Trigger, f'{NODE}/reload_model')
         cli.wait_for_service(timeout_sec=30)
         xml = folded_description(caps['links'])
         xmls = [xml.replace('</robot>', f'<!-- {k} --></robot>') for k in range(repeat)]   # each one new
         for k in range(repeat):
-            rows.append(_event(driver, f"description ({caps['links']} links)",
-                               lambda k=k: driver.desc.publish(String(data=xmls[k])),
-                               lambda t0: driver.ready_after(t0 + 0.3), 300))
+            _event(driver, windows, f"description ({caps['links']} links)",
+                   lambda k=k: driver.desc.publish(String(data=xmls[k])), lambda t0: driver.ready_after(t0 + 0.3), 300)
         chain = chain_description(caps['links'])
         for k in range(repeat):
-            rows.append(_event(driver, f"chain, refused after its build ({caps['links']} links)",
-                               lambda k=k: driver.desc.publish(String(data=chain + f'<!-- {k} -->')),
-                               lambda t0: driver.ready_after(t0 + 0.3), 300))
+            _event(driver, windows, f"chain, refused after its build ({caps['links']} links)",
+                   lambda k=k: driver.desc.publish(String(data=chain + f'<!-- {k} -->')),
+                   lambda t0: driver.ready_after(t0 + 0.3), 300)
         for _ in range(repeat):
-            rows.append(_event(driver, 'new structure (kernels generated)',
-                               lambda: driver.desc.publish(String(data=new_structure_description())),
-                               lambda t0: driver.ready_after(t0 + 0.3), 300))
+            _event(driver, windows, 'new structure (kernels generated)',
+                   lambda: driver.desc.publish(String(data=new_structure_description())),
+                   lambda t0: driver.ready_after(t0 + 0.3), 300)
 
         def reloads():
             for _ in range(20):
@@ -288,11 +372,11 @@ def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):
             return None if sent is None else driver.ready_after(sent)
         for _ in range(repeat):
             driver.reloads_sent = None
-            rows.append(_event(driver, '20 reloads', reloads, reloads_done, 300))
+            _event(driver, windows, '20 reloads', reloads, reloads_done, 300)
         if not quick:
             # sent, and the filled one taken, by a process of its own: rclpy keeps the interpreter
-            # lock while it publishes or takes 20 MB, which would stall this process's stream and
-            # reply times, not the node's
+            # lock while it publishes or takes 20 MB, which would stall this process's log and
+            # diagnostics readers (the times that end an event window)
             sender = subprocess.Popen([sys.executable, '-m', 'bench.node_loads', '--send-trajectory'], env=env,
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
             helpers.append(sender)
@@ -315,10 +399,13 @@ def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):
                 sent.wait(60)
             for _ in range(repeat):
                 n_filled = len(driver.filled)
-                rows.append(_event(driver, '100,000-point trajectory', send,
-                                   lambda t0, n=n_filled: (driver.filled[n] if len(driver.filled) > n
-                                                           else driver.log_after(t0, 'trajectory rejected')), 120))
+                _event(driver, windows, '100,000-point trajectory', send,
+                       lambda t0, n=n_filled: (driver.filled[n] if len(driver.filled) > n
+                                               else driver.log_after(t0, 'trajectory rejected')), 120)
+        sends, replies = streamer.times()
     finally:
+        if streamer is not None:
+            streamer.close()
         if driver is not None:
             driver.close()
         ctx.try_shutdown()
@@ -339,7 +426,7 @@ def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):
                 b.kill()
             b.wait()
         shutil.rmtree(tmp, ignore_errors=True)
-    return _medians(rows)
+    return _medians([_row(*w, sends, replies) for w in windows])
 
 
 def _medians(rows):
@@ -354,11 +441,12 @@ def _medians(rows):
 def markdown(rows, raised, busy):
     head = (f"caps {'raised' if raised else 'default'}, {busy} busy loops beside; joint_states at {RATE:g} Hz; "
             f'niceness {os.getpriority(os.PRIO_PROCESS, 0)}; quiet stretch after each event, as long as its window')
-    lines = [head, '', '| event | runs | quiet gap ms | event gap ms | widened ms | replies / sent | event s |',
-             '|---|---|---|---|---|---|---|']
+    lines = [head, '', '| event | runs | quiet gap ms | event gap ms | widened ms | latency quiet / event ms '
+             '| replies / sent | event s |', '|---|---|---|---|---|---|---|---|']
     for r in rows:
         lines.append(f"| {r['event']} | {r['runs']} | {r['quiet_gap_ms']:.1f} | {r['event_gap_ms']:.1f} | "
-                     f"{r['widened_ms']:+.1f} | {r['replies']:.0f} / {r['sent']:.0f} | {r['event_s']:.2f} |")
+                     f"{r['widened_ms']:+.1f} | {r['quiet_latency_ms']:.1f} / {r['event_latency_ms']:.1f} | "
+                     f"{r['replies']:.0f} / {r['sent']:.0f} | {r['event_s']:.2f} |")
     return '\n'.join(lines)
 
 
@@ -404,7 +492,10 @@ def main(argv=None):
     ap.add_argument('--nice', type=int, default=0, help='niceness of this process and the node')
     ap.add_argument('--quick', action='store_true', help='no trajectory event')
     ap.add_argument('--send-trajectory', action='store_true', help=argparse.SUPPRESS)
+    ap.add_argument('--stream', action='store_true', help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
+    if a.stream:
+        return stream()
     if a.send_trajectory:
         return send_trajectories()
     print(markdown(run(a.raised, a.busy, a.quick, a.repeat, a.node_src, a.nice), a.raised, a.busy))

@@ -465,3 +465,35 @@ def test_cache_bound_from_the_environment(tmp_path, monkeypatch):
     os.utime(libs[0], (1e9, 1e9))
     _parse(_probe({}, tmp_path))                       # default bound: nothing evicted, the survivor used
     assert libs[0].exists() and libs[0].stat().st_mtime > 1e9 + 1
+
+
+def test_set_jobs_bounds_the_compiler_processes_of_a_cut_kernel(tmp_path, monkeypatch):
+    """A kernel cut into parts compiles as one object per usable core, or at most set_jobs(n)
+    (the node's build process leaves a core to the control path): counted through a $CC that
+    logs each compiler run. Invalid counts are refused."""
+    log = tmp_path / 'cc.log'
+    cc = tmp_path / 'cc'
+    cc.write_text(f'#!/bin/sh\necho "$@" >> {log}\nexec {" ".join(native.compiler())} "$@"\n')
+    cc.chmod(0o755)
+    monkeypatch.setenv('CC', str(cc))
+    monkeypatch.setitem(runtime.THRESHOLDS, 'native_part', 40)
+    model = _load(_xml('arm7'))
+    try:
+        for k, jobs in enumerate((1, None)):
+            monkeypatch.setenv('LIE_DYNAMICS_CACHE_DIR', str(tmp_path / f'cache{k}'))
+            native.set_jobs(jobs)
+            runtime.clear()
+            log.write_text('')
+            assert runtime.native(model, t_rnea.INVERSE_DYNAMICS) is not None
+            runs = log.read_text().splitlines()
+            objects = [ln for ln in runs if ' -c ' in f' {ln} ']
+            if jobs == 1 or native.usable_cores() == 1:
+                assert len(runs) == 1 and not objects, runs   # one process, no separate link
+            else:
+                assert 2 <= len(objects) <= native.usable_cores() and len(runs) == len(objects) + 1, runs
+    finally:
+        native.set_jobs(None)
+        runtime.clear()
+    for bad in (0, -1, 1.5, '2'):
+        with pytest.raises(ValueError, match='compiler jobs'):
+            native.set_jobs(bad)

@@ -55,7 +55,7 @@ _TRAILER = len(MAGIC) + 64 + 64
 # _build compiles the units in parallel and links them once.
 UNIT = '/* lie_dynamics: translation unit */\n'
 _LOCK = threading.Lock()
-_STATE = {'module': None, 'error': None, 'warned': False, 'compiles': 0, 'seconds': 0.0}
+_STATE = {'module': None, 'error': None, 'warned': False, 'compiles': 0, 'seconds': 0.0, 'jobs': None}
 
 
 class NativeUnavailable(RuntimeError):
@@ -201,11 +201,24 @@ def _first_error(text):
     return (errs or lines or ['(no output)'])[0]
 
 
-def _jobs():
+def usable_cores():
+    """The cores this process may run on."""
     try:
         return len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
         return os.cpu_count() or 1
+
+
+def set_jobs(n=None):
+    """Run at most n compiler processes at once (None: one per usable core, the default). The
+    dynamics node's build process leaves a core to the node's control path this way."""
+    if n is not None and (not isinstance(n, int) or n < 1):
+        raise ValueError(f'compiler jobs must be a positive integer or None, got {n!r}')
+    _STATE['jobs'] = n
+
+
+def _jobs():
+    return min(usable_cores(), _STATE['jobs'] or usable_cores())
 
 
 def _run(cmds):
@@ -227,7 +240,7 @@ def _run(cmds):
 
 def _build(source, lib, work, flags):
     """Compile C text `source` into the shared library `lib`. A text of several translation
-    units (UNIT between them) is compiled as up to one object per usable core, in
+    units (UNIT between them) is compiled as up to one object per usable core (set_jobs), in
     parallel, consecutive units together in pieces of about equal length, and linked once."""
     units = source.split(UNIT)
     jobs = min(len(units), _jobs())

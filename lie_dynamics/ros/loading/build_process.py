@@ -239,6 +239,7 @@ def serve(parent=None):
     out = child_setup(parent)
     if out is None:
         return
+    native.set_jobs(max(1, native.usable_cores() - 1))   # a core stays with the node's control path
     while True:
         request = receive(0)
         if request is None:
