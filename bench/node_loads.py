@@ -29,9 +29,7 @@ from its start until the node is done (its diagnostics, every 0.1 s, say model_s
 again; a trajectory: ~/trajectory_out or its rejection in the log) plus 0.2 s. --busy N runs N
 busy-loop processes beside it all along (killed at the end). Reported per event: the largest
 gap in the event window and in the quiet stretch after it, their difference (the target: at
-most 2 ms), the largest latency from a state sent to the next reply in each (the node's own
-delay, whatever the streaming thread's pace), replies against states sent, and how long the
-event took; with --repeat R every
+most 2 ms), replies against states sent, and how long the event took; with --repeat R every
 event runs R times and each column is the median. --nice N (negative: needs the privilege)
 runs this process and the node at that niceness, the busy loops at the usual one: on a machine
 that others load, the gaps then show the node rather than the scheduler. --node-src DIR runs
@@ -269,23 +267,12 @@ def gap(replies, t0, t1):
     return (float(np.max(np.diff(r))) if len(r) > 1 else float('inf')), len(r)
 
 
-def latency(sends, replies, t0, t1):
-    """The largest time from a state sent to the next reply, for replies in [t0, t1] (s): the
-    node's own delay, whatever the sender's pace."""
-    r = _window(replies, t0, t1)
-    k = np.searchsorted(sends, r) - 1
-    ok = k >= 0
-    return float(np.max(r[ok] - sends[k[ok]])) if ok.any() else float('inf')
-
-
 def _row(name, t0, t_done, t1, sends, replies):
     """The event's window [t0, t1] against the quiet stretch as long right after it."""
     t2 = 2 * t1 - t0
     busy, n_busy = gap(replies, t0, t1)
     quiet, n_quiet = gap(replies, t1, t2)
     return {'event': name, 'quiet_gap_ms': quiet * 1e3, 'event_gap_ms': busy * 1e3, 'widened_ms': (busy - quiet) * 1e3,
-            'quiet_latency_ms': latency(sends, replies, t1, t2) * 1e3,
-            'event_latency_ms': latency(sends, replies, t0, t1) * 1e3,
             'replies': n_busy, 'sent': len(_window(sends, t0, t1)), 'event_s': t_done - t0,
             'quiet_replies': n_quiet, 'quiet_sent': len(_window(sends, t1, t2))}
 
@@ -441,12 +428,11 @@ def _medians(rows):
 def markdown(rows, raised, busy):
     head = (f"caps {'raised' if raised else 'default'}, {busy} busy loops beside; joint_states at {RATE:g} Hz; "
             f'niceness {os.getpriority(os.PRIO_PROCESS, 0)}; quiet stretch after each event, as long as its window')
-    lines = [head, '', '| event | runs | quiet gap ms | event gap ms | widened ms | latency quiet / event ms '
-             '| replies / sent | event s |', '|---|---|---|---|---|---|---|---|']
+    lines = [head, '', '| event | runs | quiet gap ms | event gap ms | widened ms | replies / sent | event s |',
+             '|---|---|---|---|---|---|---|']
     for r in rows:
         lines.append(f"| {r['event']} | {r['runs']} | {r['quiet_gap_ms']:.1f} | {r['event_gap_ms']:.1f} | "
-                     f"{r['widened_ms']:+.1f} | {r['quiet_latency_ms']:.1f} / {r['event_latency_ms']:.1f} | "
-                     f"{r['replies']:.0f} / {r['sent']:.0f} | {r['event_s']:.2f} |")
+                     f"{r['widened_ms']:+.1f} | {r['replies']:.0f} / {r['sent']:.0f} | {r['event_s']:.2f} |")
     return '\n'.join(lines)
 
 
