@@ -163,20 +163,19 @@ def evict(folder, max_bytes, keep=(), now=None):
     now = time.time() if now is None else now
     removed, files = [], []
     try:
-        names = os.listdir(folder)
+        entries = list(os.scandir(folder))   # types from the directory itself: one stat per file, not two
     except OSError:
         return removed
-    for name in names:
-        path = os.path.join(folder, name)
+    for e in entries:
         try:
-            st = os.stat(path)
-        except OSError:
+            if e.name.startswith('build-') and now - e.stat().st_mtime > STALE_BUILD_S:
+                shutil.rmtree(e.path, ignore_errors=True)
+                removed.append(e.path)
+            elif e.name.endswith('.so') and e.is_file():
+                st = e.stat()
+                files.append((st.st_mtime, st.st_size, e.path))
+        except OSError:   # removed meanwhile
             continue
-        if name.startswith('build-') and now - st.st_mtime > STALE_BUILD_S:
-            shutil.rmtree(path, ignore_errors=True)
-            removed.append(path)
-        elif name.endswith('.so') and os.path.isfile(path):
-            files.append((st.st_mtime, st.st_size, path))
     total = sum(size for _, size, _ in files)
     if total <= max_bytes:
         return removed
