@@ -27,6 +27,7 @@ import time
 import numpy as np
 
 from .. import interfaces
+from ...algorithms import jacobian
 from ..core.cdr import Template
 from ..core.diagnostics import clip
 from ..loading.models import tip_link
@@ -41,8 +42,8 @@ def check_link(settings, model):
     link = settings['dynamics.link']
     if not link or model is None:
         return
-    try:
-        model.jacobian(np.zeros(model.n), link, settings['dynamics.jacobian_frame'])
+    try:   # the link and frame checks of the Jacobian, without generating its kernel here
+        jacobian.target(model, link, settings['dynamics.jacobian_frame'], None)
     except ValueError as exc:
         raise ValueError(f"dynamics.link '{clip(link, 80)}' cannot be used with robot '{model.name}': "
                          f'{exc}') from None
