@@ -5,11 +5,14 @@ dynamics node's resolved topic names with its QoS, in the dynamics node's DDS do
 
     python -m lie_dynamics.ros.trajectory_process PARENT_PID   (stdin / stdout: the pipe)
 
-It logs nothing itself: its outcomes go back over the pipe. It ends at end of its input (after
+It logs nothing itself: its outcomes go back over the pipe, with ('alive',) from the executor
+loop at least every `heartbeat` s of the start configuration (a loop that stops, stopped or
+stuck, gets the process killed and replaced). It ends at end of its input (after
 leaving the ROS graph) or with the thread that started it.
 """
 import sys
 import threading
+import time
 
 import rclpy
 from rclpy.context import Context
@@ -158,9 +161,16 @@ def main(argv=None):
     threading.Thread(target=filler.read_answers, name='lie_dynamics_answers', daemon=True).start()
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
+    beat, next_beat = config['heartbeat'], 0.0
     try:
         while not filler.ended.is_set():
-            ex.spin_once(timeout_sec=0.1)
+            now = time.monotonic()
+            if now >= next_beat:   # from this loop: a stuck executor is silent too
+                filler.send(('alive',))
+                next_beat = now + beat
+            ex.spin_once(timeout_sec=min(0.1, beat))
+    except OSError:   # the node is gone
+        pass
     finally:
         filler.worker.stop(1.0)
         ex.shutdown(timeout_sec=1.0)

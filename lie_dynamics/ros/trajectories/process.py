@@ -15,14 +15,23 @@ Messages (pickled, length first, build_process.send / receive). Node to child: t
 configuration (dict: domain_id, name, namespace, topic_in, topic_out, qos), then per question
 ('go', seq, TrajectoryFill or None (the last one still holds), max_trajectory_points) or
 ('no', seq). Child to node: ('ask', seq, points), ('done', error, note, kind) as
-`trajectory_done` takes them.
+`trajectory_done` takes them, and ('alive',) from its executor loop once subscribed, then
+every `heartbeat` s (HEARTBEAT_S; sent with the start configuration).
 
-A child that dies, or whose fill takes longer than `timeout` s (hung: killed), is reported once
-(a fill under way is counted as rejected) and a new one starts; until it has subscribed,
-trajectories are not received. The child never outlives the node: `stop` ends it (end of input,
-then SIGKILL), and it asks the kernel for SIGKILL when the thread that started it ends.
+A child that dies, whose fill takes longer than `timeout` s, or that is silent (no message of
+any kind) for longer than SILENT_S s, or START_S s from its start to its first message, is
+reported once (a fill under way is counted as rejected; a hung child, stopped or stuck, idle or
+not, is killed) and a new one starts; until it has subscribed, trajectories are not received.
+Silence excludes the time the child's main thread waited for a CPU (Linux schedstat): the child
+runs niced, and on an overloaded machine its loop waited up to 8.4 s at a time for one (load
+average 13 on 2 cores) while doing nothing wrong; killing it would only cost a restart, which is
+slower still. The node's reader thread stamps each message; `collect`, which the node's timer
+calls (not each sample), compares the stamp with the clock. The child never outlives the node:
+`stop` ends it (end of input, then SIGKILL), and it asks the kernel for SIGKILL when the thread
+that started it ends.
 """
 import pickle
+import select
 import subprocess
 import threading
 import time
@@ -31,6 +40,9 @@ from ..loading.build_process import receive, send, start_child
 
 FILL_TIMEOUT_S = 120.0   # a fill that takes longer is taken for hung (100,000 points: about 1 s)
 RESTART_S = 5.0          # a child that keeps dying is started at most this often
+HEARTBEAT_S = 1.0        # the child says it is alive at least this often
+SILENT_S = 5.0           # a child silent longer is taken for hung (its CPU waits excluded: see above)
+START_S = 60.0           # its first message (Python, rclpy and DDS started) may take this long
 CHILD = 'lie_dynamics.ros.trajectory_process'
 
 
@@ -39,11 +51,15 @@ class TrajectoryProcess:
     child asks for a fill; `answer(child, ...)` replies (any thread); `collect` (control path) returns what came
     back since: [('done', error, note, kind)] and the loss of a child as ('lost', text, busy)."""
 
-    def __init__(self, config, on_ask, timeout=FILL_TIMEOUT_S, clock=time.monotonic):
+    def __init__(self, config, on_ask, timeout=FILL_TIMEOUT_S, clock=time.monotonic, cpu_wait=None):
         self.config = dict(config)
         self.on_ask = on_ask
         self.timeout = timeout
         self.clock = clock
+        self.cpu_wait = cpu_wait_s if cpu_wait is None else cpu_wait   # cpu_wait(pid): seconds, like clock
+        self.heartbeat = HEARTBEAT_S   # what the next child started is told
+        self.silent = SILENT_S
+        self.start_timeout = START_S
         self.started = 0           # children started so far
         self.has_messages = False  # a plain attribute test on the control path
         self._lock = threading.Lock()
@@ -52,6 +68,7 @@ class TrajectoryProcess:
         self._sent = None          # what the child holds: the last TrajectoryFill sent
         self._busy = None          # when the answer that started the child's fill was sent
         self._last_start = None
+        self._mark = None          # (child process, clock(), its cpu_wait, heard): its start or last message
         self._stopping = False
 
     @property
@@ -59,6 +76,12 @@ class TrajectoryProcess:
         """The running child's pid, or None."""
         proc = self._proc
         return proc.pid if proc is not None and proc.poll() is None else None
+
+    @property
+    def last_heard(self):
+        """When (clock()) the running child last sent a message, or None."""
+        mark, proc = self._mark, self._proc
+        return mark[1] if mark is not None and mark[3] and proc is not None and mark[0] is proc else None
 
     @property
     def busy(self):
@@ -73,10 +96,11 @@ class TrajectoryProcess:
             return False
         self._last_start = now
         proc = start_child(CHILD)
+        self._mark = (proc, now, self.cpu_wait(proc.pid), False)
         self._proc, self._sent, self._busy = proc, None, None
         self.started += 1
         try:
-            send(proc.stdin.fileno(), self.config)
+            send(proc.stdin.fileno(), dict(self.config, heartbeat=self.heartbeat))
         except OSError:   # died at once: the reader reports it
             pass
         threading.Thread(target=self._read, args=(proc, self.started), name='lie_dynamics_trajectories',
@@ -120,6 +144,10 @@ class TrajectoryProcess:
                 msg = None
             if msg is None:
                 break
+            if self._proc is proc:   # (one assignment: the control path reads it whole)
+                self._mark = (proc, self.clock(), self.cpu_wait(proc.pid), True)
+            if msg[0] == 'alive':
+                continue
             if msg[0] == 'ask':
                 self.on_ask(child, msg[1], msg[2])
             else:
@@ -153,12 +181,29 @@ class TrajectoryProcess:
                     code = self._end(m[1])
                     why = f'signal {-code}' if code < 0 else f'exit status {code}'
                     out.append(('lost', f'the trajectory process ended ({why})', busy))
-        proc, since = self._proc, self._busy
-        if proc is not None and since is not None and self.clock() - since > self.timeout:
-            self._end(proc, kill=True)
-            out.append(('lost', f'the trajectory process did not finish a fill within {self.timeout:g} s and was '
-                                'killed', True))
+        proc = self._proc
+        if proc is not None:
+            why = self._hung(proc)
+            if why is not None:
+                busy = self.busy
+                self._end(proc, kill=True)
+                out.append(('lost', f'the trajectory process {why} and was killed', busy))
         return out
+
+    def _hung(self, proc):
+        """Why the running child `proc` is taken for hung, or None."""
+        now, since, mark = self.clock(), self._busy, self._mark
+        if since is not None and now - since > self.timeout:
+            return f'did not finish a fill within {self.timeout:g} s'
+        if mark is None or mark[0] is not proc:
+            return None
+        _, at, waited, heard = mark
+        limit = self.silent if heard else self.start_timeout
+        if now - at <= limit:   # (the common case: nothing more is read)
+            return None
+        if now - at - (self.cpu_wait(proc.pid) - waited) <= limit or _unread(proc):
+            return None
+        return f'was silent for {limit:g} s' if heard else f'sent nothing within {limit:g} s of its start'
 
     def _end(self, proc, kill=False):
         """End `proc` (end of input first; SIGKILL if asked or if it lingers): its exit code."""
@@ -183,3 +228,22 @@ class TrajectoryProcess:
         proc = self._proc
         if proc is not None:
             self._end(proc)
+
+
+def cpu_wait_s(pid):
+    """Seconds the main thread of process `pid` has spent waiting for a CPU (Linux
+    /proc/<pid>/schedstat: run_delay), or 0.0 where that is not known."""
+    try:
+        with open(f'/proc/{pid}/schedstat', 'rb') as fh:
+            return int(fh.read().split()[1]) * 1e-9
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+def _unread(proc):
+    """Output of `proc` waits in the pipe (the reader thread has yet to stamp it: this process was
+    itself stopped or starved, not the child), or the reader closed it (the child ended: reported)."""
+    try:
+        return bool(select.select([proc.stdout], [], [], 0)[0])
+    except (OSError, ValueError):
+        return True
