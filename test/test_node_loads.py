@@ -20,7 +20,7 @@ from trajectory_msgs.msg import JointTrajectory  # noqa: E402
 from bench.node_loads import folded_description  # noqa: E402
 from lie_dynamics import load_urdf  # noqa: E402
 from lie_dynamics.ros.loading.build_process import BuildLost, BuildProcess  # noqa: E402
-from lie_dynamics.ros.trajectories.process import SILENT_S, TrajectoryProcess  # noqa: E402
+from lie_dynamics.ros.trajectories.process import SILENT_S, STOP_S, TrajectoryProcess  # noqa: E402
 from lie_dynamics.ros.trajectory_process import child_config  # noqa: E402
 from lie_dynamics.ros.core.params import SPECS  # noqa: E402
 from lie_dynamics.ros.node import LOG_THROTTLE_S  # noqa: E402
@@ -315,6 +315,29 @@ def test_an_idle_trajectory_process_that_stops_is_replaced(killed_dds_process, r
     time.sleep(0.5)
     assert sum('trajectory process' in m for m in ros.logs) == 1, ros.logs   # once
     assert node.core.count.trajectories_rejected == 0 and tp.started == 2
+
+
+def test_a_trajectory_process_leaves_the_graph_by_itself_when_the_node_stops(killed_dds_process, ros):
+    """Told at the start of destroy_node, the child leaves the ROS graph and exits (status 0)
+    while the node's teardown runs, also one that the loader thread started (a replacement: it
+    would get SIGKILL from the kernel if that thread ended first)."""
+    node = ros.start(robot_description=ARM)
+    out = []
+    ros.t.create_subscription(JointTrajectory, '/dynamics_node/trajectory_out', out.append, 10, raw=True)
+    pub = ros.t.create_publisher(JointTrajectory, '/dynamics_node/trajectory_in', 10)
+    tp = node.background.trajectories
+    first = tp.pid
+    os.kill(first, signal.SIGKILL)
+    wait_until(lambda: tp.started == 2 and tp.pid is not None, timeout=60, what='a new trajectory process')
+    _fill_one(ros, pub, out, timeout=120)
+    second = tp.pid
+    t0 = time.monotonic()
+    node.destroy_node()
+    took = time.monotonic() - t0
+    ros.ex.remove_node(node)
+    ros.node = None
+    assert tp.exit_code == 0 and not _alive(second), tp.exit_code
+    assert took < STOP_S, took   # it did not wait for the kill
 
 
 @pytest.mark.parametrize('raised', [False, True])

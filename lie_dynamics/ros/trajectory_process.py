@@ -7,9 +7,10 @@ dynamics node's resolved topic names with its QoS, in the dynamics node's DDS do
 
 It logs nothing itself: its outcomes go back over the pipe, with ('alive',) from the executor
 loop at least every `heartbeat` s of the start configuration (a loop that stops, stopped or
-stuck, gets the process killed and replaced). It ends at end of its input (after
-leaving the ROS graph) or with the thread that started it.
+stuck, gets the process killed and replaced). At end of its input it leaves the ROS graph and
+exits at once; it dies with the thread that started it.
 """
+import os
 import sys
 import threading
 import time
@@ -172,12 +173,18 @@ def main(argv=None):
     except OSError:   # the node is gone
         pass
     finally:
-        filler.worker.stop(1.0)
-        ex.shutdown(timeout_sec=1.0)
-        node.destroy_node()   # leaves the graph at once: no stale endpoint is matched after this
+        # Leave the graph first, nothing before: no stale endpoint is matched after this, and
+        # the participant's shared-memory files go with it (a fill still running is of no use
+        # any more: the node stops reading). The node kills a child that takes too long.
+        node.destroy_node()
         ctx.try_shutdown()
     return 0
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    code = main()
+    sys.stderr.flush()
+    # Out of the graph: the interpreter's teardown (its threads, rclpy's and Fast DDS's
+    # destructors: a second of CPU for a starved niced process) would only delay the node's
+    # exit, which waits for this one.
+    os._exit(code)

@@ -26,9 +26,12 @@ Silence excludes the time the child's main thread waited for a CPU (Linux scheds
 runs niced, and on an overloaded machine its loop waited up to 8.4 s at a time for one (load
 average 13 on 2 cores) while doing nothing wrong; killing it would only cost a restart, which is
 slower still. The node's reader thread stamps each message; `collect`, which the node's timer
-calls (not each sample), compares the stamp with the clock. The child never outlives the node:
-`stop` ends it (end of input, then SIGKILL), and it asks the kernel for SIGKILL when the thread
-that started it ends.
+calls (not each sample), compares the stamp with the clock.
+
+The child never outlives the node: `stop` ends it. End of input tells it to leave the ROS graph
+(its Fast DDS shared-memory files go with its participant) and exit; it has STOP_S s for that
+from the first `stop` (the node asks before its own teardown, which runs meanwhile), then it is
+killed. It also asks the kernel for SIGKILL when the thread that started it ends.
 """
 import pickle
 import select
@@ -43,6 +46,7 @@ RESTART_S = 5.0          # a child that keeps dying is started at most this ofte
 HEARTBEAT_S = 1.0        # the child says it is alive at least this often
 SILENT_S = 5.0           # a child silent longer is taken for hung (its CPU waits excluded: see above)
 START_S = 60.0           # its first message (Python, rclpy and DDS started) may take this long
+STOP_S = 3.0             # from end of input to its exit (then SIGKILL): within a launcher's 5 s for the node
 CHILD = 'lie_dynamics.ros.trajectory_process'
 
 
@@ -70,6 +74,9 @@ class TrajectoryProcess:
         self._last_start = None
         self._mark = None          # (child process, clock(), its cpu_wait, heard): its start or last message
         self._stopping = False
+        self._told = None          # (child process, time.monotonic()): when stop ended its input
+        self.stop_timeout = STOP_S
+        self.exit_code = None      # of the last child ended here (negative: the signal that killed it)
 
     @property
     def pid(self):
@@ -205,8 +212,8 @@ class TrajectoryProcess:
             return None
         return f'was silent for {limit:g} s' if heard else f'sent nothing within {limit:g} s of its start'
 
-    def _end(self, proc, kill=False):
-        """End `proc` (end of input first; SIGKILL if asked or if it lingers): its exit code."""
+    def _end(self, proc, kill=False, timeout=2.0):
+        """End `proc` (end of input first; SIGKILL if asked or if it lingers `timeout` s): its exit code."""
         if self._proc is proc:
             self._proc, self._busy = None, None
         if kill:
@@ -216,18 +223,30 @@ class TrajectoryProcess:
         except OSError:
             pass
         try:
-            proc.wait(timeout=2.0)   # ends on end of input, after leaving the ROS graph
+            proc.wait(timeout=timeout)   # ends on end of input, after leaving the ROS graph
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+        self.exit_code = proc.returncode
         return proc.returncode
 
-    def stop(self):
-        """End the child; none starts again."""
+    def stop(self, wait=True):
+        """End the child; none starts again. The first call ends its input; with `wait`, wait
+        for it to exit until STOP_S s after that, then SIGKILL (wait=False: the caller goes on
+        with its own teardown meanwhile and calls stop() later)."""
         self._stopping = True
         proc = self._proc
-        if proc is not None:
-            self._end(proc)
+        if proc is None:
+            return
+        told = self._told
+        if told is None or told[0] is not proc:   # (a child started meanwhile is told too)
+            told = self._told = (proc, time.monotonic())
+            try:
+                proc.stdin.close()
+            except OSError:
+                pass
+        if wait:
+            self._end(proc, timeout=max(0.0, told[1] + self.stop_timeout - time.monotonic()))
 
 
 def cpu_wait_s(pid):
