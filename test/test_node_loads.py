@@ -20,7 +20,8 @@ from trajectory_msgs.msg import JointTrajectory  # noqa: E402
 from bench.node_loads import folded_description  # noqa: E402
 from lie_dynamics import load_urdf  # noqa: E402
 from lie_dynamics.ros.loading.build_process import BuildLost, BuildProcess  # noqa: E402
-from lie_dynamics.ros.trajectories.process import SILENT_S, STOP_S, TrajectoryProcess  # noqa: E402
+from lie_dynamics.ros.trajectories.process import (SILENT_S, STOP_S, TrajectoryProcess, dds_segments,  # noqa: E402
+                                                   remove_dead_segments)
 from lie_dynamics.ros.trajectory_process import child_config  # noqa: E402
 from lie_dynamics.ros.core.params import SPECS  # noqa: E402
 from lie_dynamics.ros.node import LOG_THROTTLE_S  # noqa: E402
@@ -306,9 +307,13 @@ def test_an_idle_trajectory_process_that_stops_is_replaced(killed_dds_process, r
     _fill_one(ros, pub, out, timeout=120)
     time.sleep(2 * SILENT_S)   # idle for twice the bound: its heartbeats keep it
     assert tp.pid == first and tp.started == 1, ros.logs
+    segments = dds_segments(first)   # its own Fast DDS segment and those it read from
+    assert segments
     os.kill(first, signal.SIGSTOP)
     wait_until(lambda: any('trajectory process was silent' in m for m in ros.logs), timeout=120, what='log line')
     assert not _alive(first)   # killed (stopped processes die of SIGKILL) and reaped
+    # the node removed its segment: none of them is left with its participant dead
+    assert remove_dead_segments(segments) == [] and any(not os.path.exists(os.path.join(SHM, n)) for n in segments)
     wait_until(lambda: tp.started == 2 and tp.pid is not None, timeout=60, what='a new trajectory process')
     assert tp.pid != first
     _fill_one(ros, pub, out, timeout=120)

@@ -31,8 +31,12 @@ calls (not each sample), compares the stamp with the clock.
 The child never outlives the node: `stop` ends it. End of input tells it to leave the ROS graph
 (its Fast DDS shared-memory files go with its participant) and exit; it has STOP_S s for that
 from the first `stop` (the node asks before its own teardown, which runs meanwhile), then it is
-killed. It also asks the kernel for SIGKILL when the thread that started it ends.
+killed. It also asks the kernel for SIGKILL when the thread that started it ends. A child
+killed here (hung, or too slow to stop) does not remove its Fast DDS shared-memory segment: the
+node removes it (remove_dead_segments).
 """
+import fcntl
+import os
 import pickle
 import select
 import subprocess
@@ -213,9 +217,12 @@ class TrajectoryProcess:
         return f'was silent for {limit:g} s' if heard else f'sent nothing within {limit:g} s of its start'
 
     def _end(self, proc, kill=False, timeout=2.0):
-        """End `proc` (end of input first; SIGKILL if asked or if it lingers `timeout` s): its exit code."""
+        """End `proc` (end of input first; SIGKILL if asked or if it lingers `timeout` s): its
+        exit code. A killed child leaves the graph without its participant's cleanup: its Fast
+        DDS segments are removed here (remove_dead_segments)."""
         if self._proc is proc:
             self._proc, self._busy = None, None
+        segments = dds_segments(proc.pid) if kill or proc.poll() is None else ()
         if kill:
             proc.kill()
         try:
@@ -225,8 +232,11 @@ class TrajectoryProcess:
         try:
             proc.wait(timeout=timeout)   # ends on end of input, after leaving the ROS graph
         except subprocess.TimeoutExpired:
+            kill = True
             proc.kill()
             proc.wait()
+        if kill:
+            remove_dead_segments(segments)
         self.exit_code = proc.returncode
         return proc.returncode
 
@@ -257,6 +267,52 @@ def cpu_wait_s(pid):
             return int(fh.read().split()[1]) * 1e-9
     except (OSError, ValueError, IndexError):
         return 0.0
+
+
+SHM_DIR = '/dev/shm'
+
+
+def dds_segments(pid):
+    """Names of the Fast DDS shared-memory segments (`fastrtps_<hex>`, not the ports) that
+    process `pid` maps: its own and those of the participants it read from."""
+    try:
+        with open(f'/proc/{pid}/maps') as fh:
+            paths = {line.split(None, 5)[5].rstrip('\n') for line in fh if SHM_DIR + '/fastrtps_' in line}
+    except (OSError, IndexError):
+        return set()
+    names = {os.path.basename(p.removesuffix(' (deleted)')) for p in paths}
+    return {n for n in names if not n.startswith('fastrtps_port') and not n.endswith('_el')}
+
+
+def remove_dead_segments(names):
+    """Remove the segments among `names` whose participant is dead, with their `_el` lock file:
+    Fast DDS holds a lock (flock) on `<segment>_el` for the life of the participant that made the
+    segment, so a lock taken here means a dead owner, and its random name is never made again (a
+    process that still maps it keeps its mapping). Ports are left alone: their names are reused,
+    and Fast DDS takes over a dead one itself. Returns the names removed."""
+    removed = []
+    for name in sorted(names):
+        try:
+            fd = os.open(os.path.join(SHM_DIR, name + '_el'), os.O_RDWR)
+        except OSError:   # no lock file: not a segment of this kind, or gone
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:   # its participant lives
+            os.close(fd)
+            continue
+        try:
+            for path in (os.path.join(SHM_DIR, name), os.path.join(SHM_DIR, name + '_el')):
+                try:
+                    os.remove(path)
+                except FileNotFoundError:
+                    pass
+            removed.append(name)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
+    return removed
 
 
 def _unread(proc):
