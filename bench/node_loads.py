@@ -456,17 +456,31 @@ def send_trajectories():
                              raw=True)
     ex = SingleThreadedExecutor()
     ex.add_node(node)
-    threading.Thread(target=ex.spin, daemon=True).start()
-    data = serialized_trajectory(100_000)
-    while not (pub.get_subscription_count() and node.count_publishers(f'{NODE}/trajectory_out')):
-        time.sleep(0.05)
-    say('ready')
-    for _ in sys.stdin:
-        pub.publish(data)
-        say('sent')
-    ex.shutdown()
-    node.destroy_node()
-    rclpy.try_shutdown()
+    stop = threading.Event()
+
+    def spin():
+        while not stop.is_set():
+            ex.spin_once(timeout_sec=0.1)
+    # joined before the executor, the node and the context go: rclpy's Executor.shutdown does not
+    # wait for a thread in spin(), which then ran on into the destroyed node and context (an abort
+    # at exit, 'terminate called without an active exception', and the DDS participant's
+    # shared-memory files left behind)
+    spinner = threading.Thread(target=spin, name='trajectory_sender_spin')
+    spinner.start()
+    try:
+        data = serialized_trajectory(100_000)
+        while not (pub.get_subscription_count() and node.count_publishers(f'{NODE}/trajectory_out')):
+            time.sleep(0.05)
+        say('ready')
+        for _ in sys.stdin:
+            pub.publish(data)
+            say('sent')
+    finally:
+        stop.set()
+        spinner.join()
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
 
 
 def main(argv=None):

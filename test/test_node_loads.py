@@ -20,6 +20,9 @@ from trajectory_msgs.msg import JointTrajectory  # noqa: E402
 from bench.node_loads import folded_description  # noqa: E402
 from lie_dynamics import load_urdf  # noqa: E402
 from lie_dynamics.ros.loading.build_process import BuildLost, BuildProcess  # noqa: E402
+from lie_dynamics.ros.trajectories.process import (SILENT_S, STOP_S, TrajectoryProcess, dds_segments,  # noqa: E402
+                                                   remove_dead_segments)
+from lie_dynamics.ros.trajectory_process import child_config  # noqa: E402
 from lie_dynamics.ros.core.params import SPECS  # noqa: E402
 from lie_dynamics.ros.node import LOG_THROTTLE_S  # noqa: E402
 from test_node import Harness, wait_until  # noqa: E402
@@ -262,6 +265,84 @@ def test_a_trajectory_process_that_dies_or_hangs_is_reported_once(killed_dds_pro
     ros.ex.remove_node(node)
     ros.node = None
     assert last is not None and not _alive(last)
+
+
+def test_a_silent_trajectory_process_is_taken_for_hung_unless_it_waited_for_a_cpu(killed_dds_process, ros):
+    """The silence bound on an injected clock and CPU-wait counter: the child (a real one, told
+    to send one message once subscribed and then nothing for an hour) is killed once silent for
+    more than SILENT_S s of its own, the time it waited for a CPU not counted; reported once."""
+    now, waited = [0.0], [0.0]
+    tp = TrajectoryProcess(child_config(ros.t), lambda *a: None, clock=lambda: now[0], cpu_wait=lambda pid: waited[0])
+    tp.heartbeat = 3600.0
+    assert tp.start()
+    pid = tp.pid
+    try:
+        wait_until(lambda: tp.last_heard is not None, timeout=120, what='its first message')
+        assert tp.last_heard == 0.0
+        now[0] = SILENT_S   # at the bound: not yet
+        assert tp.collect() == [] and tp.pid == pid
+        waited[0] = 2.0   # then it waited 2 s for a CPU
+        now[0] = SILENT_S + 1.9
+        assert tp.collect() == [] and tp.pid == pid
+        now[0] = SILENT_S + 2.1
+        assert tp.collect() == [('lost', f'the trajectory process was silent for {SILENT_S:g} s and was killed',
+                                 False)]
+        assert not tp.running and not _alive(pid)
+        now[0] += 100.0
+        assert tp.collect() == []   # once
+    finally:
+        tp.stop()
+
+
+def test_an_idle_trajectory_process_that_stops_is_replaced(killed_dds_process, ros):
+    """A child stopped (SIGSTOP) while idle sends no heartbeat: killed after SILENT_S s,
+    reported once, replaced by one that fills; an idle child that heartbeats stays."""
+    node = ros.start(robot_description=ARM)
+    out = []
+    ros.t.create_subscription(JointTrajectory, '/dynamics_node/trajectory_out', out.append, 10, raw=True)
+    pub = ros.t.create_publisher(JointTrajectory, '/dynamics_node/trajectory_in', 10)
+    tp = node.background.trajectories
+    first = tp.pid
+    assert first is not None
+    _fill_one(ros, pub, out, timeout=120)
+    time.sleep(2 * SILENT_S)   # idle for twice the bound: its heartbeats keep it
+    assert tp.pid == first and tp.started == 1, ros.logs
+    segments = dds_segments(first)   # its own Fast DDS segment and those it read from
+    assert segments
+    os.kill(first, signal.SIGSTOP)
+    wait_until(lambda: any('trajectory process was silent' in m for m in ros.logs), timeout=120, what='log line')
+    assert not _alive(first)   # killed (stopped processes die of SIGKILL) and reaped
+    # the node removed its segment: none of them is left with its participant dead
+    assert remove_dead_segments(segments) == [] and any(not os.path.exists(os.path.join(SHM, n)) for n in segments)
+    wait_until(lambda: tp.started == 2 and tp.pid is not None, timeout=60, what='a new trajectory process')
+    assert tp.pid != first
+    _fill_one(ros, pub, out, timeout=120)
+    time.sleep(0.5)
+    assert sum('trajectory process' in m for m in ros.logs) == 1, ros.logs   # once
+    assert node.core.count.trajectories_rejected == 0 and tp.started == 2
+
+
+def test_a_trajectory_process_leaves_the_graph_by_itself_when_the_node_stops(killed_dds_process, ros):
+    """Told at the start of destroy_node, the child leaves the ROS graph and exits (status 0)
+    while the node's teardown runs, also one that the loader thread started (a replacement: it
+    would get SIGKILL from the kernel if that thread ended first)."""
+    node = ros.start(robot_description=ARM)
+    out = []
+    ros.t.create_subscription(JointTrajectory, '/dynamics_node/trajectory_out', out.append, 10, raw=True)
+    pub = ros.t.create_publisher(JointTrajectory, '/dynamics_node/trajectory_in', 10)
+    tp = node.background.trajectories
+    first = tp.pid
+    os.kill(first, signal.SIGKILL)
+    wait_until(lambda: tp.started == 2 and tp.pid is not None, timeout=60, what='a new trajectory process')
+    _fill_one(ros, pub, out, timeout=120)
+    second = tp.pid
+    t0 = time.monotonic()
+    node.destroy_node()
+    took = time.monotonic() - t0
+    ros.ex.remove_node(node)
+    ros.node = None
+    assert tp.exit_code == 0 and not _alive(second), tp.exit_code
+    assert took < STOP_S, took   # it did not wait for the kill
 
 
 @pytest.mark.parametrize('raised', [False, True])

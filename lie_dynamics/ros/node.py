@@ -130,12 +130,15 @@ class DynamicsNode(Node):
         self.core.executor = kind
 
     def destroy_node(self):
-        if self.background is not None:
-            self.background.stop()  # before the publishers go: a fill in progress may still publish
+        if self.background is not None:   # it leaves the ROS graph while the node's teardown runs
+            self.background.stop_trajectories()
         self.features.stop()
         if self.background is not None:   # lines still held back are said before the node goes
             self.event_log.held(float('inf'))
-        return super().destroy_node()
+        done = super().destroy_node()
+        if self.background is not None:   # waits for the trajectory process (killed if it lingers)
+            self.background.stop()
+        return done
 
     @property
     def contact_monitor(self):
@@ -236,7 +239,8 @@ class DynamicsNode(Node):
         return True
 
 
-def _last_command(node):
+def _on_stop(node):
+    node.background.stop_trajectories()   # first: it leaves the ROS graph while the node stops
     if node.shutdown_command():
         node.get_logger().info('shutting down: published the stale_action command once')
 
@@ -245,7 +249,7 @@ def main(args=None):
     """Entry point of `ros2 run lie_dynamics dynamics_node`: --help prints usage, arguments outside
     --ros-args and a start-up configuration that cannot work exit with status 2 (run.run)."""
     parser = node_parser('dynamics_node', HELP_DESCRIPTION, help_rows(), HELP_EXAMPLE)
-    return run(DynamicsNode, 'dynamics_node', args, on_stop=_last_command, parser=parser)
+    return run(DynamicsNode, 'dynamics_node', args, on_stop=_on_stop, parser=parser)
 
 
 if __name__ == '__main__':

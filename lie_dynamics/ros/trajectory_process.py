@@ -5,11 +5,15 @@ dynamics node's resolved topic names with its QoS, in the dynamics node's DDS do
 
     python -m lie_dynamics.ros.trajectory_process PARENT_PID   (stdin / stdout: the pipe)
 
-It logs nothing itself: its outcomes go back over the pipe. It ends at end of its input (after
-leaving the ROS graph) or with the thread that started it.
+It logs nothing itself: its outcomes go back over the pipe, with ('alive',) from the executor
+loop at least every `heartbeat` s of the start configuration (a loop that stops, stopped or
+stuck, gets the process killed and replaced). At end of its input it leaves the ROS graph and
+exits at once; it dies with the thread that started it.
 """
+import os
 import sys
 import threading
+import time
 
 import rclpy
 from rclpy.context import Context
@@ -158,16 +162,29 @@ def main(argv=None):
     threading.Thread(target=filler.read_answers, name='lie_dynamics_answers', daemon=True).start()
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
+    beat, next_beat = config['heartbeat'], 0.0
     try:
         while not filler.ended.is_set():
-            ex.spin_once(timeout_sec=0.1)
+            now = time.monotonic()
+            if now >= next_beat:   # from this loop: a stuck executor is silent too
+                filler.send(('alive',))
+                next_beat = now + beat
+            ex.spin_once(timeout_sec=min(0.1, beat))
+    except OSError:   # the node is gone
+        pass
     finally:
-        filler.worker.stop(1.0)
-        ex.shutdown(timeout_sec=1.0)
-        node.destroy_node()   # leaves the graph at once: no stale endpoint is matched after this
+        # Leave the graph first, nothing before: no stale endpoint is matched after this, and
+        # the participant's shared-memory files go with it (a fill still running is of no use
+        # any more: the node stops reading). The node kills a child that takes too long.
+        node.destroy_node()
         ctx.try_shutdown()
     return 0
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    code = main()
+    sys.stderr.flush()
+    # Out of the graph: the interpreter's teardown (its threads, rclpy's and Fast DDS's
+    # destructors: a second of CPU for a starved niced process) would only delay the node's
+    # exit, which waits for this one.
+    os._exit(code)

@@ -231,12 +231,21 @@ class Background:
         if not tp.running and worker.busy('trajectory') is None:
             worker.submit('trajectory', 'start', self._start_trajectories)
 
-    def stop(self, timeout=2.0):
+    def stop_trajectories(self):
+        """Tell the trajectory process to leave the ROS graph and exit, without waiting for it
+        (stop() does): none starts again."""
         if self.trajectories is not None:
-            self.trajectories.stop()   # first: none starts again
+            self.trajectories.stop(wait=False)
+
+    def stop(self, timeout=2.0):
+        """End the child processes and the loader thread (no job of it touches the node's ROS
+        entities). The trajectory process is waited for before the loader thread ends: a child
+        that thread started gets SIGKILL when it ends, before leaving the ROS graph."""
+        self.stop_trajectories()   # first: none starts again
         self.process.stop()   # first: a build waited for ends at once
+        if self.trajectories is not None:
+            self.trajectories.stop()
         self.worker.stop(timeout)
         self.process.stop()   # one the thread may have started meanwhile
         if self.trajectories is not None:
             self.trajectories.stop()
-
