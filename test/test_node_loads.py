@@ -205,17 +205,31 @@ def test_a_description_repeated_on_the_topic_keeps_the_running_model(ros):
 
 def _fill_one(ros, pub, out, timeout=60.0):
     """Publish a small trajectory until one comes back filled (a new trajectory process
-    subscribes a while after it starts; a killed one's endpoint may still look matched)."""
-    n0 = len(out)
-    data = serialized(10)
+    subscribes a while after it starts; a killed one's endpoint may still look matched), then
+    wait until the process is idle: the copy of the last one sent is back and the node has its
+    'done' (the process publishes a copy before it reports it: a kill in between would be a kill
+    mid-fill). Each one sent has its own length; the process takes them in order, so the last
+    one comes back last. None is sent once the process has taken one (a third one arriving while
+    the first fills would replace the second: a rejection)."""
+    node = ros.node
+    tp, count = node.background.trajectories, node.core.count
+    n0, outcomes = len(out), count.trajectories_filled + count.trajectories_rejected
+
+    def taken():
+        return tp.busy or len(out) > n0 or count.trajectories_filled + count.trajectories_rejected > outcomes
+    sent = []
     end = time.monotonic() + timeout
-    while len(out) == n0:
+    while not taken():
         assert time.monotonic() < end, 'no filled trajectory'
-        pub.publish(data)
+        sent.append(serialized(10 + len(sent)))
+        pub.publish(sent[-1])
         wait_for = time.monotonic() + 1.0
-        while len(out) == n0 and time.monotonic() < wait_for:
+        while not taken() and time.monotonic() < wait_for:
             time.sleep(0.01)
-    return out[-1]
+    last = len(sent[-1])
+    wait_until(lambda: any(len(m) == last for m in out[n0:]) and not tp.busy, timeout=max(1.0, end - time.monotonic()),
+               what='the last trajectory sent filled and reported')
+    assert next(m for m in out[n0:] if len(m) == last) != sent[-1]   # filled: the efforts written
 
 
 @pytest.fixture
@@ -235,7 +249,8 @@ def test_a_trajectory_process_that_dies_or_hangs_is_reported_once(killed_dds_pro
     pub = ros.t.create_publisher(JointTrajectory, '/dynamics_node/trajectory_in', 10)
     tp = node.background.trajectories
     first = tp.pid
-    assert first is not None and len(_fill_one(ros, pub, out)) == len(serialized(10))
+    assert first is not None
+    _fill_one(ros, pub, out)
     # killed (kill -9) while idle: reported once, a new one starts and fills; the model serves
     os.kill(first, signal.SIGKILL)
     wait_until(lambda: any('trajectory process ended (signal 9)' in m for m in ros.logs), timeout=30,
