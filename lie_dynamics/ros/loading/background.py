@@ -230,9 +230,8 @@ class Background:
     def stop(self, timeout=2.0):
         if self.trajectories is not None:
             self.trajectories.stop()   # first: none starts again
-        self.process.stop()   # first: a build waited for ends at once
+        self.process.stop()   # first: a build waited for ends at once, and none starts after
         self.worker.stop(timeout)
-        self.process.stop()   # one the thread may have started meanwhile
         if self.trajectories is not None:
             self.trajectories.stop()
 
