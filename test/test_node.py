@@ -39,9 +39,11 @@ ROSOUT_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, dura
 TOL = 1e-9
 CMD = '/effort_controller/commands'
 TIMEOUT = 10.0
-# A description from the topic is built in a child process that starts cold (a Python interpreter,
-# numpy, the package) and its kernels are generated before the swap: seconds on a loaded 2-core
-# machine, which a test of what the node does with the model does not measure.
+# A description loaded in the background (topic, parameter, reload) is built in a child process
+# that starts cold with the first such load (a Python interpreter at a lower priority, numpy, the
+# URDF parser's imports) and its kernels are generated before the swap: ~10 s beside two busy loops
+# on a 2-core machine, which a test of what the node does with the model, or with its refusal, does
+# not measure. Waits for the outcome of a node's first background load use this bound.
 MODEL_TIMEOUT = 60.0
 
 
@@ -462,7 +464,7 @@ def test_parameter_change_is_validated_whole_then_applied(ros, chain):
                                           Parameter('publish_joint_state', value=True)])
     assert res.successful, res.reason
     assert node.core.settings['gravity_scale'] == 0.5   # at once; the model when loaded (background)
-    wait_until(lambda: node.core.model is not model, what='new model')
+    wait_until(lambda: node.core.model is not model, timeout=MODEL_TIMEOUT, what='new model')
     wait_until(lambda: ros.t.count_publishers('/dynamics_node/commanded_efforts') == 1, what='joint state publisher')
     ref = Oracle(heavier, joints=ctrl, gravity=(0.0, 0.0, -9.81 * 0.5)).gravity(q)
     np.testing.assert_allclose(ros.send(ctrl, q), ref, atol=TOL, rtol=0)
@@ -492,7 +494,7 @@ def test_inertia_policy_strict_refuses_then_warn_loads(ros):
     node = ros.start(wait_model=False, inertia_policy='strict', diagnostics_period=0.1)
     ros.desc_pub.publish(String(data=BAD_INERTIA))   # later, from the topic: refused, the node keeps running
     wait_until(lambda: ros.diag_level() == 2 and 'tip' in ros.diag_values().get('description_error', ''),
-               what='strict refusal in the diagnostics')
+               timeout=MODEL_TIMEOUT, what='strict refusal in the diagnostics')
     assert node.core.model is None
     # the policy change reloads the refused description (in the background)
     assert all(r.successful for r in ros.set_params(inertia_policy='warn'))

@@ -131,6 +131,9 @@ def test_build_process_answers_refuses_and_is_replaced():
         pid = proc.pid
         proc.stop()
     assert pid is not None and not _alive(pid) and proc.pid is None
+    with pytest.raises(BuildLost, match='stopped'):   # no child starts after stop
+        proc.build(ARM, None, joints=JOINTS)
+    assert proc.started == 3 and proc.pid is None
 
 
 def _loading(node):

@@ -22,7 +22,7 @@ from lie_dynamics import load_urdf  # noqa: E402
 from lie_dynamics.ros.trajectories import trajectory_cdr as cdr  # noqa: E402
 from lie_dynamics.ros.core.diagnostics import DIAG_TEXT_MAX, LOG_TEXT_MAX  # noqa: E402
 from lie_dynamics.ros.node import LOG_THROTTLE_S, SERVICE_QUEUE  # noqa: E402
-from test_node import TIMEOUT, Harness, wait_until  # noqa: E402
+from test_node import MODEL_TIMEOUT, TIMEOUT, Harness, wait_until  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ARM = open(os.path.join(ROOT, 'config', 'arm7.urdf')).read()
@@ -100,7 +100,7 @@ def test_loads_do_not_pile_up_and_services_answer_during_a_load(ros):
     np.testing.assert_allclose(ros.send(JOINTS, Q), load_urdf(ARM).gravity(Q), atol=1e-9)
     gate.set()
     wait_until(lambda: node.core.loading == '' and not node.background.worker.has_outcomes and len(started) == 2,
-               what='loads done')
+               timeout=MODEL_TIMEOUT, what='loads done')
     assert len(started) == 2 and node.background.worker.replaced['model'] == 19
     np.testing.assert_allclose(ros.send(JOINTS, Q), load_urdf(heavier(ARM, 3.0)).gravity(Q), atol=1e-9)
 

@@ -17,7 +17,7 @@ from std_srvs.srv import SetBool, Trigger  # noqa: E402
 
 from lie_dynamics import load_urdf  # noqa: E402
 from lie_dynamics.ros.node import JOINT_STATES_QOS  # noqa: E402
-from test_node import Harness, wait_until  # noqa: E402
+from test_node import MODEL_TIMEOUT, Harness, wait_until  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ARM = open(os.path.join(ROOT, 'config', 'arm7.urdf')).read()
@@ -117,7 +117,7 @@ def test_description_update_policy(ros):
     other = re.sub(r'effort="[^"]*"', 'effort="1000"', ARM.replace('name="lie_arm7"', 'name="other_arm"'))
     assert 'other_arm' in other
     ros.desc_pub.publish(String(data=heavier(other)))
-    wait_until(lambda: 'other_arm' in node.core.description_error, what='refusal')
+    wait_until(lambda: 'other_arm' in node.core.description_error, timeout=MODEL_TIMEOUT, what='refusal')
     assert 'same_robot' in node.core.description_error and node.core.model.name == 'lie_arm7'
     np.testing.assert_allclose(ros.send(JOINTS, Q), g, atol=1e-9)
     wait_until(lambda: ros.diag_values().get('description_update') == 'same_robot', what='diagnostics')

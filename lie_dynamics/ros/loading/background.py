@@ -242,10 +242,9 @@ class Background:
         entities). The trajectory process is waited for before the loader thread ends: a child
         that thread started gets SIGKILL when it ends, before leaving the ROS graph."""
         self.stop_trajectories()   # first: none starts again
-        self.process.stop()   # first: a build waited for ends at once
+        self.process.stop()   # first: a build waited for ends at once, and none starts after
         if self.trajectories is not None:
             self.trajectories.stop()
         self.worker.stop(timeout)
-        self.process.stop()   # one the thread may have started meanwhile
         if self.trajectories is not None:
             self.trajectories.stop()

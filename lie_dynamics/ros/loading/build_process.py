@@ -25,6 +25,7 @@ import signal
 import struct
 import subprocess
 import sys
+import threading
 import time
 import warnings
 
@@ -154,12 +155,14 @@ def child_setup(parent=None):
 
 
 class BuildProcess:
-    """The client side: one child at a time, started on the first build."""
+    """The client side: one child at a time, started on the first build; none after `stop`."""
 
     def __init__(self, timeout=BUILD_TIMEOUT_S):
         self.timeout = timeout
         self._proc = None
         self.started = 0   # children started so far
+        self._lock = threading.Lock()   # a child is started or the client stopped, never both at once
+        self._stopped = False
 
     @property
     def pid(self):
@@ -168,9 +171,12 @@ class BuildProcess:
         return proc.pid if proc is not None and proc.poll() is None else None
 
     def _start(self):
-        self._proc = start_child(__name__)
-        self.started += 1
-        return self._proc
+        with self._lock:
+            if self._stopped:
+                raise BuildLost('the model build process was stopped')
+            self._proc = start_child(__name__)
+            self.started += 1
+            return self._proc
 
     def build(self, source, caps=None, *, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn', running=None,
               warm=()):
@@ -218,8 +224,12 @@ class BuildProcess:
             self._proc = None
 
     def stop(self):
-        """End the child (killed at once: what it builds is not needed any more)."""
-        proc = self._proc
+        """End the child (killed at once: what it builds is not needed any more). No child starts
+        after it: a build still to come (a loader thread that outlived the node's stop) raises
+        BuildLost instead of starting an interpreter for a model nobody takes."""
+        with self._lock:
+            self._stopped = True
+            proc = self._proc
         if proc is not None:
             self._end(proc, kill=True)
 
