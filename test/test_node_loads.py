@@ -375,13 +375,24 @@ def test_replies_keep_flowing_during_heavy_loads(raised):
     the trajectory process either way) open no gap between replies as long as stale_timeout that
     the equally long quiet stretch after them did not have too (this machine's own scheduling).
     Not a speed benchmark: a functional bound (before the trajectory process, rclpy held the
-    node's interpreter lock 30-50 ms for the trajectory)."""
+    node's interpreter lock 30-50 ms for the trajectory; a new structure's observer kernel compiled
+    in the callback that swapped it in stalled it 0.5-0.8 s). An event that fails is run once more
+    and must pass then: beside busy loops the scheduler alone opened single gaps of 100-500 ms."""
     from bench.node_loads import run
     stale_ms = 1e3 * SPECS['stale_timeout'].default   # the node runs with its defaults
+
+    def problem(r):
+        quiet_share = r['quiet_replies'] / max(1, r['quiet_sent'])   # (1 on a quiet machine)
+        if not r['replies'] > 0.5 * quiet_share * r['sent']:   # half the share the quiet stretch got
+            return 'replies'
+        if not r['event_gap_ms'] < max(stale_ms, 2 * r['quiet_gap_ms']):
+            return 'gap'
+        return None
     rows = run(raised=raised)
     assert [r['event'] for r in rows][2:] == ['new structure (kernels generated)', '20 reloads',
                                               '100,000-point trajectory']
-    for r in rows:   # at least half the share of states answered that the quiet stretch after it got
-        quiet_share = r['quiet_replies'] / max(1, r['quiet_sent'])   # (1 on a quiet machine)
-        assert r['replies'] > 0.5 * quiet_share * r['sent'], r
-        assert r['event_gap_ms'] < max(stale_ms, 2 * r['quiet_gap_ms']), r
+    failed = {r['event']: (problem(r), r) for r in rows if problem(r)}
+    if failed:   # once more: a stall of the node comes back, a loaded machine's scheduling hiccup does not
+        again = {r['event']: r for r in run(raised=raised)}
+        for event, (why, first) in failed.items():
+            assert problem(again[event]) is None, (why, first, again[event])
