@@ -154,7 +154,7 @@ def test_a_new_structure_swaps_in_without_generating_kernels_on_the_control_path
                                                                                    monkeypatch):
     """Every kernel the command and the features call for a new kinematic structure (the laws,
     the observer, each ~/dynamics term) is generated where the model is built, not in the
-    joint_states callback that swaps it in (the observer's kernel compiled there: 0.5-0.8 s)."""
+    joint_states callback that swaps it in (the observer's kernel was compiled there)."""
     from rclpy.parameter import Parameter
 
     from lie_dynamics.codegen import kernel

@@ -244,12 +244,17 @@ def killed_dds_process():
     _remove_files_of_killed_processes(before)
 
 
+def _trajectory_ends(ros):
+    """([filled trajectories as they arrive], the publisher of ~/trajectory_in) on the tester node."""
+    out = []
+    ros.t.create_subscription(JointTrajectory, '/dynamics_node/trajectory_out', out.append, 10, raw=True)
+    return out, ros.t.create_publisher(JointTrajectory, '/dynamics_node/trajectory_in', 10)
+
+
 def test_a_trajectory_process_that_dies_or_hangs_is_reported_once(killed_dds_process, ros):
     node = ros.start(robot_description=ARM, max_trajectory_points=200_000)
     g_arm = load_urdf(ARM).gravity(Q)
-    out = []
-    ros.t.create_subscription(JointTrajectory, '/dynamics_node/trajectory_out', out.append, 10, raw=True)
-    pub = ros.t.create_publisher(JointTrajectory, '/dynamics_node/trajectory_in', 10)
+    out, pub = _trajectory_ends(ros)
     tp = node.background.trajectories
     first = tp.pid
     assert first is not None
@@ -316,9 +321,7 @@ def test_an_idle_trajectory_process_that_stops_is_replaced(killed_dds_process, r
     """A child stopped (SIGSTOP) while idle sends no heartbeat: killed after SILENT_S s,
     reported once, replaced by one that fills; an idle child that heartbeats stays."""
     node = ros.start(robot_description=ARM)
-    out = []
-    ros.t.create_subscription(JointTrajectory, '/dynamics_node/trajectory_out', out.append, 10, raw=True)
-    pub = ros.t.create_publisher(JointTrajectory, '/dynamics_node/trajectory_in', 10)
+    out, pub = _trajectory_ends(ros)
     tp = node.background.trajectories
     first = tp.pid
     assert first is not None
@@ -347,9 +350,7 @@ def test_a_trajectory_process_leaves_the_graph_by_itself_when_the_node_stops(kil
     while the node's teardown runs, also one that the loader thread started (a replacement: it
     would get SIGKILL from the kernel if that thread ended first)."""
     node = ros.start(robot_description=ARM)
-    out = []
-    ros.t.create_subscription(JointTrajectory, '/dynamics_node/trajectory_out', out.append, 10, raw=True)
-    pub = ros.t.create_publisher(JointTrajectory, '/dynamics_node/trajectory_in', 10)
+    out, pub = _trajectory_ends(ros)
     tp = node.background.trajectories
     first = tp.pid
     os.kill(first, signal.SIGKILL)
@@ -376,7 +377,7 @@ def test_replies_keep_flowing_during_heavy_loads(raised):
     the equally long quiet stretch after them did not have too (this machine's own scheduling).
     Not a speed benchmark: a functional bound (before the trajectory process, rclpy held the
     node's interpreter lock 30-50 ms for the trajectory; a new structure's observer kernel compiled
-    in the callback that swapped it in stalled it 0.5-0.8 s). An event that fails is run once more
+    in the callback that swapped it in stalled it for the compile). An event that fails is run once more
     and must pass then: beside busy loops the scheduler alone opened single gaps of 100-500 ms."""
     from bench.node_loads import run
     stale_ms = 1e3 * SPECS['stale_timeout'].default   # the node runs with its defaults

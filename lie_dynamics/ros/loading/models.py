@@ -89,7 +89,7 @@ def warm_up(model, kernels=BASE_KERNELS):
     """Run once the kernels the control path will call (keys as Feature.kernels gives them;
     BASE_KERNELS always), so that their code is generated here (the loading thread, or the
     build process, which compiles them into the disk cache) and not at the first joint_states
-    after the swap (a new structure's observer kernel compiled there took 0.5-0.8 s)."""
+    after the swap (a new structure's observer kernel was compiled there)."""
     z = np.zeros(model.n)
     for key in dict.fromkeys(BASE_KERNELS + tuple(kernels)):
         try:
