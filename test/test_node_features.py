@@ -192,6 +192,18 @@ def test_a_new_structure_swaps_in_without_generating_kernels_on_the_control_path
     assert all(after[t] > published[t] for t in published), (published, after)
 
 
+def test_features_name_the_kernels_they_call(node_in_context):
+    """Feature.kernels: what loading/models.warm_up runs for every new model, per the settings."""
+    node = node_in_context[0]
+    s = dict(node.core.settings)
+    assert node.features.kernels(s) == (('observer',),)   # the defaults: the observer only
+    s.update({'observer.enabled': False, 'dynamics.publish': ['mass_matrix', 'jacobian'], 'identify.link': 'tool0'})
+    assert set(node.features.kernels(s)) == {('mass_matrix',), ('jacobian', None, s['dynamics.jacobian_frame']),
+                                             ('identification',)}
+    s.update({'identify.link': '', 'measured_effort': 'none', 'observer.enabled': True, 'dynamics.publish': []})
+    assert node.features.kernels(s) == ()
+
+
 # ---------------------------------------------------------------------- the core pieces, without ROS
 def test_sample_result_is_immutable_and_maps_to_model_order():
     core = Compensator({'stale_timeout': 60.0, 'ramp_time': 0.0})

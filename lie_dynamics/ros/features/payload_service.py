@@ -294,6 +294,10 @@ class PayloadRecording(Feature):
     def check(self, settings, model):
         check_identify_link(settings, model)
 
+    def kernels(self, settings):
+        # the fit's batch kernels, generated before the first ~/identify_payload waits for them
+        return (('identification',),) if settings['identify.link'] or settings['payload.link'] else ()
+
     def on_sample(self, sample):
         self.ident.add(sample)
 

@@ -80,7 +80,11 @@ _WARM = {
     'mass_matrix': lambda m, z: m.mass_matrix(z),
     'observer': lambda m, z: MomentumObserver(m, 1.0).update(0.0, z, z, z),
     'jacobian': lambda m, z, link, frame: m.jacobian(z, link or tip_link(m), frame),
+    # a recording's batch (payload identification): the regressor and inverse dynamics on rows
+    'identification': lambda m, z: (m.regressor(*(np.zeros((IDENTIFY_BATCH, m.n)),) * 3),
+                                    m.inverse_dynamics(*(np.zeros((IDENTIFY_BATCH, m.n)),) * 3)),
 }
+IDENTIFY_BATCH = 200   # states: above every size's rows threshold (codegen/thresholds.py)
 # Every model's: the command's laws.
 BASE_KERNELS = (('gravity',), ('inverse_dynamics',))
 
