@@ -16,7 +16,7 @@ from lie_dynamics import load_urdf  # noqa: E402
 from lie_dynamics.ros.trajectories.trajectory_msgs import trajectory_arrays, trajectory_message  # noqa: E402
 from oracle import Oracle  # noqa: E402
 from robots import random_urdf  # noqa: E402
-from test_node import TOL, Harness, big_limits, throttled, wait_until  # noqa: E402
+from test_node import MODEL_TIMEOUT, TOL, Harness, big_limits, throttled, wait_until  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DESIRED = '/dynamics_node/desired'
@@ -176,7 +176,8 @@ def test_trajectory_fill_with_the_shipped_feedforward_config(ros):
                              np.hstack([QDD[:, perm], pad]))
     msg.header.frame_id = 'keep_me'
     ros.traj_pub.publish(msg)
-    wait_until(lambda: len(ros.trajs) == 1, what='filled trajectory')
+    # the node's trajectory process may still be starting (a cold interpreter: ~10 s beside busy loops)
+    wait_until(lambda: len(ros.trajs) == 1, timeout=MODEL_TIMEOUT, what='filled trajectory')
     out = ros.trajs[0]
     assert list(out.joint_names) == names and out.header.frame_id == 'keep_me' and len(out.points) == N
     arr = trajectory_arrays(out.joint_names, out.points)
