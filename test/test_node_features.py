@@ -12,7 +12,7 @@ import pytest
 
 from lie_dynamics import default_urdf_path
 from lie_dynamics.ros.core.compensator import Compensator
-from lie_dynamics.ros.core.log import EventLog
+from lie_dynamics.ros.core.log import LOG_LINES_PER_CALLBACK, EventLog
 from lie_dynamics.ros.core.sample import SampleResult
 from lie_dynamics.ros.core.watchdog import tick_period
 from lie_dynamics.ros.loading.parameter_change import ParameterChanges, plan_change, reload_answer, start_source
@@ -181,12 +181,16 @@ def test_a_new_structure_swaps_in_without_generating_kernels_on_the_control_path
     while not node.background.worker.has_outcomes and time.monotonic() < deadline:
         time.sleep(0.01)
     published = dict(node.features.get('dynamics').published)
+    n0 = len(node.lines)
     for k in range(5):   # the swap, then the first samples on the new model
         stamp += 1_000_000
-        builds = kernel.builds()
+        builds, n = kernel.builds(), len(node.lines)
         node.on_joint_state(serialized(Q + 0.01 * k, stamp))
         assert kernel.builds() == builds, k
+        assert len(node.lines) - n <= LOG_LINES_PER_CALLBACK, node.lines[n:]   # the swap's lines are paced
     assert core.model is not first and rec.seen[-1][2] is core.model
+    swap_lines = node.lines[n0:]
+    assert any('loaded' in t for t in swap_lines) and any('joint frames or axes changed' in t for t in swap_lines)
     assert node.contact_monitor.active and node.contact_monitor.samples > 0
     after = node.features.get('dynamics').published
     assert all(after[t] > published[t] for t in published), (published, after)
@@ -270,6 +274,21 @@ def test_event_log_throttles_per_class_and_says_what_it_held_back():
     t[0] = 10.0
     log.event('warn', 'a', 'fifth')
     assert lines[4:] == [('warn', 'fifth (1 more like this in the last 2 s)')]
+
+
+def test_a_paced_event_log_writes_its_lines_in_order_a_few_per_flush():
+    lines = []
+    log = EventLog(lambda severity, text: lines.append((severity, text)), period=2.0, clock=lambda: 0.0, pace=1,
+                   queue_max=3)
+    log.events([('info', None, 'first'), ('warn', 'a', 'second'), ('warn', 'a', 'held back'), ('info', None, 'third')])
+    assert lines == [] and log.waiting == 3   # decided (the throttle held one back), not written yet
+    log.flush(1)
+    assert lines == [('info', 'first')] and log.waiting == 2
+    log.events([('error', None, 'fourth'), ('error', None, 'fifth')])   # the queue holds 3: one is counted
+    log.flush()
+    assert [t for _, t in lines] == ['first', 'second', 'third', 'fourth',
+                                     'log lines not written: 1 (more than 3 were waiting)']
+    assert log.waiting == 0 and log.dropped == 0
 
 
 def test_parameter_change_plans_checks_and_loads():

@@ -22,7 +22,7 @@ from . import interfaces
 from .control import Control
 from .core.cdr import JointStateDecoder, read_desired, sample_of
 from .core.compensator import Compensator
-from .core.log import LOG_THROTTLE_S, EventLog, guarded
+from .core.log import LOG_LINES_PER_CALLBACK, LOG_THROTTLE_S, EventLog, guarded
 from .core.params import HELP_DESCRIPTION, HELP_EXAMPLE, PARAMS, help_rows
 from .core.watchdog import tick_period
 from .features.base import Features
@@ -79,7 +79,9 @@ class DynamicsNode(Node):
         self.sources = Sources()      # the running model's source, the last topic message
         self._decoder = JointStateDecoder()   # keeps the last name list: decoded once per stream
         self.outputs = Outputs(self, values['command_topic'])
-        self.event_log = EventLog(self.outputs.log_line)
+        # paced: a callback writes at most LOG_LINES_PER_CALLBACK lines, the timer the rest when idle
+        self.event_log = EventLog(self.outputs.log_line, pace=LOG_LINES_PER_CALLBACK)
+        self._samples = self._ticked = 0   # joint_states callbacks, and their count at the last tick
         # ~/trajectory_in and ~/trajectory_out: served by a process of their own (trajectories/process.py)
         self.background = Background(self.core, self.sources, trajectories=child_config(self),
                                      kernels=lambda settings: self.features.kernels(settings))
@@ -109,11 +111,11 @@ class DynamicsNode(Node):
                 raise ValueError(err)
         self._check(self.core.settings)  # exit 2
         self.features.sync(self.core)
-        self.drain_events()
         if self.core.model is None:
             topic = self.resolve_topic_name('robot_description')
             self.log_event('info', None, f"no robot model yet: waiting for '{topic}' "
                            '(publishing nothing until a model is loaded)')
+        self.drain_events(None)
 
     def _check(self, settings):
         """The checks of settings that need the layout or the model (ValueError)."""
@@ -135,6 +137,7 @@ class DynamicsNode(Node):
         self.features.stop()
         if self.background is not None:   # lines still held back are said before the node goes
             self.event_log.held(float('inf'))
+            self.event_log.flush()
         done = super().destroy_node()
         if self.background is not None:   # waits for the trajectory process (killed if it lingers)
             self.background.stop()
@@ -158,6 +161,7 @@ class DynamicsNode(Node):
         """The joint_states callback: the serialized message (bytes, as the subscription delivers
         it) or a sensor_msgs/JointState (benchmarks drive it in-process with either)."""
         t0 = time.perf_counter()
+        self._samples += 1
         with self.lock:
             core = self.core
             try:
@@ -174,7 +178,7 @@ class DynamicsNode(Node):
             if tau is not None:
                 self._publish(tau, sample.stamp)
             features.feed(core)   # after the command: never delays it
-            if self.events:
+            if self.events or self.event_log.waiting:
                 self.drain_events()
             core.record_compute_time(time.perf_counter() - t0)
 
@@ -198,9 +202,11 @@ class DynamicsNode(Node):
         """One log line, at most one per `key` (the problem class) every LOG_THROTTLE_S s."""
         self.event_log.event(severity, key, text)
 
-    def drain_events(self):
-        """The one event queue (core and features) into the log."""
+    def drain_events(self, limit=LOG_LINES_PER_CALLBACK):
+        """The one event queue (core and features) into the log, and up to `limit` of its
+        waiting lines written (None: all)."""
         self.event_log.events(self.features.drain())
+        self.event_log.flush(limit)
 
     # ------------------------------------------------------------------ timer
     @guarded
@@ -214,6 +220,8 @@ class DynamicsNode(Node):
             if self.events:
                 self.drain_events()
         self.event_log.held()
+        idle, self._ticked = self._samples == self._ticked, self._samples
+        self.event_log.flush(None if idle else LOG_LINES_PER_CALLBACK)   # no joint_states since the last tick: all
         now = time.monotonic()
         if now >= self._next_diag:
             self._next_diag = max(self._next_diag + self._diag_period, now)

@@ -3,21 +3,32 @@ problem class (throttle key) every LOG_THROTTLE_S seconds; what is held back is 
 class's next line, or said by `held` once the period is over (the node's timer, and shutdown);
 every line at most LOG_TEXT_MAX characters. Writing a line is the caller's `emit(severity, text)`.
 """
+import collections
 import time
 
 from .diagnostics import DIAG_TEXT_MAX, LOG_TEXT_MAX, Throttle, clip, held_text
 
 LOG_THROTTLE_S = 2.0
+# A paced log writes this many lines per flush: one per node callback. rclpy's logger costs about
+# 0.2 ms per line (it inspects the caller's frames); a model swap decides several lines at once,
+# which written in one joint_states callback delayed the next reply by a millisecond or more.
+LOG_LINES_PER_CALLBACK = 1
+LOG_QUEUE_MAX = 1000   # lines waiting to be written; beyond it they are counted, not kept
 
 
 class EventLog:
     """Events (severity, key, text) -> throttled lines through emit(severity, text); key None:
-    never throttled."""
+    never throttled. pace None: each line is written as it is decided; else lines wait in order
+    and flush(limit) writes them."""
 
-    def __init__(self, emit, period=LOG_THROTTLE_S, clock=time.monotonic):
+    def __init__(self, emit, period=LOG_THROTTLE_S, clock=time.monotonic, pace=None, queue_max=LOG_QUEUE_MAX):
         self.emit = emit
         self.period = period
         self.throttle = Throttle(period, clock)
+        self.pace = pace
+        self.queue_max = queue_max
+        self._queue = collections.deque()
+        self.dropped = 0
 
     def event(self, severity, key, text):
         """One line, at most one per `key` every `period` s."""
@@ -26,7 +37,7 @@ class EventLog:
             if held is None:
                 return
             text = held_text(text, held, self.period)
-        self.emit(severity, clip(text, LOG_TEXT_MAX))
+        self._write(severity, text)
 
     def events(self, events):
         for severity, key, text in events:
@@ -35,7 +46,32 @@ class EventLog:
     def held(self, now=None):
         """Classes whose period ended with lines held back: their newest line, with how many more."""
         for (severity, text), more in self.throttle.due(now):
-            self.emit(severity, clip(held_text(text, more, self.period), LOG_TEXT_MAX))
+            self._write(severity, held_text(text, more, self.period))
+
+    def _write(self, severity, text):
+        text = clip(text, LOG_TEXT_MAX)
+        if self.pace is None:
+            self.emit(severity, text)
+        elif len(self._queue) < self.queue_max:
+            self._queue.append((severity, text))
+        else:
+            self.dropped += 1
+
+    @property
+    def waiting(self):
+        """Lines decided and not yet written (a paced log)."""
+        return len(self._queue)
+
+    def flush(self, limit=None):
+        """Write up to `limit` waiting lines, oldest first (None: all of them); then, with room
+        left, how many lines did not fit in the queue."""
+        n = 0
+        while self._queue and (limit is None or n < limit):
+            self.emit(*self._queue.popleft())
+            n += 1
+        if self.dropped and not self._queue and (limit is None or n < limit):
+            self.emit('warn', f'log lines not written: {self.dropped} (more than {self.queue_max} were waiting)')
+            self.dropped = 0
 
 
 def guarded(callback):
