@@ -306,3 +306,13 @@ def test_bad_trajectories_are_rejected_with_a_reason(arm):
     assert c.on_trajectory(joints, pts()) is None and 'disabled' in c.last_error
     c.update({'enabled': True})
     assert c.on_trajectory(joints, pts()) is not None
+
+
+def test_a_fill_lost_with_its_process_is_not_said_to_be_unpublished():
+    c = Compensator()
+    c.trajectory_done('bad header')
+    assert c.events[-1][2].endswith('(nothing published)') and c.count.trajectories_rejected == 1
+    # the trajectory process died between its fill and its report: the node cannot know which
+    c.trajectory_done('trajectory process exited with status -9 while filling', kind='process')
+    assert 'may have published it' in c.events[-1][2] and 'nothing published' not in c.events[-1][2]
+    assert c.events[-1][1] == 'trajectory:process' and c.count.trajectories_rejected == 2

@@ -71,7 +71,8 @@ class TrajectoryInput:
 
     def trajectory_done(self, error=None, note=None, kind='malformed'):
         """Count a trajectory fill and queue its log lines: error is why it was rejected
-        (nothing published; kind the problem class), note the clamp note of a filled one."""
+        (nothing published; kind the problem class), note the clamp note of a filled one. Kind
+        'process': the trajectory process was lost during the fill, perhaps after publishing it."""
         if note:
             self.events.append(('warn', 'trajectory:clamp', note))
         if error is None:
@@ -80,7 +81,8 @@ class TrajectoryInput:
         self.count.trajectories_rejected += 1
         self.last_error = clip(f'trajectory rejected: {error}', DIAG_TEXT_MAX)
         key = 'trajectory:' + (problem_key(error) if kind == 'malformed' else kind)
-        self.events.append(('warn', key, self.last_error + ' (nothing published)'))
+        said = ' (the lost process may have published it first)' if kind == 'process' else ' (nothing published)'
+        self.events.append(('warn', key, self.last_error + said))
         return None
 
     def on_trajectory(self, names, points):
