@@ -29,7 +29,9 @@ from its start until the node is done (its diagnostics, every 0.1 s, say model_s
 again; a trajectory: ~/trajectory_out or its rejection in the log) plus 0.2 s. --busy N runs N
 busy-loop processes beside it all along (killed at the end). Reported per event: the largest
 gap in the event window and in the quiet stretch after it, their difference (the target: at
-most 2 ms), replies against states sent, and how long the event took; with --repeat R every
+most 2 ms), the same difference for the streaming process's own sends (when the machine delays
+that process, replies wait for states not yet sent: that part is not the node's), replies
+against states sent, and how long the event took; with --repeat R every
 event runs R times and each column is the median. --nice N (negative: needs the privilege)
 runs this process and the node at that niceness, the busy loops at the usual one: on a machine
 that others load, the gaps then show the node rather than the scheduler. --node-src DIR runs
@@ -272,8 +274,11 @@ def _row(name, t0, t_done, t1, sends, replies):
     t2 = 2 * t1 - t0
     busy, n_busy = gap(replies, t0, t1)
     quiet, n_quiet = gap(replies, t1, t2)
+    # the streaming process's own largest gap between sends: when the machine delays it, the
+    # replies wait for states that were not sent yet, whatever the node does
+    own = (gap(sends, t0, t1)[0] - gap(sends, t1, t2)[0]) * 1e3
     return {'event': name, 'quiet_gap_ms': quiet * 1e3, 'event_gap_ms': busy * 1e3, 'widened_ms': (busy - quiet) * 1e3,
-            'replies': n_busy, 'sent': len(_window(sends, t0, t1)), 'event_s': t_done - t0,
+            'send_widened_ms': own, 'replies': n_busy, 'sent': len(_window(sends, t0, t1)), 'event_s': t_done - t0,
             'quiet_replies': n_quiet, 'quiet_sent': len(_window(sends, t1, t2))}
 
 
@@ -428,11 +433,12 @@ def _medians(rows):
 def markdown(rows, raised, busy):
     head = (f"caps {'raised' if raised else 'default'}, {busy} busy loops beside; joint_states at {RATE:g} Hz; "
             f'niceness {os.getpriority(os.PRIO_PROCESS, 0)}; quiet stretch after each event, as long as its window')
-    lines = [head, '', '| event | runs | quiet gap ms | event gap ms | widened ms | replies / sent | event s |',
-             '|---|---|---|---|---|---|---|']
+    lines = [head, '', '| event | runs | quiet gap ms | event gap ms | widened ms | sends widened ms | replies / sent '
+             '| event s |', '|---|---|---|---|---|---|---|---|']
     for r in rows:
         lines.append(f"| {r['event']} | {r['runs']} | {r['quiet_gap_ms']:.1f} | {r['event_gap_ms']:.1f} | "
-                     f"{r['widened_ms']:+.1f} | {r['replies']:.0f} / {r['sent']:.0f} | {r['event_s']:.2f} |")
+                     f"{r['widened_ms']:+.1f} | {r['send_widened_ms']:+.1f} | {r['replies']:.0f} / {r['sent']:.0f} | "
+                     f"{r['event_s']:.2f} |")
     return '\n'.join(lines)
 
 
