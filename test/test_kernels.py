@@ -139,3 +139,32 @@ def test_pickle_copy_and_threads():
     for t in threads:
         t.join()
     assert all(np.array_equal(r, expected) for rs in results for r in rs)
+
+
+def test_a_deferring_thread_builds_no_kernel_and_takes_the_reference(tmp_path, monkeypatch):
+    """runtime.deferred (the node's control path): a kernel not built yet is not built in that
+    thread; the call takes the reference, the build is requested, and `build` (another thread's
+    work) makes later calls use the kernel."""
+    from lie_dynamics.codegen import kernel
+    from robots import random_urdf
+    monkeypatch.setenv('LIE_DYNAMICS_CACHE_DIR', str(tmp_path))   # nothing compiled yet
+    model = load_urdf(random_urdf(90817, 6))   # a structure no other test uses
+    q, qd, qdd = _states(model, 1, seed=3)[:, 0]
+    asked, builds = {}, kernel.builds()
+    with runtime.deferred(lambda m, spec: asked.setdefault(spec.name, (m, spec))):
+        g = model.gravity(q)
+        tau = model.inverse_dynamics(q, qd, qdd)
+    assert kernel.builds() == builds
+    assert {traced_rnea.GRAVITY.name, traced_rnea.INVERSE_DYNAMICS.name} <= set(asked)
+    assert all(m is model for m, _ in asked.values())
+    for m, spec in asked.values():
+        runtime.build(m, spec)
+    assert kernel.builds() > builds
+    again = []
+    with runtime.deferred(lambda m, spec: again.append(spec.name)):
+        g2 = model.gravity(q)
+        tau2 = model.inverse_dynamics(q, qd, qdd)
+    assert again == []   # built: the kernels answer
+    assert _rel(g2, g) < 1e-12 and _rel(tau2, tau) < 1e-12
+    assert _rel(g, rnea.gravity_vectorized(model, q)) < 1e-12   # the reference answered
+    assert _rel(tau, rnea.inverse_dynamics_vectorized(model, q, qd, qdd)) < 1e-12

@@ -5,6 +5,7 @@ model swap from a new robot_description; and the plain-Python pieces the node's 
 (core/sample.py, core/log.py, loading/parameter_change.py) without ROS."""
 import os
 import re
+import threading
 import time
 
 import numpy as np
@@ -178,22 +179,83 @@ def test_a_new_structure_swaps_in_without_generating_kernels_on_the_control_path
     xml = xml.replace(old, '<origin xyz="0 0 0.340003217" rpy="0 0 0"/>', 1)
     assert node.set_parameters([Parameter('robot_description', value=xml)])[0].successful
     deadline = time.monotonic() + 120
-    while not node.background.worker.has_outcomes and time.monotonic() < deadline:
+    while node.background.worker.busy('model') is not None and time.monotonic() < deadline:
         time.sleep(0.01)
     published = dict(node.features.get('dynamics').published)
-    n0 = len(node.lines)
+    n0, deferred = len(node.lines), node.background.builds_deferred
     for k in range(5):   # the swap, then the first samples on the new model
         stamp += 1_000_000
         builds, n = kernel.builds(), len(node.lines)
         node.on_joint_state(serialized(Q + 0.01 * k, stamp))
         assert kernel.builds() == builds, k
+        assert node.background.builds_deferred == deferred, k   # warmed with the model: none lacking
         assert len(node.lines) - n <= LOG_LINES_PER_CALLBACK, node.lines[n:]   # the swap's lines are paced
     assert core.model is not first and rec.seen[-1][2] is core.model
+    node.event_log.held(float('inf'))   # ('model' lines are throttled: start-up said one within 2 s)
+    node.event_log.flush()   # (the timer's work when no joint_states come)
     swap_lines = node.lines[n0:]
-    assert any('loaded' in t for t in swap_lines) and any('joint frames or axes changed' in t for t in swap_lines)
+    assert any('loaded' in t for t in swap_lines), swap_lines
+    assert any('joint frames or axes changed' in t for t in swap_lines), swap_lines
     assert node.contact_monitor.active and node.contact_monitor.samples > 0
     after = node.features.get('dynamics').published
     assert all(after[t] > published[t] for t in published), (published, after)
+
+
+def test_a_feature_turned_on_at_run_time_gets_its_kernels_built_off_the_control_path(node_in_context, tmp_path,
+                                                                                   monkeypatch):
+    """A kernel the control path lacks (here: ~/dynamics terms turned on after their model was
+    loaded, on a structure no cache holds) is not built in a joint_states callback: the reference
+    answers there, the loader thread builds it, and later samples use it."""
+    from rclpy.parameter import Parameter
+
+    from lie_dynamics.codegen.kernel import Kernel
+    monkeypatch.setenv('LIE_DYNAMICS_CACHE_DIR', str(tmp_path))
+    builders = []   # the threads that built a kernel's Python forms or its C library
+
+    def spying(name):
+        orig = getattr(Kernel, name)
+
+        def spy(self):
+            if not self.built(name == 'native'):
+                builders.append(threading.get_ident())
+            return orig(self)
+        return spy
+    for name in ('python', 'native'):
+        monkeypatch.setattr(Kernel, name, spying(name))
+    node, rec, order = node_in_context
+    core = node.core
+    with open(default_urdf_path()) as fh:
+        xml = fh.read()
+    # joint1 moved by 5.113 micrometres: a structure no other test uses, loaded with no ~/dynamics term
+    xml = xml.replace('<origin xyz="0 0 0.34" rpy="0 0 0"/>', '<origin xyz="0 0 0.340005113" rpy="0 0 0"/>', 1)
+    first = core.model
+    assert node.set_parameters([Parameter('robot_description', value=xml)])[0].successful
+    deadline = time.monotonic() + 120
+    while node.background.worker.busy('model') is not None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    stamp = 10**9
+    node.on_joint_state(serialized(Q, stamp))
+    assert core.model is not first
+    assert all(r.successful for r in node.set_parameters([
+        Parameter('dynamics.publish', value=['mass_matrix', 'jacobian']), Parameter('dynamics.rate', value=0.0)]))
+    deferred = node.background.builds_deferred
+    builders.clear()
+    for k in range(5):
+        stamp += 1_000_000
+        node.on_joint_state(serialized(Q + 0.01 * k, stamp))
+    me = threading.get_ident()
+    assert me not in builders   # the callbacks built nothing ...
+    assert node.background.builds_deferred > deferred   # ... they asked the loader thread
+    published = dict(node.features.get('dynamics').published)
+    assert published['mass_matrix'] >= 5 and published['jacobian'] >= 5   # answered by the reference
+    while node.background.worker.busy('kernels') is not None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert builders and me not in builders   # built there
+    deferred = node.background.builds_deferred
+    for _ in range(3):
+        stamp += 1_000_000
+        node.on_joint_state(serialized(Q, stamp))
+    assert node.background.builds_deferred == deferred and me not in builders   # now the kernels serve
 
 
 def test_features_name_the_kernels_they_call(node_in_context):

@@ -113,6 +113,16 @@ class Kernel:
                 self._trace = t
         return t
 
+    def built(self, native, python=True):
+        """Whether calling it builds nothing. native: its C library is wanted (then loaded, or
+        known to be unavailable); python: its Python forms, where no C library serves."""
+        if native:
+            if self._native is None:
+                return False
+            if self._native:
+                return True
+        return not python or self.function is not None or self.supported is False
+
     def python(self):
         """Build the float function and the rows source (once); False when there is no kernel."""
         if self.function is not None:

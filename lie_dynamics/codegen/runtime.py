@@ -13,7 +13,8 @@ one kernel.Kernel. `route` is the one dispatch decision: the float kernel (one s
 small batch state by state), the kernel on numpy rows (a large batch), or None: the
 algorithm's vectorised reference. Every algorithm entry point runs `fast` (the call as
 given), then, when it declines, Model.validate once and `run` (native, route, kernel,
-accept), then its reference.
+accept), then its reference. A thread inside `deferred` (a control path) never builds kernel
+code: until another thread has built it (`build`), its calls take the reference.
 """
 import collections
 import contextlib
@@ -160,6 +161,49 @@ def _entry(model, spec):
             k = _shared((fp, spec.name), lambda: Kernel(lambda: spec.build(fr), spec.name, fr, fp))
         s.kernels[spec.name] = k
     return k or None
+
+
+# ---------------------------------------------------------------------------- deferred builds
+_DEFER = threading.local()
+
+
+@contextlib.contextmanager
+def deferred(request):
+    """Within it this thread builds no kernel code: a call whose kernel is not built yet (its C
+    library not loaded, its Python forms not made) takes the algorithm's reference path, and
+    request(model, spec) asks for the build, which `build` does in another thread. For a control
+    path: generating and compiling a kernel takes up to seconds, the reference answers at once."""
+    old = getattr(_DEFER, 'request', None)
+    _DEFER.request = request
+    try:
+        yield
+    finally:
+        _DEFER.request = old
+
+
+def _native_on(model):
+    return _native.wanted() and not _slot(model).structure.get('native_off')
+
+
+def _later(model, spec, python=True):
+    """True when this thread defers builds (`deferred`) and spec's kernel for this model is not
+    built (python False: its C library only); its build is then requested."""
+    request = getattr(_DEFER, 'request', None)
+    if request is None:
+        return False
+    k = _entry(model, spec)
+    if k is None or k.built(_native_on(model), python):
+        return False
+    request(model, spec)
+    return True
+
+
+def build(model, spec):
+    """Build spec's kernel code for this model (what a deferred call requested): its C library
+    where the native backend works, else its Python forms."""
+    k = _entry(model, spec)
+    if k is not None and not (_native_on(model) and k.native()):
+        k.python()
 
 
 # ---------------------------------------------------------------------------- parameters
@@ -371,6 +415,8 @@ def fast(model, spec):
         s = _slot(model)
     f = s.fast.get(spec)
     if f is None:
+        if _later(model, spec):   # not kept: it may be built by the next call
+            return _declined
         f = native(model, spec)
         if f is None:
             b = _bind(s, model, spec) if route(model, spec.limits) == 'loop' else False
@@ -391,6 +437,8 @@ def native(model, spec):
         s = _slot(model)
     b = s.natives.get(spec)
     if b is None:
+        if _later(model, spec, python=False):
+            return None
         b = s.natives[spec] = _bind_native(model, spec) or False
     return b or None
 
@@ -453,8 +501,10 @@ def run(model, spec, arrays, mode=None, native_first=True, c_order=False):
     as Spec.result says and scattered into place (Kernel.scatter). Returns (N, values of one
     state's result); c_order: the rows kernel writes a C-ordered array (else it returns the
     transpose of a state-last one). None: no kernel, the vectorised reference is faster, or
-    the outputs failed the check (the reference then reports it)."""
+    the outputs failed the check (the reference then reports it), or a build this thread defers."""
     N = len(arrays[0])
+    if _later(model, spec):
+        return None
     if mode is None and native_first:
         nk = native(model, spec)
         if nk is not None:

@@ -162,7 +162,7 @@ class DynamicsNode(Node):
         it) or a sensor_msgs/JointState (benchmarks drive it in-process with either)."""
         t0 = time.perf_counter()
         self._samples += 1
-        with self.lock:
+        with self.lock, self.background.deferred():   # no kernel is built on the control path
             core = self.core
             try:
                 sample = self._decoder.read(msg) if isinstance(msg, bytes) else sample_of(msg)
@@ -211,7 +211,7 @@ class DynamicsNode(Node):
     # ------------------------------------------------------------------ timer
     @guarded
     def _on_timer(self):
-        with self.lock:
+        with self.lock, self.background.deferred():
             self.background.collect()
             self.features.before_command(self.core)
             cmd = self.core.tick()

@@ -30,7 +30,9 @@ import ctypes
 import functools
 import os
 import sys
+import weakref
 
+from ...codegen import runtime
 from .build_process import BuildProcess, build, read_description
 from ..core.diagnostics import clip
 from ..core.messages import Rejected
@@ -82,7 +84,9 @@ class Background:
         self.core = core
         self.sources = sources
         self.kernels = kernels or (lambda settings: ())
-        self.worker = Worker('lie_dynamics_loader')
+        self.worker = Worker('lie_dynamics_loader', slots=('model', 'trajectory', 'kernels'))
+        self._later = {}   # (id(model), kernel name) -> (model ref, spec): builds the control path deferred
+        self.builds_deferred = 0   # kernels the control path lacked (not warmed with their model)
         self.process = BuildProcess()   # its child starts with the first load after start-up
         self.running_xml = None         # the description text of the running model
         self.trajectories = None
@@ -178,6 +182,32 @@ class Background:
                 error = exc
         return self.core.note_description_error(f'{label}: {str(error) or type(error).__name__}')
 
+    # ------------------------------------------------------------------ kernels
+    def deferred(self):
+        """The control path's context: it builds no kernel code (codegen.runtime.deferred); a
+        kernel it lacks (a feature turned on at run time, on a structure whose kernels no cache
+        holds) is built in the loader thread, and until then the reference answers."""
+        return runtime.deferred(self._request_build)
+
+    def _request_build(self, model, spec):
+        key = (id(model), spec.name)
+        if key not in self._later:   # (a failed build stays here: never asked again)
+            self._later[key] = (weakref.ref(model), spec)
+            self.builds_deferred += 1
+            try:
+                self.worker.submit('kernels', 'kernels', self._build_later)
+            except RuntimeError:   # the node is stopping
+                pass
+
+    def _build_later(self):
+        """(worker thread) The kernels the control path asked for."""
+        with short_switch_interval():
+            for key, (ref, spec) in list(self._later.items()):
+                model = ref()
+                if model is not None:
+                    runtime.build(model, spec)   # raises: the key stays, the error is reported once
+                self._later.pop(key, None)
+
     # ------------------------------------------------------------------ trajectories
     def _on_ask(self, child, seq, points):
         """The trajectory process has a trajectory of `points` points (its reader thread)."""
@@ -212,6 +242,10 @@ class Background:
             for out in worker.outcomes():
                 if out.slot == 'model':
                     self._install(out.tag, out.value, out.error)
+                elif out.slot == 'kernels':
+                    if out.error is not None:
+                        core.events.append(('warn', 'kernels', f'a kernel could not be built: '
+                                                               f'{type(out.error).__name__}: {out.error}'))
                 elif out.error is not None:   # the trajectory process was not answered: it waits for a fill
                     core.trajectory_done(f'{type(out.error).__name__}: {out.error}')
                 elif out.value is not None:   # refused: counted here
