@@ -167,18 +167,29 @@ def _entry(model, spec):
 _DEFER = threading.local()
 
 
-@contextlib.contextmanager
-def deferred(request):
-    """Within it this thread builds no kernel code: a call whose kernel is not built yet (its C
-    library not loaded, its Python forms not made) takes the algorithm's reference path, and
-    request(model, spec) asks for the build, which `build` does in another thread. For a control
-    path: generating and compiling a kernel takes up to seconds, the reference answers at once."""
-    old = getattr(_DEFER, 'request', None)
-    _DEFER.request = request
-    try:
-        yield
-    finally:
-        _DEFER.request = old
+class deferred:
+    """`with deferred(request):` this thread builds no kernel code: a call whose kernel is not
+    built yet (its C library not loaded, its Python forms not made) takes the algorithm's
+    reference path, and request(model, spec) asks for the build, which `build` does in another
+    thread. For a control path: generating and compiling a kernel takes up to seconds, the
+    reference answers at once. One instance may be entered again, by any thread (a class, not a
+    generator: a control path enters it per message, in about a tenth of a microsecond)."""
+    __slots__ = ('request',)
+
+    def __init__(self, request):
+        self.request = request
+
+    def __enter__(self):
+        stack = getattr(_DEFER, 'stack', None)
+        if stack is None:
+            stack = _DEFER.stack = []
+        stack.append(getattr(_DEFER, 'request', None))
+        _DEFER.request = self.request
+        return self
+
+    def __exit__(self, *exc):
+        _DEFER.request = _DEFER.stack.pop()
+        return False
 
 
 def _native_on(model):

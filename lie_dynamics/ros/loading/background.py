@@ -87,6 +87,7 @@ class Background:
         self.worker = Worker('lie_dynamics_loader', slots=('model', 'trajectory', 'kernels'))
         self._later = {}   # (id(model), kernel name) -> (model ref, spec): builds the control path deferred
         self.builds_deferred = 0   # kernels the control path lacked (not warmed with their model)
+        self._deferring = runtime.deferred(self._request_build)
         self.process = BuildProcess()   # its child starts with the first load after start-up
         self.running_xml = None         # the description text of the running model
         self.trajectories = None
@@ -187,7 +188,7 @@ class Background:
         """The control path's context: it builds no kernel code (codegen.runtime.deferred); a
         kernel it lacks (a feature turned on at run time, on a structure whose kernels no cache
         holds) is built in the loader thread, and until then the reference answers."""
-        return runtime.deferred(self._request_build)
+        return self._deferring
 
     def _request_build(self, model, spec):
         key = (id(model), spec.name)
