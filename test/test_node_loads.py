@@ -25,7 +25,7 @@ from lie_dynamics.ros.trajectories.process import (SILENT_S, STOP_S, TrajectoryP
 from lie_dynamics.ros.trajectory_process import child_config  # noqa: E402
 from lie_dynamics.ros.core.params import SPECS  # noqa: E402
 from lie_dynamics.ros.node import LOG_THROTTLE_S  # noqa: E402
-from test_node import Harness, wait_until  # noqa: E402
+from test_node import MODEL_TIMEOUT, Harness, wait_until  # noqa: E402
 
 from test_node_robustness import ARM, JOINTS, Q, ROOT, heavier, serialized  # noqa: E402
 
@@ -138,6 +138,19 @@ def test_build_process_answers_refuses_and_is_replaced():
 
 def _loading(node):
     return node.background.process.pid is not None and node.core.loading != ''
+
+
+def test_a_node_without_a_model_starts_its_build_process_at_once(ros):
+    """Waiting for its first description, the node starts the build process at start-up (an
+    interpreter's start-up took ~10 s on a loaded machine), and that process builds it."""
+    node = ros.start(wait_model=False)
+    proc = node.background.process
+    assert node.core.model is None and proc.started == 1
+    pid = proc.pid
+    assert pid is not None
+    ros.desc_pub.publish(String(data=ARM))
+    wait_until(lambda: node.core.model is not None, timeout=MODEL_TIMEOUT, what='model from the topic')
+    assert proc.started == 1 and proc.pid == pid
 
 
 def test_a_build_process_that_dies_or_hangs_is_reported_once(ros):

@@ -112,6 +112,7 @@ class DynamicsNode(Node):
         self._check(self.core.settings)  # exit 2
         self.features.sync(self.core)
         if self.core.model is None:
+            self.background.expect_description()
             topic = self.resolve_topic_name('robot_description')
             self.log_event('info', None, f"no robot model yet: waiting for '{topic}' "
                            '(publishing nothing until a model is loaded)')

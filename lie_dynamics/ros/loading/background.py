@@ -88,7 +88,7 @@ class Background:
         self._later = {}   # (id(model), kernel name) -> (model ref, spec): builds the control path deferred
         self.builds_deferred = 0   # kernels the control path lacked (not warmed with their model)
         self._deferring = runtime.deferred(self._request_build)
-        self.process = BuildProcess()   # its child starts with the first load after start-up
+        self.process = BuildProcess()   # its child starts with the first load (expect_description: at start-up)
         self.running_xml = None         # the description text of the running model
         self.trajectories = None
         if trajectories is not None:
@@ -96,6 +96,11 @@ class Background:
             self.trajectories.start()
 
     # ------------------------------------------------------------------ robot descriptions
+    def expect_description(self):
+        """No model yet: the first one comes from a topic or a parameter, built in the build
+        process, which starts now (its start-up overlaps the wait instead of delaying the model)."""
+        self.process.prestart()
+
     def precheck(self, kind, text, settings=None):
         """Why the description (kind, text) is refused before it is read, or None."""
         s = self.core.settings if settings is None else settings
