@@ -151,6 +151,25 @@ def test_each_accepted_state_once_in_order_across_a_model_swap(node_in_context):
     assert not node.events
 
 
+def kernel_builders(monkeypatch):
+    """The list of the threads that build a kernel's Python forms or its C library from now on
+    (kernel.builds() counts every thread's: the loader thread may build meanwhile)."""
+    from lie_dynamics.codegen.kernel import Kernel
+    builders = []
+
+    def spying(name):
+        orig = getattr(Kernel, name)
+
+        def spy(self):
+            if not self.built(name == 'native'):
+                builders.append(threading.get_ident())
+            return orig(self)
+        return spy
+    for name in ('python', 'native'):
+        monkeypatch.setattr(Kernel, name, spying(name))
+    return builders
+
+
 def test_a_new_structure_swaps_in_without_generating_kernels_on_the_control_path(node_in_context, tmp_path,
                                                                                    monkeypatch):
     """Every kernel the command and the features call for a new kinematic structure (the laws,
@@ -158,8 +177,8 @@ def test_a_new_structure_swaps_in_without_generating_kernels_on_the_control_path
     joint_states callback that swaps it in (the observer's kernel was compiled there)."""
     from rclpy.parameter import Parameter
 
-    from lie_dynamics.codegen import kernel
     monkeypatch.setenv('LIE_DYNAMICS_CACHE_DIR', str(tmp_path))   # nothing cached: the build process compiles
+    builders = kernel_builders(monkeypatch)
     node, rec, order = node_in_context
     core = node.core
     assert all(r.successful for r in node.set_parameters([
@@ -183,11 +202,12 @@ def test_a_new_structure_swaps_in_without_generating_kernels_on_the_control_path
         time.sleep(0.01)
     published = dict(node.features.get('dynamics').published)
     n0, deferred = len(node.lines), node.background.builds_deferred
+    builders.clear()
     for k in range(5):   # the swap, then the first samples on the new model
         stamp += 1_000_000
-        builds, n = kernel.builds(), len(node.lines)
+        n = len(node.lines)
         node.on_joint_state(serialized(Q + 0.01 * k, stamp))
-        assert kernel.builds() == builds, k
+        assert threading.get_ident() not in builders, k
         assert node.background.builds_deferred == deferred, k   # warmed with the model: none lacking
         assert len(node.lines) - n <= LOG_LINES_PER_CALLBACK, node.lines[n:]   # the swap's lines are paced
     assert core.model is not first and rec.seen[-1][2] is core.model
@@ -208,20 +228,8 @@ def test_a_feature_turned_on_at_run_time_gets_its_kernels_built_off_the_control_
     answers there, the loader thread builds it, and later samples use it."""
     from rclpy.parameter import Parameter
 
-    from lie_dynamics.codegen.kernel import Kernel
     monkeypatch.setenv('LIE_DYNAMICS_CACHE_DIR', str(tmp_path))
-    builders = []   # the threads that built a kernel's Python forms or its C library
-
-    def spying(name):
-        orig = getattr(Kernel, name)
-
-        def spy(self):
-            if not self.built(name == 'native'):
-                builders.append(threading.get_ident())
-            return orig(self)
-        return spy
-    for name in ('python', 'native'):
-        monkeypatch.setattr(Kernel, name, spying(name))
+    builders = kernel_builders(monkeypatch)
     node, rec, order = node_in_context
     core = node.core
     with open(default_urdf_path()) as fh:
@@ -351,6 +359,15 @@ def test_a_paced_event_log_writes_its_lines_in_order_a_few_per_flush():
     assert [t for _, t in lines] == ['first', 'second', 'third', 'fourth',
                                      'log lines not written: 1 (more than 3 were waiting)']
     assert log.waiting == 0 and log.dropped == 0
+    # the timer: one line while messages come (their callbacks write the others), all when none came
+    log.events([('info', None, 'a'), ('info', None, 'b'), ('info', None, 'c')])
+    log.tick(7)
+    assert lines[-1] == ('info', 'a') and log.waiting == 2
+    log.tick(8)
+    assert lines[-1] == ('info', 'b') and log.waiting == 1
+    log.events([('info', None, 'd')])
+    log.tick(8)   # no message since the last tick
+    assert [t for _, t in lines[-2:]] == ['c', 'd'] and log.waiting == 0
 
 
 def test_parameter_change_plans_checks_and_loads():

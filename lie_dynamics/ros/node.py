@@ -79,9 +79,8 @@ class DynamicsNode(Node):
         self.sources = Sources()      # the running model's source, the last topic message
         self._decoder = JointStateDecoder()   # keeps the last name list: decoded once per stream
         self.outputs = Outputs(self, values['command_topic'])
-        # paced: a callback writes at most LOG_LINES_PER_CALLBACK lines, the timer the rest when idle
-        self.event_log = EventLog(self.outputs.log_line, pace=LOG_LINES_PER_CALLBACK)
-        self._samples = self._ticked = 0   # joint_states callbacks, and their count at the last tick
+        self.event_log = EventLog(self.outputs.log_line, pace=LOG_LINES_PER_CALLBACK)   # lines per callback
+        self._samples = 0   # joint_states callbacks (the timer writes every waiting line when none came)
         # ~/trajectory_in and ~/trajectory_out: served by a process of their own (trajectories/process.py)
         self.background = Background(self.core, self.sources, trajectories=child_config(self),
                                      kernels=lambda settings: self.features.kernels(settings))
@@ -220,9 +219,7 @@ class DynamicsNode(Node):
                 self._publish(cmd)
             if self.events:
                 self.drain_events()
-        self.event_log.held()
-        idle, self._ticked = self._samples == self._ticked, self._samples
-        self.event_log.flush(None if idle else LOG_LINES_PER_CALLBACK)   # no joint_states since the last tick: all
+        self.event_log.tick(self._samples)   # held-back lines; every waiting one if no joint_states came
         now = time.monotonic()
         if now >= self._next_diag:
             self._next_diag = max(self._next_diag + self._diag_period, now)

@@ -29,6 +29,7 @@ class EventLog:
         self.queue_max = queue_max
         self._queue = collections.deque()
         self.dropped = 0
+        self._samples = None   # the caller's message count at the last tick
 
     def event(self, severity, key, text):
         """One line, at most one per `key` every `period` s."""
@@ -47,6 +48,14 @@ class EventLog:
         """Classes whose period ended with lines held back: their newest line, with how many more."""
         for (severity, text), more in self.throttle.due(now):
             self._write(severity, held_text(text, more, self.period))
+
+    def tick(self, samples, now=None):
+        """(a timer) The held-back lines that are due (held), then the waiting lines: all of them
+        when no message came since the last tick (`samples`, a count the caller keeps), else
+        one pace."""
+        self.held(now)
+        idle, self._samples = samples == self._samples, samples
+        self.flush(None if idle or self.pace is None else self.pace)
 
     def _write(self, severity, text):
         text = clip(text, LOG_TEXT_MAX)
