@@ -50,7 +50,8 @@ def sim_params(duration):
 
 
 def record(node, rec, depth):
-    """Subscribe the demo's recorder to the estimate, the flag and the truth; append to rec."""
+    """Subscribe the demo's recorder to the estimate, the flag and the truth; append to rec.
+    Returns whether the estimate and the flag readers have matched their publishers."""
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Bool
 
@@ -61,9 +62,10 @@ def record(node, rec, depth):
         return on_msg
     # Every message as it comes (copies of re-sent states too): Bool has no stamp, the node publishes
     # it right after each estimate, both reliable and in order, so the k-th flag is the k-th estimate's.
-    node.create_subscription(JointState, EXTERNAL_TOPIC, stamped('ext_t', 'ext'), depth)
+    ext = node.create_subscription(JointState, EXTERNAL_TOPIC, stamped('ext_t', 'ext'), depth)
     node.create_subscription(JointState, TRUTH_TOPIC, stamped('true_t', 'true'), depth)
-    node.create_subscription(Bool, COLLISION_TOPIC, lambda m: rec['flag'].append(bool(m.data)), depth)
+    flag = node.create_subscription(Bool, COLLISION_TOPIC, lambda m: rec['flag'].append(bool(m.data)), depth)
+    return lambda: ext.get_publisher_count() >= 1 and flag.get_publisher_count() >= 1
 
 
 def samples(rec):
