@@ -82,6 +82,10 @@ def scenarios():
     }
 
 
+# After SIGINT, a process has this long to stop before it is killed
+STOP_GRACE_S = 5.0
+
+
 class Stack:
     """The processes of one scenario; always cleaned up (context manager)."""
 
@@ -119,17 +123,21 @@ class Stack:
         return self
 
     def __exit__(self, *exc):
+        from .sim_node import DELIVER_TIMEOUT_S
         finished = exc[0] is None
+        # a process that ends by itself is not asked to stop while it may still be delivering its
+        # last states and exiting (a loaded machine takes seconds): its own bound, then the grace
+        deadline = time.monotonic() + DELIVER_TIMEOUT_S + STOP_GRACE_S
         for name, p, _ in self.procs:
             if finished and name in self.self_ending:
                 try:
-                    p.wait(timeout=5.0)
+                    p.wait(timeout=max(0.1, deadline - time.monotonic()))
                 except subprocess.TimeoutExpired:
                     pass
         for _, p, _ in self.procs:
             if p.poll() is None:
                 p.send_signal(signal.SIGINT)
-        deadline = time.monotonic() + 5.0
+        deadline = time.monotonic() + STOP_GRACE_S
         for _, p, log in self.procs:
             try:
                 p.wait(timeout=max(0.1, deadline - time.monotonic()))
