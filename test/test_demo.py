@@ -235,3 +235,27 @@ def test_status_line_is_rewritten_on_a_terminal_and_throttled_into_a_file():
         os.close(master)
         os.close(follower)
     assert text.count('\r') == 3 and '\n' not in text
+
+
+def test_contact_metrics_leave_the_held_initial_state_out_of_free_motion():
+    """The simulator holds its initial state (stamp 0) until the answers are in; the node times
+    those copies with its own clock, and its estimate of the holding torque grows with them (to
+    g(q0), the collision flag up). When the first copy misses the recorder, a later one stands for
+    stamp 0: it is not free motion, and the push is still measured the same."""
+    cd = demo.contact_demo
+    a = (1 - cd.GAIN * 5e-4) / (1 + cd.GAIN * 5e-4)   # the observer's response per 1 ms step
+    k = np.arange(2001)
+    true = np.zeros((len(k), 7))
+    true[(k >= 800) & (k < 1200), 1] = 10.0
+    ext, r = [], np.zeros(7)
+    for row in true:
+        r = a * r + (1 - a) * row
+        ext.append(r.copy())
+    hold = [np.eye(7)[1] * g for g in (16.7, 16.72)]   # later copies of the held state
+    t = np.concatenate(([0.0, 0.0], k[1:] * 1e-3))
+    ext = hold + ext[1:]
+    rec = {'ext_t': t, 'ext': ext, 'flag': [bool(np.any(np.abs(e) > cd.THRESHOLD)) for e in ext],
+           'true_t': k * 1e-3, 'true': true}
+    m = cd.metrics(rec)
+    assert m['free_max_estimate'] < 0.2 * min(cd.THRESHOLD) and m['false_alarms'] == 0, m
+    assert m['push_start'] == 0.8 and 0 < m['detection_delay'] < 0.1, m

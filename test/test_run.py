@@ -102,3 +102,26 @@ def test_an_unknown_executor_is_refused_in_one_line():
     assert err.strip().splitlines() == [
         'run_probe: invalid configuration: LIE_DYNAMICS_EXECUTOR must be one of events, single_threaded, '
         "got 'multi'"], err
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
+def test_signals_repeated_while_stopping_do_not_kill_it(client, sig):
+    """A stop request repeated while the process stops (a launcher or a demo escalating, Ctrl-C
+    pressed again) changes nothing, up to the end of the interpreter's exit: the process still
+    exits 0 (the interpreter's finalization puts a Python handler back to the default action)."""
+    node, ex = client
+    ticks = []
+    node.create_subscription(Int32, 'probe_ticks', lambda m: ticks.append(m.data), 10)
+    proc = _start('events')
+    try:
+        assert _until(ex, lambda: len(ticks) >= 3), 'timer did not fire'
+        while proc.poll() is None:
+            proc.send_signal(sig)
+            time.sleep(0.001)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert 'stopped after' in out, out + err

@@ -74,6 +74,18 @@ def make_executor(choice=None):
     return SingleThreadedExecutor(), 'single_threaded'
 
 
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def _stopping():
+    """The process is stopping: a repeated stop request (Ctrl-C again, a launcher escalating)
+    changes nothing, up to the very end. Ignored rather than left to the flag's handler: the
+    interpreter's exit puts a Python handler back to the default action, and a signal in its
+    last moments would kill a process that stopped cleanly (-2). SIGKILL still ends a hung one."""
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
+
+
 def _refuse(name, what, exc):
     print(f'{name}: {what}: {one_line(exc)}', file=sys.stderr)
     return 2
@@ -104,13 +116,14 @@ def run(make_node, name, args=None, done=None, on_stop=None, parser=None):
     except RuntimeError as exc:  # e.g. an invalid ROS_DOMAIN_ID
         return _refuse(name, 'error', exc)
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in STOP_SIGNALS:
         signal.signal(sig, lambda *_: stop.set())
     executor = None
     try:
         executor, kind = make_executor()
         node = make_node()
     except Exception as exc:  # noqa: BLE001 - any failure to build the node: refuse to start, say why
+        _stopping()
         if executor is not None:   # its threads must not outlive the context (abort at exit)
             executor.shutdown()
         rclpy.try_shutdown()
@@ -125,6 +138,7 @@ def run(make_node, name, args=None, done=None, on_stop=None, parser=None):
     try:
         while not stop.is_set() and rclpy.ok() and not (done and done(node)):
             executor.spin_once(timeout_sec=0.1)
+        _stopping()
         if on_stop is not None:
             on_stop(node)
     finally:

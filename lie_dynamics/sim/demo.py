@@ -82,6 +82,10 @@ def scenarios():
     }
 
 
+# After SIGINT, a process has this long to stop before it is killed
+STOP_GRACE_S = 5.0
+
+
 class Stack:
     """The processes of one scenario; always cleaned up (context manager)."""
 
@@ -119,17 +123,21 @@ class Stack:
         return self
 
     def __exit__(self, *exc):
+        from .sim_node import DELIVER_TIMEOUT_S
         finished = exc[0] is None
+        # a process that ends by itself is not asked to stop while it may still be delivering its
+        # last states and exiting (a loaded machine takes seconds): its own bound, then the grace
+        deadline = time.monotonic() + DELIVER_TIMEOUT_S + STOP_GRACE_S
         for name, p, _ in self.procs:
             if finished and name in self.self_ending:
                 try:
-                    p.wait(timeout=5.0)
+                    p.wait(timeout=max(0.1, deadline - time.monotonic()))
                 except subprocess.TimeoutExpired:
                     pass
         for _, p, _ in self.procs:
             if p.poll() is None:
                 p.send_signal(signal.SIGINT)
-        deadline = time.monotonic() + 5.0
+        deadline = time.monotonic() + STOP_GRACE_S
         for _, p, log in self.procs:
             try:
                 p.wait(timeout=max(0.1, deadline - time.monotonic()))
@@ -195,8 +203,8 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
             rec['tau'].append(list(msg.effort))
         # deep enough for a whole default run: a reader that falls behind must not drop the oldest states
         node.create_subscription(JointState, 'joint_states', on_state, 20000)
-        if contact:
-            contact_demo.record(node, rec, 20000)
+        # the node's estimate topics reach the recorder before the simulator starts
+        estimates_matched = contact_demo.record(node, rec, 20000) if contact else (lambda: True)
         caller = payload_demo.Caller(node, rec, duration) if payload else None
         stack = Stack(env, log_dir)
         with stack:
@@ -206,7 +214,9 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
                 else:  # installed without the source tree's config/
                     stack.start('dynamics_node', 'lie_dynamics.dynamics_node',
                                 dict({'urdf_path': default_urdf_path()}, **node_params))
-                if not _wait(ex, lambda: node.count_subscribers('joint_states') >= 1, 20.0, stack):
+                # the recorder's own reader counts too
+                if not _wait(ex, lambda: node.count_subscribers('joint_states') >= 2 and estimates_matched(), 20.0,
+                             stack):
                     raise RuntimeError('dynamics_node did not come up')
             if with_traj:
                 stack.start('trajectory_source', 'lie_dynamics.sim.trajectory_source',
@@ -214,7 +224,7 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
                              'frequency': ros_array(FREQUENCY),
                              # the dynamics node's desired reader matched before the first state
                              'min_subscribers': str(int(node_params is not None))})
-                if not _wait(ex, lambda: node.count_subscribers('joint_states') >= 1 + (node_params is not None),
+                if not _wait(ex, lambda: node.count_subscribers('joint_states') >= 2 + (node_params is not None),
                              20.0, stack):
                     raise RuntimeError('trajectory_source did not come up')
             stack.start('sim_node', 'lie_dynamics.sim.sim_node',

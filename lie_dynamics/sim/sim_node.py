@@ -28,6 +28,7 @@ state: the loop is then as deterministic as the timer-paced one, only faster.
 """
 import math
 import sys
+import time
 
 import numpy as np
 from rclpy.duration import Duration
@@ -249,16 +250,21 @@ class SimNode(Node):
             self.truth_pub.publish(truth)
 
 
-def _deliver(node, timeout_s=5.0):
+# How long a run that ended by itself (max_steps) waits, at most, for its last states to be acknowledged
+DELIVER_TIMEOUT_S = 5.0
+
+
+def _deliver(node, timeout_s=DELIVER_TIMEOUT_S):
     """Before the process ends: its last states reach their readers. A reliable sample not yet
     acknowledged goes with the writer (a busy reader may lag by hundreds of states). Only when the
-    run ended by itself (max_steps): a signal stops at once."""
+    run ended by itself (max_steps): a signal stops at once. timeout_s bounds the whole wait."""
     if not (node.max_steps and node.steps >= node.max_steps):
         return
+    end = time.monotonic() + timeout_s
     for pub in (node.state_pub, node.truth_pub):
         if pub is not None:
             try:
-                pub.wait_for_all_acked(Duration(seconds=timeout_s))
+                pub.wait_for_all_acked(Duration(seconds=max(0.0, end - time.monotonic())))
             except Exception:  # best effort: the process is exiting
                 pass
 
