@@ -2,7 +2,7 @@
 from another process streaming joint_states at 500 Hz, during each event beside a quiet
 stretch just before it.
 
-    python -m bench.node_loads [--raised] [--busy N] [--repeat R] [--node-src DIR] [--nice N] [--quick]
+    python -m bench.node_loads [--raised] [--busy N] [--repeat R] [--node-src DIR] [--nice N] [--quick] [--trace]
 
 The node runs as `python -m lie_dynamics.dynamics_node` on the bundled arm (its own process,
 default parameters: the EventsExecutor, the momentum observer on). A streaming process (Stream)
@@ -36,7 +36,9 @@ event runs R times and each column is the median. --nice N (negative: needs the 
 runs this process and the node at that niceness, the busy loops at the usual one: on a machine
 that others load, the gaps then show the node rather than the scheduler. --node-src DIR runs
 the node of another checkout (the root that holds its lie_dynamics/), to compare before/after
-under the same conditions.
+under the same conditions. --trace runs the node through bench.node_trace and adds, per event,
+the node's side: its longest joint_states callback (wall ms), that callback's CPU time and its
+wait for a CPU (ms), the most CPU any callback of the window used, and the longest log line.
 This is a benchmark, not a test: the numbers depend on the machine and its load.
 """
 import argparse
@@ -296,7 +298,18 @@ def _event(driver, windows, name, start, done, timeout):
     windows.append((name, t0, t_done, t1))
 
 
-def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):
+def _node_side(trace, t0, t1):
+    """--trace: what the node's own callbacks and log lines did in [t0, t1] (bench.node_trace)."""
+    calls = [c for c in trace['callbacks'] if t0 <= c[0] <= t1]
+    lines = [w for t, w in trace['lines'] if t0 <= t <= t1]
+    if not calls:
+        return {}
+    longest = max(calls, key=lambda c: c[1])
+    return {'cb_wall_ms': longest[1] * 1e3, 'cb_cpu_ms': longest[2] * 1e3, 'cb_wait_ms': longest[3] * 1e3,
+            'cb_max_cpu_ms': max(c[2] for c in calls) * 1e3, 'line_ms': max(lines, default=0.0) * 1e3}
+
+
+def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0, trace=False):
     import rclpy
     from rclpy.context import Context
     from std_msgs.msg import String
@@ -326,7 +339,11 @@ def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):
         os.setpriority(os.PRIO_PROCESS, b.pid, base)
     helpers = []
     # `-m` puts the working directory first on the path: run there the checkout to be measured
-    proc = subprocess.Popen([sys.executable, '-m', 'lie_dynamics.dynamics_node', '--ros-args', *params], env=env,
+    trace_file = os.path.join(tmp, 'trace.json')
+    if trace:
+        env['LIE_DYNAMICS_NODE_TRACE'] = trace_file
+    module = 'bench.node_trace' if trace else 'lie_dynamics.dynamics_node'
+    proc = subprocess.Popen([sys.executable, '-m', module, '--ros-args', *params], env=env,
                             cwd=os.path.abspath(node_src) if node_src else None,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     ctx = Context()
@@ -417,8 +434,16 @@ def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0):
             if b.poll() is None:
                 b.kill()
             b.wait()
+        traced = None
+        if trace and os.path.exists(trace_file):
+            with open(trace_file) as fh:
+                traced = json.load(fh)
         shutil.rmtree(tmp, ignore_errors=True)
-    return _medians([_row(*w, sends, replies) for w in windows])
+    rows = [_row(*w, sends, replies) for w in windows]
+    if traced is not None:
+        for r, w in zip(rows, windows, strict=True):
+            r.update(_node_side(traced, w[1], w[3]))
+    return _medians(rows)
 
 
 def _medians(rows):
@@ -433,12 +458,19 @@ def _medians(rows):
 def markdown(rows, raised, busy):
     head = (f"caps {'raised' if raised else 'default'}, {busy} busy loops beside; joint_states at {RATE:g} Hz; "
             f'niceness {os.getpriority(os.PRIO_PROCESS, 0)}; quiet stretch after each event, as long as its window')
+    traced = all('cb_wall_ms' in r for r in rows)
+    extra = (' node: longest callback ms (its CPU / its wait for a CPU) | most CPU in one callback ms | longest log '
+             'line ms |') if traced else ''
     lines = [head, '', '| event | runs | quiet gap ms | event gap ms | widened ms | sends widened ms | replies / sent '
-             '| event s |', '|---|---|---|---|---|---|---|---|']
+             '| event s |' + extra, '|---|---|---|---|---|---|---|---|' + ('---|---|---|' if traced else '')]
     for r in rows:
-        lines.append(f"| {r['event']} | {r['runs']} | {r['quiet_gap_ms']:.1f} | {r['event_gap_ms']:.1f} | "
-                     f"{r['widened_ms']:+.1f} | {r['send_widened_ms']:+.1f} | {r['replies']:.0f} / {r['sent']:.0f} | "
-                     f"{r['event_s']:.2f} |")
+        line = (f"| {r['event']} | {r['runs']} | {r['quiet_gap_ms']:.1f} | {r['event_gap_ms']:.1f} | "
+                f"{r['widened_ms']:+.1f} | {r['send_widened_ms']:+.1f} | {r['replies']:.0f} / {r['sent']:.0f} | "
+                f"{r['event_s']:.2f} |")
+        if traced:
+            line += (f" {r['cb_wall_ms']:.2f} ({r['cb_cpu_ms']:.2f} / {r['cb_wait_ms']:.2f}) | "
+                     f"{r['cb_max_cpu_ms']:.2f} | {r['line_ms']:.2f} |")
+        lines.append(line)
     return '\n'.join(lines)
 
 
@@ -497,6 +529,7 @@ def main(argv=None):
     ap.add_argument('--node-src', help='run the node of this checkout instead')
     ap.add_argument('--nice', type=int, default=0, help='niceness of this process and the node')
     ap.add_argument('--quick', action='store_true', help='no trajectory event')
+    ap.add_argument('--trace', action='store_true', help="the node's callbacks and log lines timed (bench.node_trace)")
     ap.add_argument('--send-trajectory', action='store_true', help=argparse.SUPPRESS)
     ap.add_argument('--stream', action='store_true', help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
@@ -504,7 +537,7 @@ def main(argv=None):
         return stream()
     if a.send_trajectory:
         return send_trajectories()
-    print(markdown(run(a.raised, a.busy, a.quick, a.repeat, a.node_src, a.nice), a.raised, a.busy))
+    print(markdown(run(a.raised, a.busy, a.quick, a.repeat, a.node_src, a.nice, a.trace), a.raised, a.busy))
     return 0
 
 
