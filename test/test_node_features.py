@@ -418,3 +418,36 @@ def test_start_source_and_reload_answer():
     assert reload_answer('file', 'a.urdf', 'refused: too big') == (False, 'refused: too big')
     ok, text = reload_answer('file', 'a.urdf', None)
     assert ok and 'a.urdf' in text and 'the running model answers until it is ready' in text
+
+
+def test_a_kernel_build_that_fails_is_reported_once_and_not_asked_for_again(monkeypatch):
+    from lie_dynamics import load_urdf
+    from lie_dynamics.codegen import runtime
+    from lie_dynamics.ros.loading.background import Background
+    from lie_dynamics.ros.loading.sources import Sources
+    from robots import random_urdf
+    core = Compensator({'stale_timeout': 60.0})
+    core.load(default_urdf_path())
+    background = Background(core, Sources())
+    tried = []
+
+    def failing(model, spec):
+        tried.append(spec.name)
+        raise RuntimeError('no compiler today')
+    monkeypatch.setattr(runtime, 'build', failing)
+    model = load_urdf(random_urdf(90818, 5))   # a structure no other test uses: nothing built
+    q = np.linspace(-1.0, 1.0, model.n)
+    try:
+        for _ in range(3):
+            with background.deferred():
+                g = model.gravity(q)   # the reference answers meanwhile
+            deadline = time.monotonic() + 30
+            while background.worker.busy('kernels') is not None and time.monotonic() < deadline:
+                time.sleep(0.01)
+            background.collect()
+        assert np.allclose(g, model.gravity(q))
+        assert tried == ['gravity'] and background.builds_deferred == 1
+        said = [e for e in core.events if e[1] == 'kernels']
+        assert len(said) == 1 and 'no compiler today' in said[0][2]
+    finally:
+        background.stop()

@@ -86,6 +86,7 @@ class Background:
         self.kernels = kernels or (lambda settings: ())
         self.worker = Worker('lie_dynamics_loader', slots=('model', 'trajectory', 'kernels'))
         self._later = {}   # (id(model), kernel name) -> (model ref, spec): builds the control path deferred
+        self._failed = {}   # the same, for builds that raised
         self.builds_deferred = 0   # kernels the control path lacked (not warmed with their model)
         self._deferring = runtime.deferred(self._request_build)
         self.process = BuildProcess()   # its child starts with the first load (expect_description: at start-up)
@@ -197,7 +198,8 @@ class Background:
 
     def _request_build(self, model, spec):
         key = (id(model), spec.name)
-        if key not in self._later:   # (a failed build stays here: never asked again)
+        asked = self._later.get(key) or self._failed.get(key)
+        if asked is None or asked[0]() is not model:   # (a failed build is not asked for again)
             self._later[key] = (weakref.ref(model), spec)
             self.builds_deferred += 1
             try:
@@ -206,13 +208,21 @@ class Background:
                 pass
 
     def _build_later(self):
-        """(worker thread) The kernels the control path asked for."""
+        """(worker thread) The kernels the control path asked for; the first error is raised
+        (reported once) after the others are built, and a failed one is not asked for again."""
+        error = None
         with short_switch_interval():
             for key, (ref, spec) in list(self._later.items()):
                 model = ref()
-                if model is not None:
-                    runtime.build(model, spec)   # raises: the key stays, the error is reported once
+                try:
+                    if model is not None:
+                        runtime.build(model, spec)
+                except Exception as exc:  # noqa: BLE001 - reported by collect
+                    error = error or exc
+                    self._failed[key] = (ref, spec)
                 self._later.pop(key, None)
+        if error is not None:
+            raise error
 
     # ------------------------------------------------------------------ trajectories
     def _on_ask(self, child, seq, points):
