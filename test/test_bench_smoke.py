@@ -161,3 +161,28 @@ def test_compile_section_measures_every_family_of_the_arm(tmp_path):
         assert r['nodes'] > 0 and r['first_s'] > 0 and r['load_ms'] > 0, r
     table = (tmp_path / 'compile.md').read_text(encoding='utf-8')
     assert all(f'| arm7 | {fam} |' in table for fam in compile_bench.FAMILIES)
+
+
+def test_node_loads_trace_reports_the_node_side(tmp_path):
+    """bench.node_loads --trace: the traced node writes its callbacks and log lines, and each
+    event row gets the window's longest callback with its CPU and wait."""
+    import json
+    import subprocess
+    import sys
+
+    from bench import node_loads
+    path = tmp_path / 'trace.json'
+    env = dict(os.environ, LIE_DYNAMICS_NODE_TRACE=str(path))
+    done = subprocess.run([sys.executable, '-m', 'bench.node_trace', '--help'], env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0 and 'dynamics_node' in done.stdout
+    assert json.loads(path.read_text()) == {'callbacks': [], 'lines': []}
+    trace = {'callbacks': [[1.0, 0.004, 0.001, 0.0025], [1.5, 0.002, 0.0015, 0.0], [9.0, 0.05, 0.05, 0.0]],
+             'lines': [[1.2, 0.0007], [9.0, 0.01]]}
+    side = node_loads._node_side(trace, 0.5, 2.0)
+    assert side == pytest.approx({'cb_wall_ms': 4.0, 'cb_cpu_ms': 1.0, 'cb_wait_ms': 2.5, 'cb_max_cpu_ms': 1.5,
+                                  'line_ms': 0.7})
+    row = dict(event='e', runs=1, quiet_gap_ms=3.0, event_gap_ms=5.0, widened_ms=2.0, send_widened_ms=1.0, replies=9,
+               sent=10, event_s=0.3, **side)
+    table = node_loads.markdown([row], False, 0)
+    assert '| 4.00 (1.00 / 2.50) | 1.50 | 0.70 |' in table
