@@ -140,6 +140,33 @@ def _loading(node):
     return node.background.process.pid is not None and node.core.loading != ''
 
 
+def test_the_build_process_answers_a_repeated_request_without_building_again(tmp_path):
+    """(in-process: the build process's Builder) 20 reloads of an unchanged file cost one build;
+    a changed file, other options or a description that fails are built (and the failure is not
+    kept)."""
+    from lie_dynamics.ros.loading.build_process import Builder
+    path = tmp_path / 'arm.urdf'
+    path.write_text(ARM)
+    caps = (True, 10**7, 1000)
+
+    def request(gravity=(0.0, 0.0, -9.81)):
+        return str(path), caps, JOINTS, gravity, 'warn', None, ()
+    builder = Builder()
+    answers = [builder.answer(request()) for _ in range(20)]
+    assert all(ok for ok, _ in answers) and builder.builds == 1
+    np.testing.assert_allclose(answers[-1][1][0].gravity(Q), load_urdf(ARM).gravity(Q), atol=1e-12)
+    path.write_text(heavier(ARM, 2.0))   # the file changed: read again, built again
+    ok, (model, _) = builder.answer(request())
+    assert ok and builder.builds == 2
+    np.testing.assert_allclose(model.gravity(Q), load_urdf(heavier(ARM, 2.0)).gravity(Q), atol=1e-12)
+    assert builder.answer(request((0.0, -9.81, 0.0)))[0] and builder.builds == 3   # other options
+    path.write_text('<robot name="broken">')
+    assert builder.answer(request())[0] is False and builder.answer(request())[0] is False
+    assert builder.builds == 5   # a failure is built again
+    path.write_text(heavier(ARM, 2.0))
+    assert builder.answer(request((0.0, -9.81, 0.0)))[0] and builder.builds == 5   # the last model built
+
+
 def test_a_node_without_a_model_starts_its_build_process_at_once(ros):
     """Waiting for its first description, the node starts the build process at start-up (an
     interpreter's start-up took ~10 s on a loaded machine), and that process builds it."""

@@ -253,23 +253,44 @@ def warm_native(model, kernels=()):
         warm_up(model, kernels)
 
 
+class Builder:
+    """The child's work: a request -> (True, (model, warnings)) or (False, error text). The last
+    model built is kept with its description text and options: the same request again (a reload
+    of an unchanged file, a description repeated) is answered with it without parsing or building
+    (the node still gets a new model object: it unpickles one). `builds` counts the others."""
+
+    def __init__(self):
+        self.builds = 0
+        self._last = (None, None)   # (key, answer)
+
+    def answer(self, request):
+        source, caps, joints, gravity, inertia, running, kernels = request
+        try:
+            text = read_description(source, caps)   # a file is read again: it may have changed
+            key = (text, joints, tuple(gravity), inertia, running, tuple(kernels))
+            if self._last[0] == key:
+                return self._last[1]
+            self.builds += 1
+            answer = (True, build(text, None, joints=joints, gravity=gravity, inertia=inertia, running=running))
+            warm_native(answer[1][0], kernels)
+        except Exception as exc:  # noqa: BLE001 - any bad input: its reason goes back to the node
+            return False, str(exc) or type(exc).__name__
+        self._last = (key, answer)
+        return answer
+
+
 def serve(parent=None):
-    """The child's loop: a request in, (True, (model, warnings)) or (False, error text) out."""
+    """The child's loop: a request in, Builder's answer out."""
     out = child_setup(parent)
     if out is None:
         return
     native.set_jobs(max(1, native.usable_cores() - 1))   # a core stays with the node's control path
+    builder = Builder()
     while True:
         request = receive(0)
         if request is None:
             return
-        source, caps, joints, gravity, inertia, running, kernels = request
-        try:
-            answer = (True, build(source, caps, joints=joints, gravity=gravity, inertia=inertia, running=running))
-            warm_native(answer[1][0], kernels)
-        except Exception as exc:  # noqa: BLE001 - any bad input: its reason goes back to the node
-            answer = (False, str(exc) or type(exc).__name__)
-        send(out, answer)
+        send(out, builder.answer(request))
 
 
 if __name__ == '__main__':
