@@ -1,5 +1,6 @@
 """The process shell of every node (ros/run.py) under each executor: timers fire, services answer,
 SIGTERM/SIGINT stop it cleanly after the last command, and a bad executor choice is refused."""
+import contextlib
 import os
 import signal
 import subprocess
@@ -65,6 +66,18 @@ def client():
     rclpy.shutdown(context=ctx)
 
 
+@contextlib.contextmanager
+def _started(executor):
+    """_start(executor), killed at the end if it still runs (a failed assertion)."""
+    proc = _start(executor)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+
+
 def _until(ex, cond, timeout=60.0):
     end = time.monotonic() + timeout
     while time.monotonic() < end and not cond():
@@ -78,8 +91,7 @@ def test_timers_services_and_clean_stop(client, executor, sig):
     ticks = []
     node.create_subscription(Int32, 'probe_ticks', lambda m: ticks.append(m.data), 10)
     cli = node.create_client(Trigger, 'probe_ping')
-    proc = _start(executor)
-    try:
+    with _started(executor) as proc:
         assert _until(ex, lambda: len(ticks) >= 5), 'timer did not fire'
         assert cli.wait_for_service(timeout_sec=30.0)
         future = cli.call_async(Trigger.Request())
@@ -87,10 +99,6 @@ def test_timers_services_and_clean_stop(client, executor, sig):
         assert future.result().success and future.result().message.startswith('ticks ')
         proc.send_signal(sig)
         out, err = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
     assert proc.returncode == 0, err
     assert f'executor {executor}' in out and 'stopped after' in out, out + err
 
@@ -112,16 +120,11 @@ def test_signals_repeated_while_stopping_do_not_kill_it(client, sig):
     node, ex = client
     ticks = []
     node.create_subscription(Int32, 'probe_ticks', lambda m: ticks.append(m.data), 10)
-    proc = _start('events')
-    try:
+    with _started('events') as proc:
         assert _until(ex, lambda: len(ticks) >= 3), 'timer did not fire'
         while proc.poll() is None:
             proc.send_signal(sig)
             time.sleep(0.001)
         out, err = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
     assert proc.returncode == 0, err
     assert 'stopped after' in out, out + err
