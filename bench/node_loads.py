@@ -117,6 +117,12 @@ def serialized_trajectory(n):
     return cdr.write(traj, np.zeros((n, 7)))
 
 
+def spin_until(ex, stop, period):
+    """Spin executor `ex` until threading.Event `stop` is set, waking every `period` s to look."""
+    while not stop.is_set():
+        ex.spin_once(timeout_sec=period)
+
+
 class Stream:
     """The measuring side, a process of its own (`--stream`): one thread publishes serialized
     joint_states at RATE, an executor thread stamps each reply as it arrives; nothing else runs
@@ -168,10 +174,6 @@ def stream():
     ex.add_node(node)
     stop = threading.Event()
 
-    def spin():
-        while not stop.is_set():
-            ex.spin_once(timeout_sec=0.05)
-
     def publish():
         period, t = 1.0 / RATE, time.monotonic()
         while not stop.is_set():
@@ -183,7 +185,7 @@ def stream():
                 time.sleep(pause)
             else:
                 t = time.monotonic()
-    threads = [threading.Thread(target=spin), threading.Thread(target=publish)]
+    threads = [threading.Thread(target=spin_until, args=(ex, stop, 0.05)), threading.Thread(target=publish)]
     threads[0].start()
     end = time.monotonic() + 60
     while not (js.get_subscription_count() and node.count_publishers(CMD)) and time.monotonic() < end:
@@ -223,7 +225,7 @@ class Driver:
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, deep)
         self.desc = self.node.create_publisher(String, 'robot_description', DESCRIPTION_QOS)
         self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread = threading.Thread(target=spin_until, args=(self.ex, self.stop, 0.05), daemon=True)
         self.thread.start()
 
     def _on_log(self, msg):
@@ -239,10 +241,6 @@ class Driver:
     def ready_after(self, t0):
         """When the diagnostics first said model_state 'ready' after t0 (no load running or waiting)."""
         return next((t for t, v in list(self.states) if t >= t0 and v == 'ready'), None)
-
-    def _spin(self):
-        while not self.stop.is_set():
-            self.ex.spin_once(timeout_sec=0.05)
 
     def wait(self, pred, timeout, what):
         end = time.monotonic() + timeout
@@ -495,15 +493,11 @@ def send_trajectories():
     ex = SingleThreadedExecutor()
     ex.add_node(node)
     stop = threading.Event()
-
-    def spin():
-        while not stop.is_set():
-            ex.spin_once(timeout_sec=0.1)
     # joined before the executor, the node and the context go: rclpy's Executor.shutdown does not
     # wait for a thread in spin(), which then ran on into the destroyed node and context (an abort
     # at exit, 'terminate called without an active exception', and the DDS participant's
     # shared-memory files left behind)
-    spinner = threading.Thread(target=spin, name='trajectory_sender_spin')
+    spinner = threading.Thread(target=spin_until, args=(ex, stop, 0.1), name='trajectory_sender_spin')
     spinner.start()
     try:
         data = serialized_trajectory(100_000)

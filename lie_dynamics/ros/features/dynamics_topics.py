@@ -37,6 +37,11 @@ TOPICS = {term: f'~/dynamics/{term}' for term in ('gravity', 'coriolis', 'mass_m
 ROWS = ('vx', 'vy', 'vz', 'wx', 'wy', 'wz')
 
 
+def published_terms(settings):
+    """The terms dynamics.publish turns on, in TOPICS order."""
+    return tuple(t for t in TOPICS if t in settings['dynamics.publish'])
+
+
 def check_link(settings, model):
     """dynamics.link against `model` (None: not loaded yet, nothing to check). Raises ValueError."""
     link = settings['dynamics.link']
@@ -118,10 +123,10 @@ class DynamicsTopics(Feature):
 
     def kernels(self, settings):
         return tuple(('jacobian', settings['dynamics.link'] or None, settings['dynamics.jacobian_frame'])
-                     if t == 'jacobian' else (t,) for t in TOPICS if t in settings['dynamics.publish'])
+                     if t == 'jacobian' else (t,) for t in published_terms(settings))
 
     def configure(self, settings, model, derived):
-        terms = tuple(t for t in TOPICS if t in settings['dynamics.publish'])
+        terms = published_terms(settings)
         self.frame = settings['dynamics.jacobian_frame']
         self.link = ''
         if model is not None and 'jacobian' in terms:
