@@ -15,7 +15,7 @@ from lie_dynamics import default_urdf_path
 from lie_dynamics.ros.core.compensator import Compensator
 from lie_dynamics.ros.core.log import LOG_LINES_PER_CALLBACK, EventLog
 from lie_dynamics.ros.core.sample import SampleResult
-from lie_dynamics.ros.core.watchdog import tick_period
+from lie_dynamics.ros.core.watchdog import Every, tick_period
 from lie_dynamics.ros.loading.parameter_change import ParameterChanges, plan_change, reload_answer, start_source
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -408,6 +408,16 @@ def test_parameter_change_plans_checks_and_loads():
 
 def test_tick_period_serves_the_watchdog_and_the_diagnostics():
     assert tick_period(0.5, 1.0) == 0.25 and tick_period(10.0, 1.0) == 1.0 and tick_period(0.001, 1.0) == 0.002
+
+
+def test_every_is_due_once_per_period_and_a_late_check_keeps_no_debt():
+    now = [0.0]
+    every = Every(1.0, clock=lambda: now[0])
+    seen = []
+    for t in (0.5, 1.0, 1.2, 2.0, 2.9, 3.0, 6.5, 6.6, 7.4, 7.5):
+        now[0] = t
+        seen.append(every.due())
+    assert seen == [False, True, False, True, False, True, True, False, False, True]
 
 
 def test_start_source_and_reload_answer():

@@ -130,3 +130,10 @@ def parameter_descriptor(spec):
     elif spec.range is not None:
         desc.integer_range = [IntegerRange(from_value=int(spec.range[0]), to_value=int(spec.range[1]), step=0)]
     return desc
+
+
+def declare_parameters(node, specs):
+    """Declare each params.PARAMS entry on the node (its type when it has no default); their values."""
+    return {spec.name: node.declare_parameter(
+        spec.name, PARAMETER_TYPES[spec.kind] if spec.default is None else spec.default,
+        parameter_descriptor(spec)).value for spec in specs}

@@ -4,12 +4,11 @@ commands, and feedforward efforts for joint_trajectory_controller trajectories.
     ros2 run lie_dynamics dynamics_node --ros-args --params-file config/arm7_gravity.yaml
     python -m lie_dynamics.dynamics_node --ros-args -p urdf_path:=config/arm7.urdf
 
-The rclpy shell of the plain-Python parts below it (ros/__init__.py; behaviour: docs/node.md;
-topics, services, QoS: interfaces.py; parameters and the node's services: control.py). Per
-joint_states message (docs/architecture.md): bytes -> core/cdr.py sample -> the core's command and
-SampleResult -> the command published -> each accepted result to the FEATURES -> one event queue
-into the throttled log. The timer runs on the steady clock (a stopped /clock must not stop the
-watchdog). Heavy work runs off the control path (loading/background.py, trajectories/process.py).
+The rclpy shell of the plain-Python parts below it (ros/__init__.py; behaviour: docs/node.md; the
+topics, services, QoS: interfaces.py; parameters, services: control.py). Per joint_states message
+(docs/architecture.md): bytes -> core/cdr.py sample -> the core's command, published -> the accepted
+result to each of the FEATURES -> one event queue -> the paced log. The timer runs on the steady
+clock (a stopped /clock must not stop the watchdog). Heavy work runs off it: loading/, trajectories/.
 """
 import sys
 import threading
@@ -24,7 +23,7 @@ from .core.cdr import JointStateDecoder, read_desired, sample_of
 from .core.compensator import Compensator
 from .core.log import LOG_LINES_PER_CALLBACK, LOG_THROTTLE_S, EventLog, guarded
 from .core.params import HELP_DESCRIPTION, HELP_EXAMPLE, PARAMS, help_rows
-from .core.watchdog import tick_period
+from .core.watchdog import Every, tick_period
 from .features.base import Features
 from .features.contact import check_settings
 from .features.contact_topics import ContactTopics
@@ -70,9 +69,7 @@ class DynamicsNode(Node):
             raise
 
     def _construct(self, features):
-        values = {spec.name: self.declare_parameter(
-            spec.name, interfaces.PARAMETER_TYPES[spec.kind] if spec.default is None else spec.default,
-            interfaces.parameter_descriptor(spec)).value for spec in PARAMS}
+        values = interfaces.declare_parameters(self, PARAMS)
         self.core = Compensator(values)  # ValueError on an invalid configuration
         self.events = self.core.events   # the one event queue: the core's and every feature's
         self.lock = threading.RLock()  # services/parameters vs. callbacks when spun by several threads
@@ -89,13 +86,11 @@ class DynamicsNode(Node):
     def _start(self, values, features):
         """The rest of the start-up, once worker threads exist (__init__ stops them if this raises)."""
         interfaces.subscription(self, 'robot_description', self._on_description)
-        self._warned_publishers = set()
         interfaces.subscription(self, 'joint_states', self.on_joint_state)   # raw: read by core/cdr.py
         desired = interfaces.subscription(self, '<desired_topic>', self._on_desired, values['desired_topic'])
         self.core.desired_topic = desired.topic_name
-        self._diag_period = values['diagnostics_period']
-        self._next_diag = time.monotonic() + self._diag_period
-        self._timer = self.create_timer(tick_period(values['stale_timeout'], self._diag_period), self._on_timer,
+        self._diag = Every(values['diagnostics_period'])
+        self._timer = self.create_timer(tick_period(values['stale_timeout'], self._diag.period), self._on_timer,
                                         clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.outputs.joint_state(values['publish_joint_state'])
         self.features = Features(events=self.events)
@@ -124,7 +119,7 @@ class DynamicsNode(Node):
 
     def set_tick_period(self):
         """The timer's period after a stale_timeout change (tick_period)."""
-        period = tick_period(self.core.settings['stale_timeout'], self._diag_period)
+        period = tick_period(self.core.settings['stale_timeout'], self._diag.period)
         self._timer.timer_period_ns = int(period * 1e9)
 
     def note_executor(self, kind):
@@ -136,8 +131,7 @@ class DynamicsNode(Node):
             self.background.stop_trajectories()
         self.features.stop()
         if self.background is not None:   # lines still held back are said before the node goes
-            self.event_log.held(float('inf'))
-            self.event_log.flush()
+            self.event_log.close()
         done = super().destroy_node()
         if self.background is not None:   # waits for the trajectory process (killed if it lingers)
             self.background.stop()
@@ -170,13 +164,12 @@ class DynamicsNode(Node):
                 core.refuse_malformed('joint_states', str(exc))
                 self.drain_events()
                 return
-            if self.background.worker.has_outcomes:
-                self.background.collect()   # a new model swaps in here, between two commands
+            self.background.collect()   # a new model swaps in here, between two commands (cheap: none)
             features = self.features
             features.before_command(core)
             tau = core.on_sample(sample)
             if tau is not None:
-                self._publish(tau, sample.stamp)
+                self.outputs.command(tau, core.layout, sample.stamp)   # the input's stamp (ns)
             features.feed(core)   # after the command: never delays it
             if self.events or self.event_log.waiting:
                 self.drain_events()
@@ -193,9 +186,6 @@ class DynamicsNode(Node):
                 self.core.on_desired(names, points)
             if self.events:
                 self.drain_events()
-
-    def _publish(self, tau, stamp=None):  # stamp: the input's (ns); None: now
-        self.outputs.command(tau, self.core.layout, stamp)
 
     # ------------------------------------------------------------------ log
     def log_event(self, severity, key, text):
@@ -216,16 +206,14 @@ class DynamicsNode(Node):
             self.features.before_command(self.core)
             cmd = self.core.tick()
             if cmd is not None:
-                self._publish(cmd)
+                self.outputs.command(cmd, self.core.layout)   # stamped now
             if self.events:
                 self.drain_events()
         self.event_log.tick(self._samples)   # held-back lines; every waiting one if no joint_states came
-        now = time.monotonic()
-        if now >= self._next_diag:
-            self._next_diag = max(self._next_diag + self._diag_period, now)
+        if self._diag.due():
             self._publish_diagnostics()
             if self.sources.topic_xml is None:
-                self.outputs.check_description_publishers(self._warned_publishers)
+                self.outputs.check_description_publishers()
 
     def _publish_diagnostics(self):
         with self.lock:
@@ -240,7 +228,7 @@ class DynamicsNode(Node):
             self.core.events.clear()
             if cmd is None:
                 return False
-            self._publish(cmd)
+            self.outputs.command(cmd, self.core.layout)
         self.outputs.wait_for_command_acked(0.5)
         return True
 

@@ -21,6 +21,7 @@ class Outputs:
         self._js_pub = None
         self._diag_pub = interfaces.publisher(node, '/diagnostics')
         self._cmd_msg, self._js_msg = Float64MultiArray(), JointState()
+        self._warned_publishers = set()   # robot_description publishers already named
 
     def joint_state(self, on):
         """~/commanded_efforts on or off."""
@@ -73,10 +74,10 @@ class Outputs:
         arr.header.stamp = self.node.get_clock().now().to_msg()
         self._diag_pub.publish(arr)
 
-    def check_description_publishers(self, warned):
-        """Warn once per publisher of robot_description whose QoS this node cannot receive (warned:
-        the set of those already named, bounded)."""
-        node = self.node
+    def check_description_publishers(self):
+        """Warn once per publisher of robot_description whose QoS this node cannot receive (at most
+        100 named)."""
+        node, warned = self.node, self._warned_publishers
         topic = node.resolve_topic_name('robot_description')
         for info in node.get_publishers_info_by_topic(topic):
             bad = interfaces.description_qos_problems(info.qos_profile)

@@ -57,6 +57,11 @@ class EventLog:
         idle, self._samples = samples == self._samples, samples
         self.flush(None if idle or self.pace is None else self.pace)
 
+    def close(self):
+        """Everything said (shutdown): the held-back lines, then every waiting one."""
+        self.held(float('inf'))
+        self.flush()
+
     def _write(self, severity, text):
         text = clip(text, LOG_TEXT_MAX)
         if self.pace is None:

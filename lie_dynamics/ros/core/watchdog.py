@@ -50,6 +50,24 @@ class Watchdog:
         return self.stale or self.last_valid_time is None
 
 
+class Every:
+    """Due once per `period` seconds of `clock` (the node's diagnostics, from its faster timer);
+    a late check keeps no debt (the next is a period after it)."""
+
+    def __init__(self, period, clock=time.monotonic):
+        self.period, self.clock = period, clock
+        self.next = clock() + period
+
+    def due(self):
+        now = self.clock()
+        if now < self.next:
+            return False
+        self.next += self.period
+        if self.next <= now:   # more than a period late: one now, the next a period later
+            self.next = now + self.period
+        return True
+
+
 def tick_period(stale_timeout, diagnostics_period):
     """The node's one timer serves the watchdog, ramps without input and diagnostics: stale input
     is detected between stale_timeout and 1.5 x stale_timeout. (Each wake-up costs CPU.)"""
