@@ -186,3 +186,46 @@ def test_node_loads_trace_reports_the_node_side(tmp_path):
                sent=10, event_s=0.3, **side)
     table = node_loads.markdown([row], False, 0)
     assert '| 4.00 (1.00 / 2.50) | 1.50 | 0.70 |' in table
+
+
+def _switch(t, cpu, prev, pid, state, nxt, nxt_pid):
+    """A tracefs sched_switch line as the kernel writes it with record-tgid."""
+    tgid = f'{pid:7d}' if pid else '-------'
+    return (f'{prev}-{pid} ({tgid}) [{cpu:03d}] d..2. {t:.6f}: sched_switch: prev_comm={prev} prev_pid={pid} '
+            f'prev_prio=120 prev_state={state} ==> next_comm={nxt} next_pid={nxt_pid} next_prio=120')
+
+
+SCHED_TRACE = [
+    '# tracer: nop',
+    _switch(10.0, 0, 'python', 100, 'S', 'cc1', 300),
+    _switch(10.0005, 1, 'sleep', 200, 'S', 'swapper/1', 0),
+    '          <idle>-0       (-------) [001] dNs4. 10.001000: sched_wakeup: comm=python pid=100 prio=120 '
+    'target_cpu=000',
+    _switch(10.005, 0, 'cc1', 300, 'R', 'python', 100),
+    _switch(10.0045, 1, 'swapper/1', 0, 'R', 'sleep', 200),
+    _switch(10.006, 0, 'python', 100, 'R+', 'cc1', 300),
+    _switch(10.0062, 0, 'cc1', 300, 'R', 'python', 100),
+    'not a trace line',
+]
+
+
+def test_sched_trace_finds_each_wait_for_a_cpu_and_what_held_it():
+    """bench.sched_trace's analysis on a hand-written trace: the node's thread waits 4 ms behind
+    cc1 while the other CPU idles 3.5 of them, then 0.2 ms after a preemption."""
+    from bench import sched_trace
+    events = list(sched_trace.parse(SCHED_TRACE))
+    assert len(events) == 7 and events[2][2] == 'sched_wakeup' and events[2][5] is None
+    out, tgid_of, busy = sched_trace.waits(sorted(events))
+    assert [w[0] for w in out[100]] == pytest.approx([0.004, 0.0002])
+    assert [w[2:] for w in out[100]] == [(0, 0), (0, 0)]   # queued on, ran on
+    assert tgid_of[100] == 100 and tgid_of[300] == 300
+    rows, long_waits = sched_trace.summary(out, tgid_of, busy, {100: 'node', 300: 'compiler'})
+    node = next(r for r in rows if r['process'] == 'node')
+    assert node['waits'] == 2 and node['long'] == 1 and node['long_other_cpu_idle'] == 1
+    assert node['max_ms'] == pytest.approx(4.0)
+    d, role, cpu, idle, held = long_waits[0]
+    assert (role, cpu) == ('node', 0) and idle == pytest.approx(0.0035)
+    assert held[0][1] == 'cc1/300 (compiler)' and held[0][0] == pytest.approx(0.004)
+    text = sched_trace.markdown(rows, long_waits, 'kernel facts')
+    assert '| node | 2 |' in text
+    assert 'queued on CPU 0 held by cc1/300 (compiler) 4.00 ms; another CPU idle 3.50 ms' in text
