@@ -76,7 +76,7 @@ class Harness:
         t = self.t = rclpy.create_node('node_tester', context=self.ctx)
         self.desc_pub = t.create_publisher(String, 'robot_description', DESCRIPTION_QOS)
         self.js_pub = t.create_publisher(JointState, 'joint_states', 10)
-        self.cmds, self.efforts, self.logs = [], [], []
+        self.cmds, self.efforts, self.logs, self.records = [], [], [], []
         self.diag = None
         self.diag_messages = []
         t.create_subscription(Float64MultiArray, CMD, lambda m: self.cmds.append(np.array(m.data)), 100)
@@ -109,6 +109,7 @@ class Harness:
     def _on_log(self, msg):
         if msg.name == 'dynamics_node':
             self.logs.append(msg.msg)
+            self.records.append(msg)
 
     def diag_values(self):
         return {} if self.diag is None else {kv.key: kv.value for kv in self.diag.values}
@@ -484,6 +485,32 @@ BAD_INERTIA = (
     '<inertia ixx="0.001" ixy="0" ixz="0" iyy="0.001" iyz="0" izz="0.01"/></inertial></link>'
     '<joint name="j2" type="revolute"><parent link="arm"/><child link="tip"/><origin xyz="0 0 0.2"/>'
     '<axis xyz="0 1 0"/><limit effort="100" velocity="1" lower="-3" upper="3"/></joint></robot>')
+
+
+def test_log_lines_reach_rosout_with_their_level_and_call_site_and_the_logger_level_applies(ros, chain):
+    """The node's log lines (Outputs.log_line, through rclpy's C logging call) arrive on /rosout
+    as rclpy's logger would send them, and a level set for the node's logger still filters."""
+    from rclpy.logging import LoggingSeverity
+
+    from lie_dynamics.ros import outputs
+    node = ros.start(wait_model=False)
+    for severity in ('info', 'warn', 'error'):
+        node.outputs.log_line(severity, f'probe line {severity}')
+    wait_until(lambda: sum(r.msg.startswith('probe line') for r in ros.records) == 3, what='probe lines')
+    got = {r.msg: r for r in ros.records if r.msg.startswith('probe line')}
+    assert {k: r.level for k, r in got.items()} == {'probe line info': Log.INFO, 'probe line warn': Log.WARN,
+                                                    'probe line error': Log.ERROR}
+    for r in got.values():
+        assert (r.function, os.path.basename(r.file), r.line) == (
+            'log_line', 'outputs.py', outputs.Outputs.log_line.__code__.co_firstlineno)
+    node.get_logger().set_level(LoggingSeverity.ERROR)
+    try:
+        node.outputs.log_line('warn', 'filtered warn')
+        node.outputs.log_line('error', 'kept error')
+        wait_until(lambda: 'kept error' in ros.logs, what='the error line')
+        assert 'filtered warn' not in ros.logs   # published before the error line: it would be here
+    finally:
+        node.get_logger().set_level(LoggingSeverity.INFO)
 
 
 def test_inertia_policy_strict_refuses_then_warn_loads(ros):

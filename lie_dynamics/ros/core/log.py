@@ -9,9 +9,10 @@ import time
 from .diagnostics import DIAG_TEXT_MAX, LOG_TEXT_MAX, Throttle, clip, held_text
 
 LOG_THROTTLE_S = 2.0
-# A paced log writes this many lines per flush: one per node callback. rclpy's logger costs
-# 0.2-0.9 ms per line (it inspects the caller's frames); a model swap decides several lines at once,
-# which written in one joint_states callback delayed the next reply by a millisecond or more.
+# A paced log writes this many lines per flush: one per node callback. A model swap decides
+# several lines at once; with rclpy's Python logger (0.2-1.3 ms per line: it inspects the caller's
+# frames; the node now writes through its C call, outputs.py) they delayed the next reply by a
+# millisecond or more when written in one joint_states callback.
 LOG_LINES_PER_CALLBACK = 1
 LOG_QUEUE_MAX = 1000   # lines waiting to be written; beyond it they are counted, not kept
 
