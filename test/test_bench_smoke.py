@@ -229,3 +229,15 @@ def test_sched_trace_finds_each_wait_for_a_cpu_and_what_held_it():
     text = sched_trace.markdown(rows, long_waits, 'kernel facts')
     assert '| node | 2 |' in text
     assert 'queued on CPU 0 held by cc1/300 (compiler) 4.00 ms; another CPU idle 3.50 ms' in text
+
+
+def test_log_line_bench_times_both_paths():
+    """bench.log_line runs (its own process: it starts rclpy) and reports both logging paths."""
+    import subprocess
+    import sys
+    done = subprocess.run([sys.executable, '-m', 'bench.log_line', '--rounds', '1', '--lines', '3'],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    rows = [ln for ln in done.stdout.splitlines() if ln.startswith("| rclpy's Python logger |")
+            or ln.startswith('| Outputs.log_line (C call) |')]
+    assert len(rows) == 2 and rows[0].endswith('| 1.000× |')
