@@ -12,7 +12,8 @@ with what held the CPU and how long the other CPUs idled.
 Needs root and tracefs (/sys/kernel/tracing; mounted here if it is not). Prints the kernel's tick
 rate and preemption model where /proc/config.gz says them, node_loads' table, then the waits;
 saves a chart of the node's and the streaming process's waits (sched_trace.png in --out). The
-tracing settings are put back afterwards. A benchmark, not a test: numbers depend on the machine.
+tracing settings are put back afterwards, and tracefs unmounted if it was mounted here. A
+benchmark, not a test: numbers depend on the machine.
 """
 import argparse
 import bisect
@@ -157,13 +158,15 @@ def kernel_facts():
 
 
 class Recorder:
-    """tracefs recording of EVENTS with tgids; `stop` returns the text trace's path; `restore`
-    puts every setting back."""
+    """tracefs recording of EVENTS with tgids (tracefs mounted if it is not); `stop` returns the
+    text trace's path; `restore` puts every setting back (and unmounts what it mounted)."""
 
     def __init__(self, root=TRACEFS):
         self.root = root
+        self.mounted = False   # mounted here: unmounted by restore
         if not os.path.exists(os.path.join(root, 'trace')):
-            subprocess.run(['mount', '-t', 'tracefs', 'nodev', root], check=False, capture_output=True)
+            self.mounted = subprocess.run(['mount', '-t', 'tracefs', 'nodev', root], check=False,
+                                          capture_output=True).returncode == 0
         if not os.path.exists(os.path.join(root, 'trace')):
             raise RuntimeError(f'no tracefs at {root} (root: mount -t tracefs nodev {root})')
         self._saved = {p: self._read(p) for p in ('tracing_on', 'buffer_size_kb', 'options/record-tgid')
@@ -198,6 +201,8 @@ class Recorder:
         self._write('trace', '')
         for p, v in self._saved.items():
             self._write(p, v)
+        if self.mounted:
+            subprocess.run(['umount', self.root], check=False, capture_output=True)
 
 
 def watch_processes(stop, found, period=0.2):
