@@ -26,6 +26,8 @@ import threading
 import time
 from collections import defaultdict
 
+import numpy as np
+
 from bench.common import HERE, savefig, setup_matplotlib
 
 TRACEFS = '/sys/kernel/tracing'
@@ -131,15 +133,12 @@ def summary(out, tgid_of, busy, roles, long_s=LONG_S):
             held = [(s, f'{comm}/{tid}' + (f' ({roles[tgid_of[tid]]})' if tgid_of.get(tid) in roles else ''))
                     for s, comm, tid in held]
             long_waits.append((w[0], role, w[2], idle, held))
-        rows.append({'process': role, 'waits': len(d), 'p50_ms': 1e3 * _pct(d, 50), 'p99_ms': 1e3 * _pct(d, 99),
-                     'p999_ms': 1e3 * _pct(d, 99.9), 'max_ms': 1e3 * d[-1], 'long': len(longs),
+        p50, p99, p999 = np.percentile(d, (50, 99, 99.9))
+        rows.append({'process': role, 'waits': len(d), 'p50_ms': 1e3 * p50, 'p99_ms': 1e3 * p99,
+                     'p999_ms': 1e3 * p999, 'max_ms': 1e3 * d[-1], 'long': len(longs),
                      'long_other_cpu_idle': with_idle, 'all': d})
     long_waits.sort(key=lambda x: -x[0])
     return rows, long_waits
-
-
-def _pct(sorted_values, q):
-    return sorted_values[min(int(len(sorted_values) * q / 100.0), len(sorted_values) - 1)]
 
 
 def kernel_facts():

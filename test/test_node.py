@@ -76,7 +76,7 @@ class Harness:
         t = self.t = rclpy.create_node('node_tester', context=self.ctx)
         self.desc_pub = t.create_publisher(String, 'robot_description', DESCRIPTION_QOS)
         self.js_pub = t.create_publisher(JointState, 'joint_states', 10)
-        self.cmds, self.efforts, self.logs, self.records = [], [], [], []
+        self.cmds, self.efforts, self.records = [], [], []
         self.diag = None
         self.diag_messages = []
         t.create_subscription(Float64MultiArray, CMD, lambda m: self.cmds.append(np.array(m.data)), 100)
@@ -108,8 +108,12 @@ class Harness:
 
     def _on_log(self, msg):
         if msg.name == 'dynamics_node':
-            self.logs.append(msg.msg)
             self.records.append(msg)
+
+    @property
+    def logs(self):
+        """The texts of the node's /rosout records so far."""
+        return [r.msg for r in self.records]
 
     def diag_values(self):
         return {} if self.diag is None else {kv.key: kv.value for kv in self.diag.values}
