@@ -84,6 +84,8 @@ def scenarios():
 
 # After SIGINT, a process has this long to stop before it is killed
 STOP_GRACE_S = 5.0
+# Once the simulator has ended, the recorder stops after this long without a new state
+DRAIN_QUIET_S = 10.0
 
 
 class Stack:
@@ -240,7 +242,7 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
                          **({'lockstep_stamped_topic': DESIRED_TOPIC} if with_traj and node_params else {})},
                         ends_by_itself=steps > 0)
             last_check = last_status = 0.0
-            drain_until = None
+            drain_until, drained = None, 0
             try:
                 while True:
                     ex.spin_once(timeout_sec=0.05)  # one callback: keep this loop lean, it must not lag
@@ -254,8 +256,11 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
                         break  # the simulator is done: what has not arrived by now will not
                     if now - last_check > 0.2:
                         last_check = now
-                        if stack.check() and drain_until is None:
-                            drain_until = now + 10.0
+                        n = len(rec['t'])
+                        # the simulator is done: take what still comes, until DRAIN_QUIET_S pass without a
+                        # state (a loaded machine leaves this reader seconds behind the simulator)
+                        if stack.check() and (drain_until is None or n > drained):
+                            drain_until, drained = now + DRAIN_QUIET_S, n
                     if status and now - last_status > 1.0 and rec['t']:
                         last_status = now
                         status(name, tail(rec, int(STATUS_WINDOW_S * rate)))
