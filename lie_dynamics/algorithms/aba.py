@@ -50,21 +50,19 @@ def forward_dynamics(model, q, qd, tau, wrenches=None, method='cholesky', out=No
     definite (massless chains). out: optional float64 array of the result's shape, written
     and returned.
     """
-    if method not in METHODS:
+    if method == 'cholesky':   # the kernels of the call as given take no wrenches: with them, no fast path
+        spec = None if wrenches else traced_cholesky.FORWARD_DYNAMICS
+    elif method == 'aba':
+        spec = None if wrenches else traced_aba.ABA
+    else:
         raise ValueError(f"unknown forward dynamics method {method!r}: use one of {METHODS}")
-    if not wrenches:   # the common case first: the kernel takes it or declines (None)
-        qdd = runtime.fast(model, traced_aba.ABA if method == 'aba' else traced_cholesky.FORWARD_DYNAMICS)(
-            q, qd, tau, out)
-        if qdd is not None:
-            return qdd
-    (q, qd, tau), single = model.validate(('q', 'qd', 'tau'), (q, qd, tau))
-    runtime.check_out(out, q.shape[1:] if single else q.shape)
-    qdd = _forward_dynamics(model, q, qd, tau, wrenches, method)
-    return runtime.deliver(qdd[0] if single else qdd, out)
+    return runtime.call(model, spec, _FORWARD_DYNAMICS, (q, qd, tau), out, wrenches, method)
 
 
-def _forward_dynamics(model, q, qd, tau, wrenches, method):
-    """forward_dynamics on validated (N, n) arrays, by the kernels or the references."""
+def forward_dynamics_validated(model, arrays, wrenches=None, method='cholesky'):
+    """forward_dynamics on validated (N, n) arrays [q, qd, tau] (Model.validate), by the
+    kernels or the references. For callers that validated their arguments already."""
+    q, qd, tau = arrays
     if method == 'aba':
         if not traced_aba.supports(model):
             raise ValueError(_MIMIC)
@@ -79,6 +77,9 @@ def _forward_dynamics(model, q, qd, tau, wrenches, method):
     return out
 
 
+_FORWARD_DYNAMICS = runtime.Entry(('q', 'qd', 'tau'), rnea.joint_vector, forward_dynamics_validated)
+
+
 # ---------------------------------------------------------------------------- Cholesky
 def forward_dynamics_vectorized(model, q, qd, tau, wrenches=None):
     """forward_dynamics(..., method='cholesky') without its generated kernel: M and h by their
@@ -89,8 +90,9 @@ def forward_dynamics_vectorized(model, q, qd, tau, wrenches=None):
 
 
 def _cholesky_vectorized(model, q, qd, tau, wrenches):
-    M = crba.mass_matrix(model, q)
-    h = rnea.inverse_dynamics(model, q, qd, np.zeros_like(qd), wrenches)
+    """On validated (N, n) arrays: M and the bias h by their validated paths, then the solves."""
+    M = crba.mass_matrix_validated(model, q)
+    h = rnea.inverse_dynamics_validated(model, [q, qd, np.zeros_like(qd)], wrenches)
     return cho_solve(cholesky(M), tau - h)
 
 

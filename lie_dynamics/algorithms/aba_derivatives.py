@@ -19,7 +19,7 @@ from . import crba, rnea
 from .cholesky import cho_solve, cholesky
 from ..codegen import runtime
 from ..codegen.traced import derivatives as traced
-from .rnea_derivatives import inverse_dynamics_derivatives
+from .rnea_derivatives import inverse_dynamics_derivatives_validated
 
 
 def forward_dynamics_derivatives(model, q, qd, tau, wrenches=None):
@@ -29,16 +29,23 @@ def forward_dynamics_derivatives(model, q, qd, tau, wrenches=None):
     (Pinocchio's computeABADerivatives: ddq_dq, ddq_dv, Minv).
     """
     n = model.n
-    if not wrenches:   # the common case first: the kernel takes it or declines (None)
-        out = runtime.fast(model, traced.FORWARD_DYNAMICS_DERIVATIVES)(q, qd, tau)
-        if out is not None:
-            out = out.reshape(out.shape[:-1] + (3, n, n))
-            return out[..., 0, :, :], out[..., 1, :, :], out[..., 2, :, :]
-    (q, qd, tau), single = model.validate(('q', 'qd', 'tau'), (q, qd, tau))
-    out = None if wrenches else _kernel(model, q, qd, tau)
-    if out is not None:
-        return tuple(o[0] for o in out) if single else out
-    return _vectorized(model, q, qd, tau, wrenches, single)
+    spec = None if wrenches else traced.FORWARD_DYNAMICS_DERIVATIVES   # its kernel takes no wrenches
+    out = runtime.call(model, spec, _DERIVATIVES, (q, qd, tau), None, wrenches)
+    out = out.reshape(out.shape[:-1] + (3, n, n))
+    return out[..., 0, :, :], out[..., 1, :, :], out[..., 2, :, :]
+
+
+def _full(model, arrays, wrenches):
+    """call's full path on validated (N, n) arrays: the three derivatives as one (N, 3 n n)
+    array, as the kernel's outputs."""
+    q, qd, tau = arrays
+    out = None if wrenches else runtime.run(model, traced.FORWARD_DYNAMICS_DERIVATIVES, arrays)
+    if out is None:
+        out = np.concatenate([d.reshape(len(q), -1) for d in _vectorized(model, q, qd, tau, wrenches)], axis=1)
+    return out
+
+
+_DERIVATIVES = runtime.Entry(('q', 'qd', 'tau'), None, _full)
 
 
 def forward_dynamics_derivatives_kernel(model, q, qd, tau, mode=None):
@@ -63,28 +70,27 @@ def forward_dynamics_derivatives_vectorized(model, q, qd, tau, wrenches=None):
     """forward_dynamics_derivatives without its generated kernel: M, h and the derivatives of
     inverse dynamics by their own dispatch, then batched Cholesky solves."""
     (q, qd, tau), single = model.validate(('q', 'qd', 'tau'), (q, qd, tau))
-    return _vectorized(model, q, qd, tau, wrenches, single)
+    out = _vectorized(model, q, qd, tau, wrenches)
+    return tuple(o[0] for o in out) if single else out
 
 
-def _vectorized(model, q, qd, tau, wrenches, single):
-    """On validated (N, n) arrays; also reports a mass matrix that is not positive definite."""
+def _vectorized(model, q, qd, tau, wrenches):
+    """On validated (N, n) arrays, by the validated paths of M, h and the derivatives of
+    inverse dynamics; also reports a mass matrix that is not positive definite."""
     n = model.n
-    if single:   # one state: 2-D LAPACK calls (no batch axis to carry)
-        q, qd, tau = q[0], qd[0], tau[0]
-        M = crba.mass_matrix(model, q)
-        L = cholesky(M[None])[0]
-        h = rnea.inverse_dynamics(model, q, qd, np.zeros_like(qd), wrenches)
-        Lt = L.T
-        qdd = np.linalg.solve(Lt, np.linalg.solve(L, tau - h))
-        dq, dv = inverse_dynamics_derivatives(model, q, qd, qdd, wrenches)
-        sol = np.linalg.solve(Lt, np.linalg.solve(L, np.concatenate([dq, dv, np.eye(n)], axis=1)))
-        return -sol[:, :n], -sol[:, n:2 * n], sol[:, 2 * n:]
     N = q.shape[0]
-    M = crba.mass_matrix(model, q)
+    M = crba.mass_matrix_validated(model, q)
+    h = rnea.inverse_dynamics_validated(model, [q, qd, np.zeros_like(qd)], wrenches)
+    if N == 1:   # one state: 2-D LAPACK calls (no batch axis to carry)
+        L = cholesky(M)[0]
+        Lt = L.T
+        qdd = np.linalg.solve(Lt, np.linalg.solve(L, tau[0] - h[0]))
+        dq, dv = inverse_dynamics_derivatives_validated(model, [q, qd, qdd[None]], wrenches)
+        sol = np.linalg.solve(Lt, np.linalg.solve(L, np.concatenate([dq[0], dv[0], np.eye(n)], axis=1)))
+        return -sol[None, :, :n], -sol[None, :, n:2 * n], sol[None, :, 2 * n:]
     L = cholesky(M)
-    h = rnea.inverse_dynamics(model, q, qd, np.zeros_like(qd), wrenches)
     qdd = cho_solve(L, tau - h)
-    dq, dv = inverse_dynamics_derivatives(model, q, qd, qdd, wrenches)
+    dq, dv = inverse_dynamics_derivatives_validated(model, [q, qd, qdd], wrenches)
     rhs = np.concatenate([dq, dv, np.broadcast_to(np.eye(n), (N, n, n))], axis=-1)
     sol = cho_solve(L, rhs)
     return -sol[..., :n], -sol[..., n:2 * n], sol[..., 2 * n:]

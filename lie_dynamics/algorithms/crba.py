@@ -36,15 +36,21 @@ def _crba(model, x):
 def mass_matrix(model, q, out=None):
     """M(q) by the composite rigid body algorithm. q: (n,) or (N, n) -> (n, n) or (N, n, n).
     out: optional float64 array of the result's shape, written and returned."""
-    M = runtime.fast(model, traced.MASS_MATRIX)(q, out)
-    if M is not None:
-        return M
-    n = model.n
-    (q,), single = model.validate(('q',), (q,))
-    runtime.check_out(out, (n, n) if single else (len(q), n, n))
-    vals = runtime.run(model, traced.MASS_MATRIX, [q])
-    M = mass_matrix_vectorized(model, q) if vals is None else vals.reshape(len(q), n, n)
-    return runtime.deliver(M[0] if single else M, out)
+    return runtime.call(model, traced.MASS_MATRIX, _MASS_MATRIX, (q,), out)
+
+
+def mass_matrix_validated(model, q):
+    """mass_matrix on a validated (N, n) q (Model.validate) -> (N, n, n): the kernel, else the
+    vectorised form. For callers that validated their arguments already."""
+    M = runtime.run(model, traced.MASS_MATRIX, [q])
+    return mass_matrix_vectorized(model, q) if M is None else M
+
+
+def _full(model, arrays):
+    return mass_matrix_validated(model, arrays[0])
+
+
+_MASS_MATRIX = runtime.Entry(('q',), lambda model: (model.n, model.n), _full)
 
 
 def mass_matrix_kernel(model, q, mode=None):

@@ -43,6 +43,7 @@ import difflib
 import numpy as np
 
 from ..codegen import runtime
+from ..validation import float_list, vector
 from ..codegen.traced import jacobian as traced
 from ..spatial import cross
 from .kinematics import adjoints, spatial_motion, spatial_screws, world_poses
@@ -77,14 +78,9 @@ def target(model, link, frame, point):
         if isinstance(link, str) else _link(model, link)
     if point is None:
         return b, T, X, None
-    p = runtime.is_fast_single(point, 3)
+    p = float_list(point, 3)
     if p is None:
-        a = np.asarray(point, dtype=float)
-        if a.shape != (3,):
-            raise ValueError(f'point must have shape (3,) (a point in the link frame, m), got {a.shape}')
-        if not np.all(np.isfinite(a)):
-            raise ValueError('point contains non-finite values')
-        p = a.tolist()
+        p = vector('point', point, 3, ' (a point in the link frame, m)').tolist()
     if X is not None:   # the frame at the point: t + R p
         p0, p1, p2 = p
         X = X[:9] + [X[9 + r] + X[3 * r] * p0 + X[3 * r + 1] * p1 + X[3 * r + 2] * p2 for r in range(3)]

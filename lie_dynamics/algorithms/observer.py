@@ -34,6 +34,7 @@ import math
 
 import numpy as np
 
+from . import crba, rnea_derivatives
 from ..codegen import runtime
 from ..codegen.traced import observer as observer_kernel
 from ..codegen.traced import rnea as traced
@@ -48,17 +49,22 @@ def generalized_momentum(model, q, qd):
     one state (n,) or a batch (N, n): the generated kernel (trace_momentum) where the model
     has one, else the matrices. Raises ValueError naming a bad argument."""
     n = model.n
-    out = runtime.fast(model, traced.MOMENTUM)(q, qd)
-    if out is not None:
-        return out[..., :n], out[..., n:]
-    (q, qd), single = model.validate(('q', 'qd'), (q, qd))
-    out = runtime.run(model, traced.MOMENTUM, [q, qd])
+    out = runtime.call(model, traced.MOMENTUM, _MOMENTUM, (q, qd), None)
+    return out[..., :n], out[..., n:]
+
+
+def _momentum(model, arrays):
+    """(N, 2n): p then C^T qd, on validated (N, n) arrays."""
+    out = runtime.run(model, traced.MOMENTUM, arrays)
     if out is None:
-        p = np.einsum('...ij,...j->...i', model.mass_matrix(q), qd)
-        c = np.einsum('...ji,...j->...i', model.coriolis_matrix(q, qd, method='recursive'), qd)
-    else:
-        p, c = out[:, :n], out[:, n:]
-    return (p[0], c[0]) if single else (p, c)
+        q, qd = arrays
+        p = np.einsum('...ij,...j->...i', crba.mass_matrix_validated(model, q), qd)
+        c = np.einsum('...ji,...j->...i', rnea_derivatives.coriolis_matrix_validated(model, arrays), qd)
+        out = np.concatenate([p, c], axis=1)
+    return out
+
+
+_MOMENTUM = runtime.Entry(('q', 'qd'), None, _momentum)
 
 
 def _gains(gain, n):

@@ -115,14 +115,16 @@ def regressor(model, q, qd, qdd):
     order, parameters as PARAMETER_NAMES (Pinocchio's computeJointTorqueRegressor layout).
     Gravity (as set on the model) is included.
     """
-    Y = runtime.fast(model, traced.REGRESSOR)(q, qd, qdd)
-    if Y is not None:
-        return Y
-    (q, qd, qdd), single = model.validate(('q', 'qd', 'qdd'), (q, qd, qdd))
+    return runtime.call(model, traced.REGRESSOR, _REGRESSOR, (q, qd, qdd), None)
+
+
+def _full(model, arrays):
+    q, qd, qdd = arrays
     Y = _kernel(model, q, qd, qdd)
-    if Y is None:
-        Y = _vectorized(model, q, qd, qdd)
-    return Y[0] if single else Y
+    return _vectorized(model, q, qd, qdd) if Y is None else Y
+
+
+_REGRESSOR = runtime.Entry(('q', 'qd', 'qdd'), None, _full)
 
 
 def regressor_vectorized(model, q, qd, qdd):

@@ -39,19 +39,15 @@ def inverse_dynamics(model, q, qd, qdd, wrenches=None, with_gravity=True, out=No
     (6,) or (N, 6). with_gravity=False gives M(q) qdd + C(q, qd) qd. out: optional float64
     array of the result's shape to write into (a control loop then allocates nothing).
     """
-    if not wrenches:   # the common case first: the kernel takes it or declines (None)
-        tau = runtime.fast(model, traced.INVERSE_DYNAMICS if with_gravity else _ID_NO_GRAVITY)(q, qd, qdd, out)
-        if tau is not None:
-            return tau
-    arrs, single = model.validate(('q', 'qd', 'qdd'), (q, qd, qdd))
+    # the kernel of the call as given takes no wrenches: with them, no fast path
+    spec = None if wrenches else traced.INVERSE_DYNAMICS if with_gravity else _ID_NO_GRAVITY
+    return runtime.call(model, spec, _INVERSE_DYNAMICS, (q, qd, qdd), out, wrenches, with_gravity)
+
+
+def inverse_dynamics_validated(model, arrs, wrenches=None, with_gravity=True):
+    """inverse_dynamics on validated (N, n) arrays [q, qd, qdd] (Model.validate) -> (N, n): the
+    kernel, else the vectorised form. For callers that validated their arguments already."""
     N = len(arrs[0])
-    runtime.check_out(out, arrs[0].shape[1:] if single else arrs[0].shape)
-    tau = _inverse_dynamics(model, arrs, N, wrenches, with_gravity)
-    return runtime.deliver(tau[0] if single else tau, out)
-
-
-def _inverse_dynamics(model, arrs, N, wrenches, with_gravity):
-    """On validated (N, n) arrays -> (N, n)."""
     fext = external_body_wrenches(model, wrenches, N)
     if fext is None:
         spec = traced.INVERSE_DYNAMICS if with_gravity else _ID_NO_GRAVITY
@@ -60,6 +56,14 @@ def _inverse_dynamics(model, arrs, N, wrenches, with_gravity):
         arrs = arrs + [runtime.frames(model).wrench_params(fext).reshape(N, 6 * model.nb)]
     tau = runtime.run(model, spec, arrs, c_order=True)
     return _vectorized(model, np.array(arrs[:3]), fext, with_gravity) if tau is None else tau
+
+
+def joint_vector(model):
+    """The shape of one state's joint torques or accelerations: (n,)."""
+    return (model.n,)
+
+
+_INVERSE_DYNAMICS = runtime.Entry(('q', 'qd', 'qdd'), joint_vector, inverse_dynamics_validated)
 
 
 def inverse_dynamics_vectorized(model, q, qd, qdd, wrenches=None, with_gravity=True):
@@ -71,15 +75,16 @@ def inverse_dynamics_vectorized(model, q, qd, qdd, wrenches=None, with_gravity=T
 
 def gravity(model, q, out=None):
     """g(q): eqs 16-21 with V = 0 and Vd_0 = (0, -g); (n,) or (N, n). out: as inverse_dynamics."""
-    tau = runtime.fast(model, traced.GRAVITY)(q, out)
-    if tau is not None:
-        return tau
-    (a,), single = model.validate(('q',), (q,))
-    runtime.check_out(out, a.shape[1:] if single else a.shape)
-    tau = runtime.run(model, traced.GRAVITY, [a], c_order=True)
-    if tau is None:
-        tau = _gravity_vectorized(model, a)
-    return runtime.deliver(tau[0] if single else tau, out)
+    return runtime.call(model, traced.GRAVITY, _GRAVITY, (q,), out)
+
+
+def _gravity_full(model, arrs):
+    """g on validated (N, n) arrays: the kernel, else the vectorised form."""
+    tau = runtime.run(model, traced.GRAVITY, arrs, c_order=True)
+    return _gravity_vectorized(model, arrs[0]) if tau is None else tau
+
+
+_GRAVITY = runtime.Entry(('q',), joint_vector, _gravity_full)
 
 
 def external_body_wrenches(model, wrenches, N):

@@ -91,17 +91,29 @@ def inverse_dynamics_derivatives(model, q, qd, qdd, wrenches=None):
     wrenches: {link: (m, f)} in the link frame, as for inverse_dynamics.
     """
     n = model.n
-    if not wrenches:   # the common case first: the kernel takes it or declines (None)
-        out = runtime.fast(model, traced.INVERSE_DYNAMICS_DERIVATIVES)(q, qd, qdd)
-        if out is not None:
-            out = out.reshape(out.shape[:-1] + (2, n, n))
-            return out[..., 0, :, :], out[..., 1, :, :]
-    (q, qd, qdd), single = model.validate(('q', 'qd', 'qdd'), (q, qd, qdd))
+    spec = None if wrenches else traced.INVERSE_DYNAMICS_DERIVATIVES   # its kernel takes no wrenches
+    out = runtime.call(model, spec, _DERIVATIVES, (q, qd, qdd), None, wrenches)
+    out = out.reshape(out.shape[:-1] + (2, n, n))
+    return out[..., 0, :, :], out[..., 1, :, :]
+
+
+def inverse_dynamics_derivatives_validated(model, arrays, wrenches=None):
+    """(dtau/dq, dtau/dqd), each (N, n, n), on validated (N, n) arrays [q, qd, qdd]
+    (Model.validate): the kernel, else the vectorised form. For callers that validated their
+    arguments already."""
+    q, qd, qdd = arrays
     fext = external_body_wrenches(model, wrenches, len(q))
     res = _kernel(model, q, qd, qdd, fext)
-    if res is None:
-        res = _vectorized(model, q, qd, qdd, fext)
-    return (res[0][0], res[1][0]) if single else res
+    return _vectorized(model, q, qd, qdd, fext) if res is None else res
+
+
+def _full(model, arrays, wrenches):
+    """call's full path: both derivatives as one (N, 2 n n) array, as the kernel's outputs."""
+    dq, dv = inverse_dynamics_derivatives_validated(model, arrays, wrenches)
+    return np.concatenate([dq.reshape(len(dq), -1), dv.reshape(len(dv), -1)], axis=1)
+
+
+_DERIVATIVES = runtime.Entry(('q', 'qd', 'qdd'), None, _full)
 
 
 def inverse_dynamics_derivatives_kernel(model, q, qd, qdd, wrenches=None, mode=None):
@@ -155,14 +167,20 @@ def coriolis_matrix(model, q, qd):
     symmetric Gamma_ijk = Gamma_jik, so d/dqd_j sum_i,l Gamma_ilk qd_i qd_l = 2 sum_i Gamma_ijk qd_i.
     q, qd: (n,) or (N, n) -> (n, n) or (N, n, n).
     """
-    n = model.n
-    C = runtime.fast(model, traced.CORIOLIS)(q, qd)
-    if C is not None:
-        return C
-    (q, qd), single = model.validate(('q', 'qd'), (q, qd))
-    C = runtime.run(model, traced.CORIOLIS, [q, qd])
-    C = 0.5 * _vectorized(model, q, qd, np.zeros_like(qd), None)[1] if C is None else C.reshape(len(q), n, n)
-    return C[0] if single else C
+    return runtime.call(model, traced.CORIOLIS, _CORIOLIS, (q, qd), None)
+
+
+def coriolis_matrix_validated(model, arrays):
+    """coriolis_matrix on validated (N, n) arrays [q, qd] (Model.validate) -> (N, n, n). For
+    callers that validated their arguments already."""
+    C = runtime.run(model, traced.CORIOLIS, arrays)
+    if C is None:
+        q, qd = arrays
+        C = 0.5 * _vectorized(model, q, qd, np.zeros_like(qd), None)[1]
+    return C
+
+
+_CORIOLIS = runtime.Entry(('q', 'qd'), None, coriolis_matrix_validated)
 
 
 def coriolis_matrix_vectorized(model, q, qd):

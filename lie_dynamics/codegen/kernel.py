@@ -12,6 +12,7 @@ outputs. A `Kernel` carries everything the renderers and the runtime use of one 
   * the argument roles and widths, the number of outputs and, for a kernel whose outputs
     are the non-zero entries of a larger result, where they go (`scatter`, `packer`).
 """
+import enum
 import struct
 import threading
 
@@ -27,6 +28,13 @@ _BUILDS = [0]   # traces rendered in this process (runtime.cache_info)
 def builds():
     """Kernels traced and rendered (Python or C) since the process started."""
     return _BUILDS[0]
+
+
+class NativeState(enum.Enum):
+    """A Kernel's native library before it is a native.Library: not asked for yet, or unavailable
+    (backend off, no compiler, too many nodes)."""
+    UNTRIED = 'untried'
+    UNAVAILABLE = 'unavailable'
 
 
 class Trace:
@@ -73,13 +81,13 @@ class Kernel:
     per argument list), `widths` (values per argument list), `n_state` (per-state lists),
     `n_out`, `scatter` and `packer` (Trace.scatter; packer.pack_into(buffer, offset,
     *outputs) writes one state's full result); the renderings: `function` and `source`
-    (floats), `rows()` (numpy rows), `native()` (C). `pool` and `layout` belong to the batch
-    runner (runtime.run_rows). `python()` builds the Python forms, False when the structure
-    has no such kernel (the traced form returned None).
+    (floats), `rows()` (numpy rows), `native()` (C; `native_state`: NativeState.UNTRIED, UNAVAILABLE
+    or the native.Library). `python()` builds the Python forms, False when the structure has no
+    such kernel (the traced form returned None).
     """
     __slots__ = ('name', 'frames', 'structure', '_build', '_trace', '_lock', '_native_lock', 'supported',
                  'function', 'source', 'rows_source', 'nreg', '_rows', 'n_out', 'roles', 'widths', 'n_state',
-                 'scatter', 'packer', 'pool', 'layout', '_native')
+                 'scatter', 'packer', 'native_state', '__weakref__')
 
     def __init__(self, build, name, frames=None, structure=None):
         """build() -> Trace or None; traced on first need."""
@@ -88,7 +96,7 @@ class Kernel:
         self._trace, self._lock, self._native_lock, self.supported = None, threading.Lock(), threading.Lock(), None
         self.function = self.source = self.rows_source = self.nreg = self._rows = None
         self.n_out = self.roles = self.widths = self.n_state = self.scatter = self.packer = None
-        self.pool, self.layout, self._native = [], None, None
+        self.native_state = NativeState.UNTRIED
 
     @classmethod
     def of(cls, trace):
@@ -117,9 +125,9 @@ class Kernel:
         """Whether calling it builds nothing. native: its C library is wanted (then loaded, or
         known to be unavailable); python: its Python forms, where no C library serves."""
         if native:
-            if self._native is None:
+            if self.native_state is NativeState.UNTRIED:
                 return False
-            if self._native:
+            if self.native_state is not NativeState.UNAVAILABLE:
                 return True
         return not python or self.function is not None or self.supported is False
 
@@ -137,7 +145,7 @@ class Kernel:
                 self.rows_source, self.nreg = emit_rows(t.graph, t.name + '_rows', t.arguments, t.outputs)
                 self.source, self.function = src, fn
                 _BUILDS[0] += 1
-                if self._native is not None or self.structure is None or not _native.wanted():
+                if self.native_state is not NativeState.UNTRIED or self.structure is None or not _native.wanted():
                     self._trace = None   # no C rendering will need it
         return True
 
@@ -156,19 +164,20 @@ class Kernel:
     def native(self):
         """The compiled C kernel (native.Library) of this structure, or None (backend off or
         unavailable, no structure, no kernel, or more nodes than THRESHOLDS native_nodes)."""
-        lib = self._native
-        if lib is None:
+        lib = self.native_state
+        if lib is NativeState.UNTRIED:
             if self.structure is None:
                 return None
             with self._native_lock:
-                lib = self._native
-                if lib is None:
-                    lib = self._native = _native.library(self.structure, self.name, self._render_c) or False
+                lib = self.native_state
+                if lib is NativeState.UNTRIED:
+                    lib = _native.library(self.structure, self.name, self._render_c) or NativeState.UNAVAILABLE
+                    self.native_state = lib
                     self._trace = None   # rendered (or loaded without a trace): the Python forms retrace
-        return lib or None
+        return None if lib is NativeState.UNAVAILABLE else lib
 
     def _render_c(self):
-        """(C source, per-state widths, parameter lengths, outputs) for native.library, or None."""
+        """The native.Rendered C form for native.library, or None."""
         t = self.trace()
         if t is None or len(t.graph.live(t.outputs)[1]) > THRESHOLDS['native_nodes']:
             return None
@@ -176,4 +185,4 @@ class Kernel:
         src = crender.emit_c(t.graph, 'lie_kernel', t.arguments, t.roles, t.outputs, index, size)
         _BUILDS[0] += 1
         ns = self.n_state
-        return src, list(self.widths[:ns]), list(self.widths[ns:]), size or len(t.outputs)
+        return _native.Rendered(src, tuple(self.widths[:ns]), tuple(self.widths[ns:]), size or len(t.outputs))

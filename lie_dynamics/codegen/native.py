@@ -10,22 +10,10 @@ path, KERNEL_FLAGS for the kernels (no -ffast-math, -ffp-contract=off: the C ker
 what the Python kernels compute, operation for operation). A kernel's C text of several
 translation units (crender.py) is compiled on every usable core and linked once.
 
-Cache: $LIE_DYNAMICS_CACHE_DIR, else $XDG_CACHE_HOME/lie_dynamics, else ~/.cache/lie_dynamics;
-a file is named by a hash of everything that determines it (the generator's own source, the
-model structure, kernel name and THRESHOLDS['native_part'], or the call path's C source,
-with the compiler, its flags and the Python/numpy versions), so a cached kernel
-loads without being traced. Every file ends with a trailer (MAGIC, its key, the SHA-256 of
-the bytes before it), checked before loading: a truncated or foreign file is rebuilt, never
-loaded. Files are written to a temporary name and renamed into place (two processes
-compiling the same kernel both succeed); an unwritable cache folder means compiling in a
-temporary folder, removed after loading. The folder is bounded: $LIE_DYNAMICS_CACHE_MAX_MB
-(default CACHE_MAX_MB); a file's time is its last use, and after each compile the least
-recently used files go until the folder holds 3/4 of the bound (`evict`).
+Cache: disk_cache.py (named by a hash of everything that determines a file, checked before
+loading, bounded); a cached kernel loads without being traced.
 """
 import ctypes
-import functools
-import glob
-import hashlib
 import importlib.machinery
 import importlib.util
 import os
@@ -34,13 +22,16 @@ import shutil
 import subprocess
 import sys
 import sysconfig
-import tempfile
 import threading
 import time
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 
+from . import disk_cache
+from .disk_cache import (CACHE_MAX_MB, MAGIC, STALE_BUILD_S, cache_dir, cache_max_bytes, evict,  # noqa: F401
+                         generator_hash)
 from .thresholds import THRESHOLDS
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -49,8 +40,6 @@ FLAGS = ('-O2', '-ffp-contract=off', '-fno-math-errno', '-fPIC', '-shared', '-pi
 # in 0.92-1.0x the time (no scheduling passes lengthening live ranges; every family on the arm
 # and the Talos arm, interleaved rounds: python -m bench.compile --parts 500,500:-O2).
 KERNEL_FLAGS = ('-O1',) + FLAGS[1:]
-MAGIC = b'\nlie_dynamics native '
-_TRAILER = len(MAGIC) + 64 + 64
 # Between translation units in one C text (crender.emit_c; the whole text is valid C as well):
 # _build compiles the units in parallel and links them once.
 UNIT = '/* lie_dynamics: translation unit */\n'
@@ -73,7 +62,7 @@ def setting():
 def wanted():
     """False when the native backend is switched off or known to be unavailable (under
     'require' the latter raises NativeUnavailable, every time)."""
-    if os.environ.get('LIE_DYNAMICS_NATIVE', 'auto').strip() == '0':
+    if setting() == '0':
         return False
     if _STATE['error'] is not None:
         _unavailable(_STATE['error'])
@@ -87,14 +76,6 @@ def compiler():
     return shlex.split(cc)
 
 
-def cache_dir():
-    d = os.environ.get('LIE_DYNAMICS_CACHE_DIR')
-    if d:
-        return d
-    base = os.environ.get('XDG_CACHE_HOME') or os.path.join(os.path.expanduser('~'), '.cache')
-    return os.path.join(base, 'lie_dynamics')
-
-
 def compile_count():
     """C compilations this process has run (cache hits do not count)."""
     return _STATE['compiles']
@@ -105,93 +86,8 @@ def compile_seconds():
     return _STATE['seconds']
 
 
-@functools.lru_cache(maxsize=1)
-def generator_hash():
-    """Hash of the source that determines the C kernels (the tracer, renderers, traced forms)."""
-    h = hashlib.sha256()
-    for path in sorted(glob.glob(os.path.join(HERE, '*.py')) + glob.glob(os.path.join(HERE, 'traced', '*.py'))):
-        with open(path, 'rb') as fh:
-            h.update(os.path.basename(path).encode() + fh.read())
-    h.update(f'{sys.version_info[:2]} {np.__version__}'.encode())
-    return h.hexdigest()
-
-
 def _key(flags, *parts):
-    h = hashlib.sha256()
-    for p in parts + (' '.join(compiler()), ' '.join(flags)):
-        h.update(str(p).encode() + b'\0')
-    return h.hexdigest()
-
-
-def _verified(path, key):
-    """True when path ends with the trailer of key and the SHA-256 of the bytes before it; its
-    time is then set to now (its last use, which `evict` reads)."""
-    try:
-        with open(path, 'rb') as fh:
-            data = fh.read()
-    except OSError:
-        return False
-    if len(data) <= _TRAILER or not data.endswith(MAGIC + key.encode() + hashlib.sha256(data[:-_TRAILER]).hexdigest()
-                                                  .encode()):
-        return False
-    try:
-        os.utime(path)
-    except OSError:   # a read-only cache is still used
-        pass
-    return True
-
-
-CACHE_MAX_MB = 512.0   # about ten times what a busy development machine collects
-STALE_BUILD_S = 3600.0  # a build folder this old belongs to a process that died while compiling
-
-
-def cache_max_bytes():
-    """The bound of the cache folder: $LIE_DYNAMICS_CACHE_MAX_MB (a positive finite number), else CACHE_MAX_MB."""
-    text = os.environ.get('LIE_DYNAMICS_CACHE_MAX_MB', '').strip()
-    try:
-        mb = float(text) if text else CACHE_MAX_MB
-    except ValueError:
-        mb = CACHE_MAX_MB
-    return int((mb if 0 < mb < float('inf') else CACHE_MAX_MB) * 2 ** 20)   # nan, inf, <= 0: the default
-
-
-def evict(folder, max_bytes, keep=(), now=None):
-    """Bound the cache folder: when its libraries hold more than max_bytes, remove the least
-    recently used (oldest time) until they hold at most 3/4 of it, never one in `keep`; build
-    folders older than STALE_BUILD_S go too. Returns the removed paths. Files another process
-    has loaded stay mapped there (removing only unlinks them)."""
-    now = time.time() if now is None else now
-    removed, files = [], []
-    try:
-        entries = list(os.scandir(folder))   # types from the directory itself: one stat per file, not two
-    except OSError:
-        return removed
-    for e in entries:
-        try:
-            if e.name.startswith('build-') and now - e.stat().st_mtime > STALE_BUILD_S:
-                shutil.rmtree(e.path, ignore_errors=True)
-                removed.append(e.path)
-            elif e.name.endswith('.so') and e.is_file():
-                st = e.stat()
-                files.append((st.st_mtime, st.st_size, e.path))
-        except OSError:   # removed meanwhile
-            continue
-    total = sum(size for _, size, _ in files)
-    if total <= max_bytes:
-        return removed
-    keep = {os.path.abspath(k) for k in keep}
-    for _, size, path in sorted(files):
-        if total <= 0.75 * max_bytes:
-            break
-        if os.path.abspath(path) in keep:
-            continue
-        try:
-            os.remove(path)
-        except OSError:
-            continue
-        total -= size
-        removed.append(path)
-    return removed
+    return disk_cache.key(*parts, ' '.join(compiler()), ' '.join(flags))
 
 
 def _first_error(text):
@@ -268,17 +164,12 @@ def _build(source, lib, work, flags):
 
 
 def _compile(source, key, suffix, flags):
-    """Path of the verified library for key, compiling `source` (C text) on a miss."""
-    d = cache_dir()
-    path = os.path.join(d, key[:40] + suffix)
-    if _verified(path, key):
+    """(path of the verified library for key, temporary folder to remove after loading or
+    None), compiling `source` (C text) on a miss."""
+    path = disk_cache.path_of(key, suffix)
+    if disk_cache.verified(path, key):
         return path, None
-    try:
-        os.makedirs(d, exist_ok=True)
-        work = tempfile.mkdtemp(prefix='build-', dir=d)
-        tmpdir = None
-    except OSError:   # read-only or unusable cache: compile in a temporary folder
-        work = tmpdir = tempfile.mkdtemp(prefix='lie_dynamics_native_')
+    work, tmpdir = disk_cache.work_folder()
     try:
         lib = os.path.join(work, 'k' + suffix)
         t0 = time.perf_counter()
@@ -287,15 +178,7 @@ def _compile(source, key, suffix, flags):
         finally:
             _STATE['seconds'] += time.perf_counter() - t0
         _STATE['compiles'] += 1
-        with open(lib, 'rb') as fh:
-            body = fh.read()
-        with open(lib, 'ab') as fh:
-            fh.write(MAGIC + key.encode() + hashlib.sha256(body).hexdigest().encode())
-        if tmpdir is not None:
-            return lib, tmpdir
-        os.replace(lib, path)   # atomic: a concurrent reader sees the old file or the whole new one
-        evict(d, cache_max_bytes(), keep=(path,))
-        return path, None
+        return disk_cache.store(lib, key, suffix, tmpdir is not None), tmpdir
     finally:
         if tmpdir is None:
             shutil.rmtree(work, ignore_errors=True)
@@ -363,26 +246,34 @@ class Library:
         self.address = ctypes.cast(self.lib.lie_kernel, ctypes.c_void_p).value
 
 
+class Rendered(NamedTuple):
+    """A kernel rendered to C for `library`: the C text and its signature."""
+    source: str
+    widths: tuple        # values per per-state argument list
+    par_lengths: tuple   # values per parameter list
+    n_out: int
+
+
 def library(structure, name, render):
     """The Library of kernel `name` for a model structure (its fingerprint): from the cache,
-    else compiled from render() -> (C source, widths, parameter lengths, n_out). None when
-    the backend is off or unavailable (module())."""
+    else compiled from render() -> Rendered, or None (no such kernel). None when the backend
+    is off or unavailable (module())."""
     if module() is None:
         return None
     key = _key(KERNEL_FLAGS, generator_hash(), structure, name, THRESHOLDS['native_part'])
-    path = os.path.join(cache_dir(), key[:40] + '.so')
+    path = disk_cache.path_of(key, '.so')
     for attempt in (0, 1):
         tmp = None
-        if not _verified(path, key):
+        if not disk_cache.verified(path, key):
             rendered = render()
             if rendered is None:
                 return None
-            source, widths, par_lengths, n_out = rendered
-            meta = [len(widths), len(par_lengths), n_out, *widths, *par_lengths]
+            meta = [len(rendered.widths), len(rendered.par_lengths), rendered.n_out, *rendered.widths,
+                    *rendered.par_lengths]
             if len(meta) > 64:
                 return None
             meta = ', '.join(str(int(v)) for v in meta)
-            source = f'{source}const long lie_meta[64] = {{{meta}}};\n'
+            source = f'{rendered.source}const long lie_meta[64] = {{{meta}}};\n'
             try:
                 path, tmp = _compile(source, key, '.so', KERNEL_FLAGS)
             except NativeUnavailable as e:
@@ -398,9 +289,13 @@ def library(structure, name, render):
                 shutil.rmtree(tmp, ignore_errors=True)
 
 
-def bind(lib, params, n_res, out_dims, check=0, rtol=0.0, gil_rows=64):
-    """A callable running lib's kernel with these parameter lists (sequences of floats):
+def bind(lib, params, result, gil_rows):
+    """A callable running lib's kernel with these parameter lists (sequences of floats) and its
+    outputs read as `result` (spec.Result: shape, size, rtol; pivots tested when rtol is not
+    None); batches of gil_rows states or more run with the GIL released.
     call(*per_state_arrays[, out]) -> result, or None when it declines (native_call.c)."""
     arrays = tuple(np.ascontiguousarray(p, dtype=float).reshape(-1) if len(p) else np.zeros(1) for p in params)
-    return module().bind(lib.address, lib.widths, arrays, lib.n_out, n_res, tuple(out_dims), check, rtol, gil_rows,
-                         (lib, arrays))
+    check = result.rtol is not None
+    # native_call.c's bind(address, widths, params, n_out, n_res, out_dims, check, rtol, gil_rows, keep)
+    return module().bind(lib.address, lib.widths, arrays, lib.n_out, result.size, tuple(result.shape), int(check),
+                         result.rtol if check else 0.0, gil_rows, (lib, arrays))

@@ -10,17 +10,22 @@ or locked), numbered parents-first. Body coordinates are affine in q:
 which carries mimic joints (a row with the multiplier in the master's column) and
 locked joints (a row in L). Joint torques are tau = E^T tau_body: the master collects
 multiplier * tau_mimic.
+
+The algorithms are methods of the model through `facade.Algorithms`, pickling through
+`pickling.Pickled`; arguments are validated by lie_dynamics.validation (`Model.validate`).
 """
 import copy
-import functools
 
 import numpy as np
 
-from ..codegen import runtime
-from ..algorithms import aba, aba_derivatives, crba, jacobian, kinematics, lagrangian, regressor, rnea, rnea_derivatives
+from ..algorithms import kinematics
+from .facade import Algorithms
 from .inertia import RTOL, link_inertia, violations
+from .pickling import Pickled
 from .inertia import inertia_scale as scale_of  # the constructor's argument has the plain name
 from ..spatial import exp6, hat3
+from .. import validation
+from ..validation import vector as _vector   # check_payload's name for it
 
 
 def _frozen(x):
@@ -33,58 +38,7 @@ def _frozen(x):
 
 
 
-_PER_LINK = ('_places', '_link_inertias', 'link_frames')   # link -> tuple of values and small arrays
-
-
-def _pack(table):
-    """(keys, columns) of a dict of equal-length tuples; a column of arrays of one shape and
-    dtype is stacked into one array, with whether they were all read-only (pickles and copies
-    of arrays come back writeable)."""
-    columns = []
-    for col in zip(*table.values()):
-        if all(isinstance(a, np.ndarray) for a in col) and len({(a.shape, a.dtype) for a in col}) == 1:
-            columns.append((np.stack(col), not any(a.flags.writeable for a in col)))
-        else:
-            columns.append((list(col), None))
-    return list(table), columns
-
-
-def _unpack(packed):
-    keys, columns = packed
-    for values, read_only in columns:
-        if read_only:
-            values.flags.writeable = False
-    return dict(zip(keys, zip(*[list(values) for values, _ in columns])))
-
-
-def _vector(name, x, n):
-    a = np.asarray(x, dtype=float)
-    if a.shape != (n,):
-        raise ValueError(f'{name} must have shape ({n},), got {a.shape}')
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f'{name} contains non-finite values')
-    return a
-
-
-def _jointless(states, *shapes):
-    """A robot without movable joints (a URDF that only welds links together) is a valid model:
-    its calls check their state arguments and return empty results of the usual shapes."""
-    def wrap(method):
-        @functools.wraps(method)
-        def call(self, *args, **kwargs):
-            if self.n:
-                return method(self, *args, **kwargs)
-            given = dict(zip(states, args))
-            given.update((k, kwargs[k]) for k in states if k in kwargs)
-            first = self.check_states(**given)[0]
-            lead = () if np.ndim(given[states[0]]) == 1 else (first.shape[0],)
-            out = tuple(np.zeros(lead + sh) for sh in shapes)
-            return out if len(out) > 1 else out[0]
-        return call
-    return wrap
-
-
-class Model:
+class Model(Algorithms, Pickled):
     """Fixed-base kinematic tree for the Lie-group dynamics algorithms."""
 
     def __init__(self, *, name, joint_names, joint_types, locked_joint_names, lockable_joint_names,
@@ -347,74 +301,27 @@ class Model:
 
     # ------------------------------------------------------------------ input checks
     def check_batch(self, name, x, N=None):
-        """(n,) or (N, n) -> (N, n) float array; raises ValueError naming the argument."""
-        a = np.asarray(x, dtype=float)
-        if a.ndim == 1 and a.shape[0] == self.n:
-            a = a[None]
-        elif not (a.ndim == 2 and a.shape[1] == self.n):
-            raise ValueError(f'{name} must have shape ({self.n},) or (N, {self.n}) for joints '
-                             f'{self.joint_names}, got {np.shape(x)}')
-        if N is not None and a.shape[0] != N:
-            raise ValueError(f'{name} has {a.shape[0]} states, expected {N}')
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f'{name} contains non-finite values')
-        return a
+        """(n,) or (N, n) -> (N, n) float array; raises ValueError naming the argument
+        (lie_dynamics.validation.batch)."""
+        return validation.batch(name, x, self.n, self.joint_names, N)
 
     def check_states(self, **arrays):
-        """check_batch for the state arguments of one call, in keyword order: the first sets the
-        number of states N, the others must match it. Returns the (N, n) arrays in that order."""
-        return self.validate(tuple(arrays), tuple(arrays.values()))[0]
+        """validate, by keyword: the first sets the number of states N, the others must match
+        it. Returns the (N, n) arrays in that order."""
+        return self.validate(tuple(arrays), tuple(arrays.values())).arrays
 
     def validate(self, names, args):
         """The one validation of a call's per-state arguments (`names` name them in messages):
-        ((N, n) float arrays, whether the call is one state: its first argument is (n,)).
-        The common case is one check: arrays of one shape, (n,) or (N, n), with a finite sum
-        (float64 ones are not copied). Anything else is checked argument by argument
-        (check_batch: the first sets N), and the first bad one raises ValueError naming it."""
-        try:
-            arrs = [np.asarray(x, dtype=float) for x in args]
-        except (ValueError, TypeError):
-            arrs = None
-        if arrs is not None:
-            shape = arrs[0].shape
-            if len(shape) in (1, 2) and shape[-1] == self.n and all(x.shape == shape for x in arrs):
-                with np.errstate(over='ignore', invalid='ignore'):   # overflow only means: check exactly
-                    s = sum(float(x.sum()) for x in arrs)
-                if s - s == 0.0:
-                    return ([x[None] for x in arrs] if len(shape) == 1 else arrs), len(shape) == 1
-        out, N = [], None
-        for name, x in zip(names, args, strict=True):
-            a = self.check_batch(name, x, N)
-            N = a.shape[0]
-            out.append(a)
-        return out, np.ndim(args[0]) == 1
+        a validation.States ((N, n) float arrays, whether the call is one state: its first
+        argument is (n,)); the first bad argument raises ValueError naming it
+        (lie_dynamics.validation.states)."""
+        return validation.states(self.n, names, args, self.joint_names)
 
     def body_coordinates(self, q):
         """Body joint values x = E q + L q_locked + c0 for a batch q (N, n)."""
         return q @ self.E.T + self.e0
 
-    # ------------------------------------------------------------------ algorithms
-    @_jointless(('q', 'qd', 'qdd'), (0,))
-    def inverse_dynamics(self, q, qd, qdd, wrenches=None, with_gravity=True, out=None):
-        """tau = M(q) qdd + C(q, qd) qd + g(q) - J^T F_ext: the Lie-group RNEA (paper eqs 16-21).
-
-        wrenches: optional {link: (m, f)} external wrench acting on the link, expressed in
-        the link frame. with_gravity=False leaves g(q) out. Single state (n,) or batch (N, n).
-        out: optional float64 array of the result's shape, written and returned (no allocation).
-        """
-        return rnea.inverse_dynamics(self, q, qd, qdd, wrenches, with_gravity, out)
-
-    @_jointless(('q',), (0,))
-    def gravity(self, q, out=None):
-        """Gravity compensation torques g(q) (RNEA with V = 0, Vdot_0 = (0, -g)); out: as inverse_dynamics."""
-        return rnea.gravity(self, q, out)
-
-    @_jointless(('q', 'qd'), (0,))
-    def coriolis_term(self, q, qd):
-        """C(q, qd) qd = inverse_dynamics(q, qd, 0) without gravity."""
-        return rnea.inverse_dynamics(self, q, qd, np.zeros_like(np.asarray(qd, dtype=float)), None,
-                                     with_gravity=False)
-
+    # ------------------------------------------------------------------ kinematics
     def forward_kinematics(self, q):
         """World poses (N, nb, 4, 4) or (nb, 4, 4) of every modelled body frame."""
         single = np.ndim(q) == 1
@@ -432,126 +339,6 @@ class Model:
             return T.copy() if np.ndim(q) == 1 else np.broadcast_to(T, (len(q), 4, 4)).copy()
         return self.forward_kinematics(q)[..., b, :, :] @ T
 
-    def jacobian(self, q, link, frame='world_aligned', point=None):
-        """6 x n Jacobian of `link`'s frame, or of `point` fixed in it (in the link frame, m): maps q̇
-        (columns in q's order) to the frame's velocity. (6, n) for q (n,), (N, 6, n) for (N, n).
-        Rows LINEAR THEN ANGULAR (vx vy vz wx wy wz), as Pinocchio and geometry_msgs/Twist; the
-        paper's twists are (w, v). frame, as Pinocchio's getFrameJacobian: 'world_aligned'
-        (LOCAL_WORLD_ALIGNED: ṗ and w in root axes), 'local' (LOCAL: the same in the frame's own
-        axes) or 'world' (WORLD: the spatial twist, linear part at the root origin; `point` changes
-        nothing). Paper eqs 13-15. Mimic joints add to their master's column; locked joints add
-        nothing. A link that no controlled joint moves gets all zeros. Unknown link or frame, bad
-        point: ValueError. Details: algorithms/jacobian.py."""
-        return jacobian.jacobian(self, q, link, frame, point)
-
-    def jacobian_dot_times_qd(self, q, qd, link, frame='world_aligned', point=None):
-        """J̇q̇ for `jacobian(q, link, frame, point)`: (6,) or (N, 6), rows linear then angular. Equal
-        to Pinocchio's getFrameClassicalAcceleration at q̈ = 0, so J q̈ + J̇q̇ is the classical
-        acceleration: in 'world_aligned' (p̈, ẇ) in root axes (exactly J̇q̇), in 'local' the same in
-        the frame's axes, in 'world' that of the body-fixed point at the root origin (the last two
-        are J̇q̇ plus (w x v, 0) of the frame's twist). Details: algorithms/jacobian.py."""
-        return jacobian.jacobian_dot_times_qd(self, q, qd, link, frame, point)
-
     def __repr__(self):
         return (f'Model({self.name!r}, n={self.n}, bodies={self.nb}, joints={self.joint_names}, '
                 f'locked={self.locked_joint_names})')
-
-    def __getstate__(self):
-        """Pickling (a model built in another process) and deepcopy carry the constant data, and
-        which arrays are read-only: numpy's pickles come back writeable. The per-link tables
-        travel as a few stacked arrays: thousands of small arrays would take the unpickling
-        process's interpreter lock for tens of ms. (The kernels and their caches live in codegen,
-        keyed by the object, and are rebuilt where the copy is used.)"""
-        state = dict(self.__dict__)
-        state['_read_only'] = [k for k, v in state.items() if isinstance(v, np.ndarray) and not v.flags.writeable]
-        for k in _PER_LINK:
-            state[k] = _pack(state[k])
-        return state
-
-    def __setstate__(self, state):
-        read_only = state.pop('_read_only', ())
-        for k in _PER_LINK:
-            state[k] = _unpack(state[k])
-        self.__dict__.update(state)
-        for k in read_only:
-            getattr(self, k).flags.writeable = False
-
-    # --- Lagrangian dynamics, forward dynamics, derivatives, regressor (lagrangian.py, crba.py, aba.py, ...) ---
-    @_jointless(('q',), (0, 0))
-    def mass_matrix(self, q, method='crba', out=None):
-        """M(q), (n, n) or (N, n, n). method: 'crba' (composite rigid body, O(n^2); a generated
-        kernel for small models, the fastest) or 'closed_form' (S^T G^T J G S, paper eq 39, O(n^3)).
-        out: as inverse_dynamics."""
-        if method == 'closed_form':
-            M = lagrangian.mass_matrix(self, q)
-            return runtime.deliver(M, runtime.check_out(out, M.shape))
-        if method == 'crba':
-            return crba.mass_matrix(self, q, out)
-        raise ValueError(f"unknown mass matrix method {method!r}: use 'closed_form' or 'crba'")
-
-    @_jointless(('q',), (0, 0, 0))
-    def christoffel(self, q):
-        """Christoffel symbols of the first kind Gamma[i, j, k] (paper eq 40), (n, n, n) or (N, n, n, n)."""
-        return lagrangian.christoffel(self, q)
-
-    @_jointless(('q', 'qd'), (0, 0))
-    def coriolis_matrix(self, q, qd, method='christoffel'):
-        """C(q, qd) from the Christoffel symbols: C qd = coriolis_term(q, qd), Mdot - 2C skew.
-
-        method: 'christoffel' (eqs 40-42 from dM/dq, O(n^3)) or 'recursive' (the same matrix as
-        1/2 dtau/dqd of the differentiated RNEA, O(n^2); a generated kernel for small models,
-        several times faster)."""
-        if method == 'christoffel':
-            return lagrangian.coriolis_matrix(self, q, qd)
-        if method == 'recursive':
-            return rnea_derivatives.coriolis_matrix(self, q, qd)
-        raise ValueError(f"unknown Coriolis matrix method {method!r}: use 'christoffel' or 'recursive'")
-
-    @_jointless(('q',), (0, 0, 0))
-    def mass_matrix_derivatives(self, q):
-        """dM/dq: D[..., a, :, :] = dM/dq_a (Proposition 1 applied to eq 39)."""
-        return lagrangian.mass_matrix_derivatives(self, q)
-
-    @_jointless(('q',), (0,))
-    def gravity_potential(self, q):
-        """g(q) = dU/dq from the potential energy (paper eqs 43-45); equals gravity(q)."""
-        return lagrangian.gravity(self, q)
-
-    @_jointless(('q',), ())
-    def potential_energy(self, q):
-        """U(q) = -sum_i m_i g . c_i (paper eq 43)."""
-        return lagrangian.potential_energy(self, q)
-
-    @_jointless(('q', 'qd'), ())
-    def kinetic_energy(self, q, qd):
-        """1/2 qd^T M(q) qd."""
-        return lagrangian.kinetic_energy(self, q, qd)
-
-    @_jointless(('q', 'qd', 'tau'), (0,))
-    def forward_dynamics(self, q, qd, tau, wrenches=None, method='cholesky', out=None):
-        """qdd with inverse_dynamics(q, qd, qdd, wrenches) = tau; method 'cholesky' or 'aba' (O(n)).
-        out: as inverse_dynamics."""
-        return aba.forward_dynamics(self, q, qd, tau, wrenches, method, out)
-
-    @_jointless(('q', 'qd', 'qdd'), (0, 0), (0, 0))
-    def inverse_dynamics_derivatives(self, q, qd, qdd, wrenches=None):
-        """(dtau/dq, dtau/dqd), analytic (rnea_derivatives.py)."""
-        return rnea_derivatives.inverse_dynamics_derivatives(self, q, qd, qdd, wrenches)
-
-    @_jointless(('q', 'qd', 'tau'), (0, 0), (0, 0), (0, 0))
-    def forward_dynamics_derivatives(self, q, qd, tau, wrenches=None):
-        """(dqdd/dq, dqdd/dqd, dqdd/dtau = M^-1) at qdd = forward_dynamics(q, qd, tau)."""
-        return aba_derivatives.forward_dynamics_derivatives(self, q, qd, tau, wrenches)
-
-    @_jointless(('q', 'qd', 'qdd'), (0, 0))
-    def regressor(self, q, qd, qdd):
-        """Y with inverse_dynamics(q, qd, qdd) = Y @ inertial_parameters(), (n, 10 nb) or (N, n, 10 nb)."""
-        return regressor.regressor(self, q, qd, qdd)
-
-    def inertial_parameters(self):
-        """(10 nb,) parameters (m, m c, I_xx, I_xy, I_yy, I_xz, I_yz, I_zz) per body, about the body frame."""
-        return regressor.inertial_parameters(self)
-
-    def with_inertial_parameters(self, pi, check=True):
-        """Copy of this model with the given inertial parameters (payloads folded in)."""
-        return regressor.with_inertial_parameters(self, pi, check)
