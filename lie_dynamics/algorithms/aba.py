@@ -50,13 +50,15 @@ def forward_dynamics(model, q, qd, tau, wrenches=None, method='cholesky', out=No
     definite (massless chains). out: optional float64 array of the result's shape, written
     and returned.
     """
-    if method == 'cholesky':   # the kernels of the call as given take no wrenches: with them, no fast path
-        spec = None if wrenches else traced_cholesky.FORWARD_DYNAMICS
+    if method == 'cholesky':
+        spec, entry = traced_cholesky.FORWARD_DYNAMICS, _CHOLESKY
     elif method == 'aba':
-        spec = None if wrenches else traced_aba.ABA
+        spec, entry = traced_aba.ABA, _ABA
     else:
         raise ValueError(f"unknown forward dynamics method {method!r}: use one of {METHODS}")
-    return runtime.call(model, spec, _FORWARD_DYNAMICS, (q, qd, tau), out, wrenches, method)
+    if wrenches:   # the kernels of the call as given take none: no fast path
+        return runtime.call(model, None, entry, (q, qd, tau, out), (wrenches,))
+    return runtime.call(model, spec, entry, (q, qd, tau, out))
 
 
 def forward_dynamics_validated(model, arrays, wrenches=None, method='cholesky'):
@@ -77,7 +79,12 @@ def forward_dynamics_validated(model, arrays, wrenches=None, method='cholesky'):
     return out
 
 
-_FORWARD_DYNAMICS = runtime.Entry(('q', 'qd', 'tau'), rnea.joint_vector, forward_dynamics_validated)
+def _aba_full(model, arrays, wrenches=None):
+    return forward_dynamics_validated(model, arrays, wrenches, 'aba')
+
+
+_CHOLESKY = runtime.Entry(('q', 'qd', 'tau'), rnea.joint_vector, forward_dynamics_validated)
+_ABA = runtime.Entry(('q', 'qd', 'tau'), rnea.joint_vector, _aba_full)
 
 
 # ---------------------------------------------------------------------------- Cholesky

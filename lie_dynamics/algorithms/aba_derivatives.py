@@ -29,13 +29,15 @@ def forward_dynamics_derivatives(model, q, qd, tau, wrenches=None):
     (Pinocchio's computeABADerivatives: ddq_dq, ddq_dv, Minv).
     """
     n = model.n
-    spec = None if wrenches else traced.FORWARD_DYNAMICS_DERIVATIVES   # its kernel takes no wrenches
-    out = runtime.call(model, spec, _DERIVATIVES, (q, qd, tau), None, wrenches)
+    if wrenches:   # the kernel of the call as given takes none: no fast path
+        out = runtime.call(model, None, _DERIVATIVES, (q, qd, tau, None), (wrenches,))
+    else:
+        out = runtime.call(model, traced.FORWARD_DYNAMICS_DERIVATIVES, _DERIVATIVES, (q, qd, tau, None))
     out = out.reshape(out.shape[:-1] + (3, n, n))
     return out[..., 0, :, :], out[..., 1, :, :], out[..., 2, :, :]
 
 
-def _full(model, arrays, wrenches):
+def _full(model, arrays, wrenches=None):
     """call's full path on validated (N, n) arrays: the three derivatives as one (N, 3 n n)
     array, as the kernel's outputs."""
     q, qd, tau = arrays

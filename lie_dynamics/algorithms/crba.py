@@ -22,7 +22,12 @@ import numpy as np
 from ..codegen import runtime
 from ..codegen.traced import crba as traced
 from ..spatial import transpose
-from .lagrangian import body_matrices, kinematic_state, subtree_sum, world_inertias
+from .lagrangian import body_matrices, body_matrices_validated, kinematic_state, subtree_sum, world_inertias
+
+
+def _work_per_state(nb):
+    """Floats of work arrays per state of the vectorised CRBA (lagrangian.chunks)."""
+    return 150 * nb + nb * nb
 
 
 def _crba(model, x):
@@ -36,14 +41,14 @@ def _crba(model, x):
 def mass_matrix(model, q, out=None):
     """M(q) by the composite rigid body algorithm. q: (n,) or (N, n) -> (n, n) or (N, n, n).
     out: optional float64 array of the result's shape, written and returned."""
-    return runtime.call(model, traced.MASS_MATRIX, _MASS_MATRIX, (q,), out)
+    return runtime.call(model, traced.MASS_MATRIX, _MASS_MATRIX, (q, out))
 
 
 def mass_matrix_validated(model, q):
     """mass_matrix on a validated (N, n) q (Model.validate) -> (N, n, n): the kernel, else the
     vectorised form. For callers that validated their arguments already."""
     M = runtime.run(model, traced.MASS_MATRIX, [q])
-    return mass_matrix_vectorized(model, q) if M is None else M
+    return body_matrices_validated(model, q, _crba, _work_per_state(model.nb)) if M is None else M
 
 
 def _full(model, arrays):
@@ -67,5 +72,4 @@ def mass_matrix_kernel(model, q, mode=None):
 
 def mass_matrix_vectorized(model, q):
     """M(q) by the vectorised composite rigid body algorithm (numpy over bodies and states)."""
-    nb = model.nb
-    return body_matrices(model, q, _crba, 150 * nb + nb * nb)
+    return body_matrices(model, q, _crba, _work_per_state(model.nb))

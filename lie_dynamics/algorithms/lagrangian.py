@@ -171,15 +171,19 @@ def body_matrices(model, q, fn, per_state):
     (E^T X E).
     q: (n,) or (N, n) -> (n, n) or (N, n, n)."""
     single = np.ndim(q) == 1
-    q = model.check_batch('q', q)
+    out = body_matrices_validated(model, model.check_batch('q', q), fn, per_state)
+    return out[0] if single else out
+
+
+def body_matrices_validated(model, q, fn, per_state):
+    """body_matrices on a validated (N, n) q (Model.validate) -> (N, n, n)."""
     c = body_constants(model)
     x = model.body_coordinates(q)
     N, nb = x.shape
     out = np.empty((N, nb, nb))
     for sl in chunks(N, per_state):
         out[sl] = fn(model, x[sl])
-    out = to_joints_mat(model, c, out)
-    return out[0] if single else out
+    return to_joints_mat(model, c, out)
 
 
 def block_factors(model, q):
@@ -330,6 +334,6 @@ def kinetic_energy(model, q, qd):
     """T = 1/2 qd^T M(q) qd (eq 23 with the 1/2 the notes drop). (N,) or scalar."""
     single = np.ndim(q) == 1
     q, qd = model.check_states(q=q, qd=qd)
-    M = mass_matrix(model, q)
+    M = body_matrices_validated(model, q, _mass_closed_form, 12 * model.nb * model.nb + 72 * model.nb)
     T = 0.5 * np.einsum('ni,nij,nj->n', qd, M, qd)
     return float(T[0]) if single else T

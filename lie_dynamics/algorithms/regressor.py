@@ -115,7 +115,7 @@ def regressor(model, q, qd, qdd):
     order, parameters as PARAMETER_NAMES (Pinocchio's computeJointTorqueRegressor layout).
     Gravity (as set on the model) is included.
     """
-    return runtime.call(model, traced.REGRESSOR, _REGRESSOR, (q, qd, qdd), None)
+    return runtime.call(model, traced.REGRESSOR, _REGRESSOR, (q, qd, qdd, None))
 
 
 def _full(model, arrays):

@@ -91,8 +91,10 @@ def inverse_dynamics_derivatives(model, q, qd, qdd, wrenches=None):
     wrenches: {link: (m, f)} in the link frame, as for inverse_dynamics.
     """
     n = model.n
-    spec = None if wrenches else traced.INVERSE_DYNAMICS_DERIVATIVES   # its kernel takes no wrenches
-    out = runtime.call(model, spec, _DERIVATIVES, (q, qd, qdd), None, wrenches)
+    if wrenches:   # the kernel of the call as given takes none: no fast path
+        out = runtime.call(model, None, _DERIVATIVES, (q, qd, qdd, None), (wrenches,))
+    else:
+        out = runtime.call(model, traced.INVERSE_DYNAMICS_DERIVATIVES, _DERIVATIVES, (q, qd, qdd, None))
     out = out.reshape(out.shape[:-1] + (2, n, n))
     return out[..., 0, :, :], out[..., 1, :, :]
 
@@ -107,7 +109,7 @@ def inverse_dynamics_derivatives_validated(model, arrays, wrenches=None):
     return _vectorized(model, q, qd, qdd, fext) if res is None else res
 
 
-def _full(model, arrays, wrenches):
+def _full(model, arrays, wrenches=None):
     """call's full path: both derivatives as one (N, 2 n n) array, as the kernel's outputs."""
     dq, dv = inverse_dynamics_derivatives_validated(model, arrays, wrenches)
     return np.concatenate([dq.reshape(len(dq), -1), dv.reshape(len(dv), -1)], axis=1)
@@ -167,7 +169,7 @@ def coriolis_matrix(model, q, qd):
     symmetric Gamma_ijk = Gamma_jik, so d/dqd_j sum_i,l Gamma_ilk qd_i qd_l = 2 sum_i Gamma_ijk qd_i.
     q, qd: (n,) or (N, n) -> (n, n) or (N, n, n).
     """
-    return runtime.call(model, traced.CORIOLIS, _CORIOLIS, (q, qd), None)
+    return runtime.call(model, traced.CORIOLIS, _CORIOLIS, (q, qd, None))
 
 
 def coriolis_matrix_validated(model, arrays):

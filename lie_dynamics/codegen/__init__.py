@@ -13,10 +13,15 @@ numpy call at all) and on numpy rows with one entry per state for a batch.
   crender.py  the graph as C (the native backend), operation for operation as emit
   kernel.py   Trace (a traced kernel and its argument roles) and Kernel (the one kernel type:
               the trace and its float, rows and native renderings)
-  native.py   the native backend: compiler, disk cache, loading; native_call.c its call path
+  native.py   the native backend: compiler, loading, binding; native_call.c its call path
+  disk_cache.py  the native backend's disk cache: names, checks, bound
   algebra.py  3-vectors, 3x3 matrices and spatial algebra on tuples, for tracing
   frames.py   per-structure constants: body frames with every joint axis along z
   thresholds.py  the one threshold table (THRESHOLDS), each entry with its measurement
-  runtime.py  the cache, the dispatch (fast, run), the batch runner and the native kernels' binding
+  runtime.py  the runtime's public names, from:
+    cache.py     per-model slots, the shared LRU of kernels, deferred builds
+    spec.py      Spec (a kernel's description), Result, the kernels' parameters, accepts
+    dispatch.py  call (one algorithm call: fast path, validate once, route, run, deliver), route
+    batch.py     the batch runner (run_loop, run_rows)
   traced/     each algorithm's traced form and kernel spec (algorithms/ calls them)
 """

@@ -1,6 +1,6 @@
 """One call of an algorithm: the fast path, one validation, the route, the kernel, acceptance.
 
-Every algorithm's public function is `call(model, spec, entry, args, out, *extra)`:
+Every algorithm's public function is `call(model, spec, entry, (states..., out), extra)`:
 
   1. the fast path (`fast`): spec's kernel on the call as given, unvalidated: the native kernel,
      or one state through the float kernel. It returns the result or declines (None);
@@ -50,10 +50,13 @@ class Entry(NamedTuple):
     full: Callable
 
 
-def call(model, spec, entry, args, out, *extra):
-    """One call of an algorithm's public function (module docstring): spec's fast path (spec
-    None: none, e.g. for wrenches, which spec's kernel does not take), else validate once,
-    check `out`, entry.full on the validated arrays, deliver."""
+def call(model, spec, entry, args, extra=()):
+    """One call of an algorithm's public function (module docstring): args are its per-state
+    arguments as given, then `out` (None: a new array); extra (a tuple) the arguments of
+    entry.full beyond the arrays. spec's fast path (spec None: none, e.g. for wrenches, which spec's
+    kernel does not take), else validate once, check `out`, entry.full on the validated
+    arrays, deliver. (The fast path costs what calling the kernel does: `args` is handed over
+    as one tuple, and a call that needs no `extra` passes none.)"""
     if spec is not None:
         s = SLOTS.get(id(model))   # the hot path of a control loop: cache.slot and `fast`, inlined
         if s is None or s.version != model.version or s.ref() is not model:
@@ -61,10 +64,11 @@ def call(model, spec, entry, args, out, *extra):
         f = s.fast.get(spec)
         if f is None:
             f = _fast(model, spec, s)
-        r = f(*args, out)
+        r = f(*args)
         if r is not None:
             return r
-    arrays, single = model.validate(entry.names, args)
+    out = args[-1]
+    arrays, single = model.validate(entry.names, args[:-1])
     if out is not None:
         shape = tuple(entry.shape(model))
         check_out(out, shape if single else (len(arrays[0]),) + shape)

@@ -1,0 +1,101 @@
+"""One public call validates its per-state arguments once (lie_dynamics.validation), whatever path
+it takes: the fast path (none), the kernels, or the references behind them, whose fallbacks call
+the already-validated functions (runtime.call, crba.mass_matrix_validated, ...)."""
+import copy
+
+import numpy as np
+import pytest
+
+from dyn_cases import case, states
+from lie_dynamics import validation
+from lie_dynamics.algorithms import aba, aba_derivatives, observer
+from lie_dynamics.codegen import runtime
+
+
+@pytest.fixture
+def counted(monkeypatch):
+    """Counts of validation.states (Model.validate) and validation.batch (Model.check_batch)."""
+    calls = {'states': 0, 'batch': 0}
+    for name in calls:
+        real = getattr(validation, name)
+
+        def count(*args, _real=real, _name=name, **kwargs):
+            calls[_name] += 1
+            return _real(*args, **kwargs)
+        monkeypatch.setattr(validation, name, count)
+    return calls
+
+
+@pytest.fixture(scope='module')
+def arm():
+    model, oracle = case('arm7')
+    return model, oracle
+
+
+def _once(counted, fn, *args, **kwargs):
+    counted['states'] = counted['batch'] = 0
+    out = fn(*args, **kwargs)
+    assert (counted['states'], counted['batch']) == (1, 0), fn.__name__
+    return out
+
+
+def test_cholesky_forward_dynamics_fallback_validates_once(arm, counted):
+    """With wrenches the Cholesky forward dynamics has no kernel: M, the bias and the solves run
+    on the arrays validated once (before: three validations, the public crba.mass_matrix and
+    rnea.inverse_dynamics). The result still inverts inverse dynamics."""
+    model, _ = arm
+    q, qd, qdd = states(model, 4, seed=3)
+    link = model.body_link_names[-1]
+    for sl in (0, slice(None)):   # one state and a batch
+        w = {link: np.array([0.3, -0.2, 0.1, 2.0, -1.0, 0.5])}
+        tau = model.inverse_dynamics(q[sl], qd[sl], qdd[sl], wrenches=w)
+        got = _once(counted, model.forward_dynamics, q[sl], qd[sl], tau, wrenches=w)
+        np.testing.assert_allclose(got, qdd[sl], rtol=1e-8, atol=1e-8)
+        got = _once(counted, aba.forward_dynamics_vectorized, model, q[sl], qd[sl], tau, wrenches=w)
+        np.testing.assert_allclose(got, qdd[sl], rtol=1e-8, atol=1e-8)
+
+
+def test_forward_dynamics_derivatives_fallback_validates_once(arm, counted):
+    """The derivatives' reference (M, the bias, the derivatives of inverse dynamics, the solves)
+    validates once, and agrees with the kernel (checked against Pinocchio in
+    test_forward_dynamics.py)."""
+    model, _ = arm
+    q, qd, tau = states(model, 3, seed=4)
+    for sl in (1, slice(None)):
+        got = _once(counted, aba_derivatives.forward_dynamics_derivatives_vectorized, model, q[sl], qd[sl], tau[sl])
+        ref = _once(counted, aba_derivatives.forward_dynamics_derivatives_kernel, model, q[sl], qd[sl], tau[sl])
+        for g, r in zip(got, ref, strict=True):
+            np.testing.assert_allclose(g, r, rtol=1e-8, atol=1e-8)
+
+
+def test_every_entry_validates_once_without_native(arm, counted):
+    """The Python kernels' batches (the native fast path off: every batch takes the full path)
+    and the references: one validation per call."""
+    model, _ = arm
+    py = copy.deepcopy(model)
+    runtime.use_native(py, False)
+    q, qd, qdd = states(py, 50, seed=5)
+    link = py.body_link_names[3]
+    w = {link: np.ones(6)}
+    _once(counted, py.inverse_dynamics, q, qd, qdd)
+    _once(counted, py.inverse_dynamics, q, qd, qdd, wrenches=w)
+    _once(counted, py.gravity, q)
+    _once(counted, py.mass_matrix, q)
+    _once(counted, py.forward_dynamics, q, qd, qdd)
+    _once(counted, py.forward_dynamics, q, qd, qdd, method='aba')
+    _once(counted, py.inverse_dynamics_derivatives, q, qd, qdd, wrenches=w)
+    _once(counted, py.forward_dynamics_derivatives, q, qd, qdd, wrenches=w)
+    _once(counted, py.regressor, q, qd, qdd)
+    _once(counted, py.coriolis_matrix, q, qd, method='recursive')
+    _once(counted, observer.generalized_momentum, py, q, qd)
+    _once(counted, py.jacobian, q, link)
+
+
+def test_the_fast_path_validates_nothing(arm, counted):
+    """One state of finite float64 arrays is taken as given (the kernel checks what it needs)."""
+    model, _ = arm
+    q, qd, qdd = (x[0] for x in states(model, 1, seed=6))
+    tau = model.inverse_dynamics(q, qd, qdd)
+    counted['states'] = counted['batch'] = 0
+    np.testing.assert_allclose(model.forward_dynamics(q, qd, tau), qdd, rtol=1e-9, atol=1e-9)
+    assert (counted['states'], counted['batch']) == (0, 0)
