@@ -50,15 +50,14 @@ def forward_dynamics(model, q, qd, tau, wrenches=None, method='cholesky', out=No
     definite (massless chains). out: optional float64 array of the result's shape, written
     and returned.
     """
-    if method == 'cholesky':
-        spec, entry = traced_cholesky.FORWARD_DYNAMICS, _CHOLESKY
-    elif method == 'aba':
-        spec, entry = traced_aba.ABA, _ABA
-    else:
+    if method not in METHODS:
         raise ValueError(f"unknown forward dynamics method {method!r}: use one of {METHODS}")
-    if wrenches:   # the kernels of the call as given take none: no fast path
-        return runtime.call(model, None, entry, (q, qd, tau, out), (wrenches,))
-    return runtime.call(model, spec, entry, (q, qd, tau, out))
+    if not wrenches:   # the fast path (its kernels take no wrenches): the result, or None
+        qdd = runtime.fast(model, traced_aba.ABA if method == 'aba' else traced_cholesky.FORWARD_DYNAMICS)(
+            q, qd, tau, out)
+        if qdd is not None:
+            return qdd
+    return runtime.call(model, _FORWARD_DYNAMICS, (q, qd, tau), out, (wrenches, method))
 
 
 def forward_dynamics_validated(model, arrays, wrenches=None, method='cholesky'):
@@ -79,12 +78,7 @@ def forward_dynamics_validated(model, arrays, wrenches=None, method='cholesky'):
     return out
 
 
-def _aba_full(model, arrays, wrenches=None):
-    return forward_dynamics_validated(model, arrays, wrenches, 'aba')
-
-
-_CHOLESKY = runtime.Entry(('q', 'qd', 'tau'), rnea.joint_vector, forward_dynamics_validated)
-_ABA = runtime.Entry(('q', 'qd', 'tau'), rnea.joint_vector, _aba_full)
+_FORWARD_DYNAMICS = runtime.Entry(('q', 'qd', 'tau'), rnea.joint_vector, forward_dynamics_validated)
 
 
 # ---------------------------------------------------------------------------- Cholesky

@@ -29,10 +29,10 @@ def forward_dynamics_derivatives(model, q, qd, tau, wrenches=None):
     (Pinocchio's computeABADerivatives: ddq_dq, ddq_dv, Minv).
     """
     n = model.n
-    if wrenches:   # the kernel of the call as given takes none: no fast path
-        out = runtime.call(model, None, _DERIVATIVES, (q, qd, tau, None), (wrenches,))
-    else:
-        out = runtime.call(model, traced.FORWARD_DYNAMICS_DERIVATIVES, _DERIVATIVES, (q, qd, tau, None))
+    # the fast path (its kernel takes no wrenches): the result, or None
+    out = None if wrenches else runtime.fast(model, traced.FORWARD_DYNAMICS_DERIVATIVES)(q, qd, tau)
+    if out is None:
+        out = runtime.call(model, _DERIVATIVES, (q, qd, tau), None, (wrenches,))
     out = out.reshape(out.shape[:-1] + (3, n, n))
     return out[..., 0, :, :], out[..., 1, :, :], out[..., 2, :, :]
 

@@ -41,7 +41,8 @@ def _crba(model, x):
 def mass_matrix(model, q, out=None):
     """M(q) by the composite rigid body algorithm. q: (n,) or (N, n) -> (n, n) or (N, n, n).
     out: optional float64 array of the result's shape, written and returned."""
-    return runtime.call(model, traced.MASS_MATRIX, _MASS_MATRIX, (q, out))
+    M = runtime.fast(model, traced.MASS_MATRIX)(q, out)   # the fast path: the result, or None
+    return runtime.call(model, _MASS_MATRIX, (q,), out) if M is None else M
 
 
 def mass_matrix_validated(model, q):

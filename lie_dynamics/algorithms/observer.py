@@ -49,7 +49,9 @@ def generalized_momentum(model, q, qd):
     one state (n,) or a batch (N, n): the generated kernel (trace_momentum) where the model
     has one, else the matrices. Raises ValueError naming a bad argument."""
     n = model.n
-    out = runtime.call(model, traced.MOMENTUM, _MOMENTUM, (q, qd, None))
+    out = runtime.fast(model, traced.MOMENTUM)(q, qd)   # the fast path: the result, or None
+    if out is None:
+        out = runtime.call(model, _MOMENTUM, (q, qd))
     return out[..., :n], out[..., n:]
 
 

@@ -115,7 +115,8 @@ def regressor(model, q, qd, qdd):
     order, parameters as PARAMETER_NAMES (Pinocchio's computeJointTorqueRegressor layout).
     Gravity (as set on the model) is included.
     """
-    return runtime.call(model, traced.REGRESSOR, _REGRESSOR, (q, qd, qdd, None))
+    Y = runtime.fast(model, traced.REGRESSOR)(q, qd, qdd)   # the fast path: the result, or None
+    return runtime.call(model, _REGRESSOR, (q, qd, qdd)) if Y is None else Y
 
 
 def _full(model, arrays):

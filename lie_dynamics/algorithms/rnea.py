@@ -39,12 +39,11 @@ def inverse_dynamics(model, q, qd, qdd, wrenches=None, with_gravity=True, out=No
     (6,) or (N, 6). with_gravity=False gives M(q) qdd + C(q, qd) qd. out: optional float64
     array of the result's shape to write into (a control loop then allocates nothing).
     """
-    if wrenches:   # the kernel of the call as given takes none: no fast path
-        entry = _INVERSE_DYNAMICS if with_gravity else _NO_GRAVITY
-        return runtime.call(model, None, entry, (q, qd, qdd, out), (wrenches,))
-    if with_gravity:
-        return runtime.call(model, traced.INVERSE_DYNAMICS, _INVERSE_DYNAMICS, (q, qd, qdd, out))
-    return runtime.call(model, _ID_NO_GRAVITY, _NO_GRAVITY, (q, qd, qdd, out))
+    if not wrenches:   # the fast path (its kernel takes no wrenches): the result, or None
+        tau = runtime.fast(model, traced.INVERSE_DYNAMICS if with_gravity else _ID_NO_GRAVITY)(q, qd, qdd, out)
+        if tau is not None:
+            return tau
+    return runtime.call(model, _INVERSE_DYNAMICS, (q, qd, qdd), out, (wrenches, with_gravity))
 
 
 def inverse_dynamics_validated(model, arrs, wrenches=None, with_gravity=True):
@@ -66,12 +65,7 @@ def joint_vector(model):
     return (model.n,)
 
 
-def _no_gravity(model, arrs, wrenches=None):
-    return inverse_dynamics_validated(model, arrs, wrenches, with_gravity=False)
-
-
 _INVERSE_DYNAMICS = runtime.Entry(('q', 'qd', 'qdd'), joint_vector, inverse_dynamics_validated)
-_NO_GRAVITY = runtime.Entry(('q', 'qd', 'qdd'), joint_vector, _no_gravity)
 
 
 def inverse_dynamics_vectorized(model, q, qd, qdd, wrenches=None, with_gravity=True):
@@ -83,7 +77,8 @@ def inverse_dynamics_vectorized(model, q, qd, qdd, wrenches=None, with_gravity=T
 
 def gravity(model, q, out=None):
     """g(q): eqs 16-21 with V = 0 and Vd_0 = (0, -g); (n,) or (N, n). out: as inverse_dynamics."""
-    return runtime.call(model, traced.GRAVITY, _GRAVITY, (q, out))
+    tau = runtime.fast(model, traced.GRAVITY)(q, out)   # the fast path: the result, or None
+    return runtime.call(model, _GRAVITY, (q,), out) if tau is None else tau
 
 
 def _gravity_full(model, arrs):

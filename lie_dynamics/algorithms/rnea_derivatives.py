@@ -91,10 +91,10 @@ def inverse_dynamics_derivatives(model, q, qd, qdd, wrenches=None):
     wrenches: {link: (m, f)} in the link frame, as for inverse_dynamics.
     """
     n = model.n
-    if wrenches:   # the kernel of the call as given takes none: no fast path
-        out = runtime.call(model, None, _DERIVATIVES, (q, qd, qdd, None), (wrenches,))
-    else:
-        out = runtime.call(model, traced.INVERSE_DYNAMICS_DERIVATIVES, _DERIVATIVES, (q, qd, qdd, None))
+    # the fast path (its kernel takes no wrenches): the result, or None
+    out = None if wrenches else runtime.fast(model, traced.INVERSE_DYNAMICS_DERIVATIVES)(q, qd, qdd)
+    if out is None:
+        out = runtime.call(model, _DERIVATIVES, (q, qd, qdd), None, (wrenches,))
     out = out.reshape(out.shape[:-1] + (2, n, n))
     return out[..., 0, :, :], out[..., 1, :, :]
 
@@ -169,7 +169,8 @@ def coriolis_matrix(model, q, qd):
     symmetric Gamma_ijk = Gamma_jik, so d/dqd_j sum_i,l Gamma_ilk qd_i qd_l = 2 sum_i Gamma_ijk qd_i.
     q, qd: (n,) or (N, n) -> (n, n) or (N, n, n).
     """
-    return runtime.call(model, traced.CORIOLIS, _CORIOLIS, (q, qd, None))
+    C = runtime.fast(model, traced.CORIOLIS)(q, qd)   # the fast path: the result, or None
+    return runtime.call(model, _CORIOLIS, (q, qd)) if C is None else C
 
 
 def coriolis_matrix_validated(model, arrays):
