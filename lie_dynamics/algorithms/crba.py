@@ -22,11 +22,11 @@ import numpy as np
 from ..codegen import runtime
 from ..codegen.traced import crba as traced
 from ..spatial import transpose
-from .lagrangian import body_matrices, body_matrices_validated, kinematic_state, subtree_sum, world_inertias
+from .common import body_matrices, body_matrices_validated, kinematic_state, subtree_sum, world_inertias
 
 
 def _work_per_state(nb):
-    """Floats of work arrays per state of the vectorised CRBA (lagrangian.chunks)."""
+    """Floats of work arrays per state of the vectorised CRBA (common.chunks)."""
     return 150 * nb + nb * nb
 
 

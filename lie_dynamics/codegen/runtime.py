@@ -22,11 +22,11 @@ from .cache import (build, cache_info, clear, deferred, derived, fingerprint, fo
                     structural, use_native)
 from .dispatch import Entry, Output, call, check_mode, check_out, deliver, evaluate, fast, native, route, run
 from .spec import PARAMETERS, Bound, Result, Spec, accepts, as_rows, kernel, parameter, params, result_of
-from .thresholds import THRESHOLDS, Limits
+from .thresholds import THRESHOLDS
 from ..validation import float_list as is_fast_single   # its name in earlier versions
 
 __all__ = ['run_loop', 'run_rows', 'build', 'cache_info', 'clear', 'deferred', 'derived', 'fingerprint', 'forget',
            'frames', 'native_on', 'pairs', 'structural', 'use_native', 'Entry', 'Output', 'call', 'check_mode',
            'check_out', 'deliver', 'evaluate', 'fast', 'native', 'route', 'run', 'PARAMETERS', 'Bound', 'Result',
-           'Spec', 'accepts', 'as_rows', 'kernel', 'parameter', 'params', 'result_of', 'THRESHOLDS', 'Limits',
+           'Spec', 'accepts', 'as_rows', 'kernel', 'parameter', 'params', 'result_of', 'THRESHOLDS',
            'is_fast_single']
