@@ -40,6 +40,7 @@ from ..codegen.traced import observer as observer_kernel
 from ..codegen.traced import rnea as traced
 from ..laws import friction_torque
 from ..model.joint_names import broadcast_joints
+from ..validation import finite
 
 _STEP = observer_kernel.OBSERVER_STEP
 
@@ -156,7 +157,7 @@ class MomentumObserver:
         t = float(t)
         last = self._t
         if last is None:
-            if t - t != 0.0:
+            if not finite(t):
                 return None
             dt = 0.0
         else:
