@@ -119,22 +119,27 @@ def _call(model, kind, states, link, frame, point, mode):
     if mode not in MODES:
         raise ValueError(f'mode must be one of {MODES}, got {mode!r}')
     b, T, X, p = target(model, link, frame, point)
-    n = model.n
-    shape = (6, n) if kind == 'jacobian' else (6,)
     if b >= 0 and X is not None and mode is None and point is not None:   # the frame at a point: X given here
         r = runtime.fast(model, traced.spec(kind, frame, b))(*states, np.array(X))
         if r is not None:
             return r
-    arrays, single = model.validate(('q', 'qd')[:len(states)], states)
+    entry = _JACOBIAN if kind == 'jacobian' else _DRIFT
+    return runtime.call(model, entry, states, None, (kind, frame, b, T, X, p, mode))
+
+
+def _validated(model, arrays, kind, frame, b, T, X, p, mode):
+    """runtime.call's full path: (N, 6, n) or (N, 6) on validated (N, n) arrays, or None (a
+    forced kernel mode the model has not)."""
     N = len(arrays[0])
-    if b == WORLD:
-        out = np.zeros((N,) + shape)
-    else:
-        out = _evaluate(model, kind, frame, b, T, X, p, arrays, mode)
-        if out is None:
-            return None
-        out = out.reshape((N,) + shape)
-    return out[0] if single else out
+    shape = (N, 6, model.n) if kind == 'jacobian' else (N, 6)
+    if b < 0:
+        return np.zeros(shape)
+    out = _evaluate(model, kind, frame, b, T, X, p, arrays, mode)
+    return None if out is None else out.reshape(shape)
+
+
+_JACOBIAN = runtime.Entry(('q',), None, _validated)
+_DRIFT = runtime.Entry(('q', 'qd'), None, _validated)
 
 
 def _evaluate(model, kind, frame, b, T, X, p, arrays, mode):

@@ -58,12 +58,15 @@ class Entry(NamedTuple):
 def call(model, entry, args, out=None, extra=()):
     """An algorithm's public function after its fast path declined (module docstring): validate
     the per-state arguments `args` once, check `out`, entry.full(model, arrays, *extra) on the
-    validated arrays, deliver (one state's result, or the batch; into `out` when given)."""
+    validated arrays, deliver (one state's result, or the batch; into `out` when given). None
+    when entry.full returns None (a forced kernel path the model has not: frame Jacobians)."""
     arrays, single = model.validate(entry.names, args)
     if out is not None:
         shape = tuple(entry.shape(model))
         check_out(out, shape if single else (len(arrays[0]),) + shape)
     r = entry.full(model, arrays, *extra)
+    if r is None:
+        return None
     return deliver(r[0] if single else r, out)
 
 
