@@ -30,6 +30,9 @@ class States(NamedTuple):
     single: bool
 
 
+_states = tuple.__new__   # _states(States, (arrays, single)): a States without the Python-level __new__
+
+
 def batch(name, x, n, joints=None, N=None):
     """(n,) or (N, n) -> (N, n) float array; ValueError naming the argument (and the joints)."""
     a = np.asarray(x, dtype=float)
@@ -59,13 +62,13 @@ def states(n, names, args, joints=None):
             with np.errstate(over='ignore', invalid='ignore'):   # overflow only means: check exactly
                 s = sum(float(x.sum()) for x in arrs)
             if finite(s):
-                return States([x[None] for x in arrs] if len(shape) == 1 else arrs, len(shape) == 1)
+                return _states(States, ([x[None] for x in arrs] if len(shape) == 1 else arrs, len(shape) == 1))
     out, N = [], None
     for name, x in zip(names, args, strict=True):
         a = batch(name, x, n, joints, N)
         N = a.shape[0]
         out.append(a)
-    return States(out, np.ndim(args[0]) == 1)
+    return _states(States, (out, np.ndim(args[0]) == 1))
 
 
 def vector(name, x, n, what=''):
