@@ -187,12 +187,20 @@ def test_every_name_mapping_follows_it(arm):
     efforts, _ = fill.fill(names, traj)
     np.testing.assert_allclose(efforts[:, cols], ref, rtol=0, atol=1e-12)
     assert np.all(efforts[:, 0] == 0)   # not a controlled joint
-    # the same refusals, each in its own words
+    # the same refusals in the same words (messages.columns_refusal) for messages and trajectories;
+    # the library's own trajectory check (fill_trajectory_efforts) words its ValueError itself
     dup = names + [joints[0]]
     nm.build(dup, joints)
     assert isinstance(nm.error, Rejected) and nm.error.kind == 'duplicate' and joints[0] in nm.error.text
-    with pytest.raises(ValueError, match='joint_names has duplicates'):
+    with pytest.raises(ValueError) as refused:
         fill.fill(dup, dict(traj, joint_names=dup, positions=np.zeros((2, len(dup)))))
+    assert str(refused.value) == nm.error.text == f"duplicate joint names ['{joints[0]}']"
+    short = names[:-1]
+    nm.build(short, joints)
+    with pytest.raises(ValueError) as refused:
+        fill.fill(short, dict(traj, joint_names=short, positions=msg_q[None, :-1].repeat(2, axis=0)))
+    assert str(refused.value) == nm.error.text and nm.error.kind == 'missing'
+    assert nm.error.text.startswith(f"missing controlled joints ['{joints[0]}'] (it names ['finger']")
     with pytest.raises(ValueError, match=f"lacks controlled joints \\['{joints[0]}'\\]"):
         fill_trajectory_efforts(arm, dict(traj, joint_names=names[:-1], positions=msg_q[None, :-1]))
 

@@ -162,7 +162,7 @@ class Background:
         if err:
             return self.core.note_description_error(f'{label}: {err}')
         self.worker.submit('model', (kind, text, label), lambda: self._build(kind, text, inertia))
-        self.core.loading = label
+        self.core.note_context(loading=label)
         return None
 
     def load_now(self, kind, text, inertia=None):
@@ -267,7 +267,7 @@ class Background:
                 elif out.value is not None:   # refused: counted here
                     core.trajectory_done(out.value[0], kind=out.value[1])
         busy = worker.busy('model')
-        core.loading = busy[2] if busy is not None else ''
+        core.note_context(loading=busy[2] if busy is not None else '')
         tp = self.trajectories
         if tp is None:
             return
