@@ -19,7 +19,8 @@ simulator's first state is stamped 0) quietly starts a new integral. A sample wi
 the previous one (a re-sent state) changes nothing. The observer pauses and re-initialises
 (estimate 0, flag cleared) instead of integrating garbage when an effort or a velocity is
 missing or non-finite, when time goes back, after a gap longer than MAX_GAP_S, when the model,
-its friction, gravity or payload change, and if an estimate ever came out non-finite. Nothing is published for a paused sample.
+its friction, gravity or payload change, and if an estimate ever came out non-finite. Nothing
+is published for a paused sample.
 """
 import math
 import time
