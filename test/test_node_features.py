@@ -4,6 +4,7 @@ once, in order, after its command, and no rejected one, across a model version c
 model swap from a new robot_description; and the plain-Python pieces the node's shell uses
 (core/sample.py, core/log.py, loading/parameter_change.py) without ROS."""
 import os
+import pickle
 import re
 import threading
 import time
@@ -267,12 +268,16 @@ def test_a_feature_turned_on_at_run_time_gets_its_kernels_built_off_the_control_
 
 def test_features_name_the_kernels_they_call(node_in_context):
     """Feature.kernels: what loading/models.warm_up runs for every new model, per the settings."""
+    from lie_dynamics.ros.features.contact import warm_observer
+    from lie_dynamics.ros.features.payload_service import warm_fit
+    from lie_dynamics.ros.loading.models import at_rest, jacobian_at_rest
     node = node_in_context[0]
     s = dict(node.core.settings)
-    assert node.features.kernels(s) == (('observer',),)   # the defaults: the observer only
+    assert node.features.kernels(s) == ((warm_observer,),)   # the defaults: the observer only
     s.update({'observer.enabled': False, 'dynamics.publish': ['mass_matrix', 'jacobian'], 'identify.link': 'tool0'})
-    assert set(node.features.kernels(s)) == {('mass_matrix',), ('jacobian', None, s['dynamics.jacobian_frame']),
-                                             ('identification',)}
+    calls = node.features.kernels(s)
+    assert set(calls) == {(at_rest, 'mass_matrix'), (jacobian_at_rest, '', s['dynamics.jacobian_frame']), (warm_fit,)}
+    assert pickle.loads(pickle.dumps(calls)) == calls   # as they travel to the build process
     s.update({'identify.link': '', 'measured_effort': 'none', 'observer.enabled': True, 'dynamics.publish': []})
     assert node.features.kernels(s) == ()
 
