@@ -36,7 +36,7 @@ from ...codegen import runtime
 from .build_process import BuildProcess, build, read_description
 from ..core.diagnostics import clip
 from ..core.messages import Rejected
-from .models import update_refusal, warm_up
+from .models import portable, update_refusal, warm_up
 from .sources import open_source, resolve_path, source_label
 from ..trajectories.process import TrajectoryProcess
 from .worker import Worker
@@ -132,7 +132,7 @@ class Background:
         caps = (kind == 'file', s['max_description_bytes'], s['max_description_links'])
         xml = read_description(source, caps) if kind == 'file' else text   # what a repeat is compared with
         keys = self.kernels(s)
-        builder = (functools.partial(self.process.build, caps=caps, warm=keys) if remote
+        builder = (functools.partial(self.process.build, caps=caps, warm=portable(keys)) if remote
                    else functools.partial(build, caps=caps))
         try:
             with short_switch_interval():

@@ -2,6 +2,8 @@
 the running one (description_update), what changed between them (logged on the swap), and the
 warm-up that moves code generation off the control path.
 """
+import pickle
+
 import numpy as np
 
 from ..core.diagnostics import clip, names_text
@@ -90,9 +92,24 @@ def warm_up(model, kernels=BASE_KERNELS):
     the features (Feature.kernels), run as function(model, *args), and BASE_KERNELS always, so
     that their code is generated here (the loading thread, or the build process, which compiles
     them into the disk cache) and not at the first joint_states after the swap (a new
-    structure's observer kernel was compiled there)."""
+    structure's observer kernel was compiled there). A call may come pickled (`portable`)."""
     for call in dict.fromkeys(BASE_KERNELS + tuple(kernels)):
         try:
+            if isinstance(call, bytes):   # (the build process) one whose module it cannot import is skipped
+                call = pickle.loads(call)
             call[0](model, *call[1:])
         except Exception:  # noqa: BLE001 - the control path reports a model that cannot compute
             pass
+
+
+def portable(kernels):
+    """Warm-up calls as the build process takes them: each pickled on its own, so that one it
+    cannot import (a feature's module outside its path) or one that does not pickle (a lambda)
+    leaves the others; the loading thread runs them all again (warm_up) in any case."""
+    out = []
+    for call in kernels:
+        try:
+            out.append(pickle.dumps(call))
+        except Exception:  # noqa: BLE001 - not picklable: warmed in the loading thread only
+            pass
+    return tuple(out)
