@@ -107,7 +107,7 @@ class DynamicsTopics(Feature):
     def __init__(self, node, clock=time.monotonic):
         super().__init__()
         self._node = node
-        self._time = TimeBase(clock)   # the rate gate's time: header stamps, else the steady clock
+        self.time = TimeBase(clock)   # the rate gate's time: header stamps, else the steady clock
         self._pubs = {}
         self.terms = ()
         self.link = self.frame = ''
@@ -162,8 +162,8 @@ class DynamicsTopics(Feature):
                                         f'cols: {joined}', 6, n)}
 
     def on_sample(self, s):
-        t = self._time.seconds(s.stamp)
-        if self._time.switched:  # another time base: a new stream
+        t = self.time.seconds(s.stamp)
+        if self.time.switched:  # another time base: a new stream
             self.gate.next = None
         if not self.gate.passes(round(t * 1e9)):
             return

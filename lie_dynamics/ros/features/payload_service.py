@@ -224,7 +224,7 @@ class Identification:
         self.state = 'idle'
         self.last = ''             # the last outcome, for the diagnostics
         self.succeeded = self.refused = 0
-        self._rec = self._model = self._time = None
+        self._rec = self._model = self.time = None
         self._abort = ''
         self.started = None
 
@@ -244,7 +244,7 @@ class Identification:
         self.busy, self._abort = True, ''
         self.done.clear()
         self._rec = self.recording = Recording(core.model.n, s['identify.duration'])
-        self._model, self._time = core.model, TimeBase(self.clock)
+        self._model, self.time = core.model, TimeBase(self.clock)
         self.started = self.clock() if now is None else now
         self.state = f"recording {s['identify.duration']:g} s"
         return link
@@ -260,8 +260,8 @@ class Identification:
         if np.count_nonzero(np.isfinite(e)) != e.size:
             rec.no_effort += 1
             return
-        t = self._time.seconds(sample.stamp, now)
-        if rec.add(t, sample.q, sample.qd, e, stamped=self._time.stamped):
+        t = self.time.seconds(sample.stamp, now)
+        if rec.add(t, sample.q, sample.qd, e, stamped=self.time.stamped):
             self.stop()
 
     def stop(self, why=''):
@@ -296,7 +296,7 @@ class Identification:
         self.busy = False
         self.recording = self._rec = self._model = None
         self.state = 'idle'
-        self.last = clip(('identified: ' if ok else 'refused: ') + message, DIAG_TEXT_MAX)
+        self.last = ('identified: ' if ok else 'refused: ') + message   # bounded by Features.report
         if ok:
             self.succeeded += 1
         else:
