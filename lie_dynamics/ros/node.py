@@ -231,6 +231,7 @@ class DynamicsNode(Node):
     def shutdown_command(self):
         """Publish the stale_action command once (the effort controller holds the last command)."""
         with self.lock:
+            self.event_log.events(self.features.drain())   # what was said before: logged at close
             cmd = self.core.final_command()
             self.features.drain()   # its stale line: the node is not stale, it is going (said below)
             if cmd is None:

@@ -13,8 +13,10 @@ from the one table, interfaces.py) and then calls, through `Features`:
     these settings, each a tuple (function, *args) run as function(model, *args)
     (loading/models.py: warm_up; `at_rest(model, method, states)` calls a Model method at rest),
     once for a new model where it is built and in the loading thread, so that their code is
-    never generated on the control path. They travel pickled to the build process: the function
-    is a module-level one of a module without rclpy (the feature's plain part, or at_rest);
+    never generated on the control path. They travel to the build process pickled one by one
+    (loading/models.py: portable): a module-level function of a module it imports (best one
+    without rclpy: the feature's plain part, or at_rest) compiles there too, any other call only
+    in the loading thread;
   * `configure(settings, model, derived)` when the settings or the model object changed (before
     the next sample; derived: core.settings.Derived, None without a model). The model's own
     setters (gravity, locked values) bump `model.version` instead, which the sample carries;
