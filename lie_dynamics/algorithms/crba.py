@@ -22,7 +22,7 @@ import numpy as np
 from ..codegen import runtime
 from ..codegen.traced import crba as traced
 from ..spatial import transpose
-from .common import body_matrices, kinematic_state, subtree_sum, world_inertias
+from .common import body_matrices, kinematic_state, subtree_sum, with_armature, world_inertias
 
 
 def _crba(model, x):
@@ -60,6 +60,7 @@ def mass_matrix_kernel(model, q, mode=None):
 
 
 def mass_matrix_vectorized(model, q):
-    """M(q) by the vectorised composite rigid body algorithm (numpy over bodies and states)."""
+    """M(q) by the vectorised composite rigid body algorithm (numpy over bodies and states),
+    with the armature on the diagonal."""
     nb = model.nb
-    return body_matrices(model, q, _crba, 150 * nb + nb * nb)
+    return with_armature(model, body_matrices(model, q, _crba, 150 * nb + nb * nb))

@@ -63,8 +63,9 @@ class IdentificationResult:
     residual_rms: np.ndarray
 
     def predict(self, model, q, qd, qdd):
-        """Torques predicted by the identified parameters (unaffected by the prior)."""
-        return model.regressor(q, qd, qdd) @ self.parameters
+        """Torques predicted by the identified parameters (unaffected by the prior), with the
+        model's armature term (Model.armature, known, not identified)."""
+        return model.regressor(q, qd, qdd) @ self.parameters + np.asarray(qdd, dtype=float) * model.armature
 
     def base_of(self, pi):
         """Base parameters of a full parameter vector (e.g. the true one, for comparison)."""
@@ -92,7 +93,8 @@ def identify(model, q, qd, qdd, tau, prior=None, weights=None, rcond=1e-8):
     q, qd, qdd, tau: (N, n) samples (n controlled joints). prior: optional (10 nb,) parameter
     vector (e.g. CAD values) kept along unidentifiable directions. weights: optional (n,)
     per-joint weights (1 / noise std). rcond: singular values below rcond * largest count as
-    zero (directions the data do not determine).
+    zero (directions the data do not determine). The model's armature (Model.armature) is
+    taken as known: its torque is subtracted before the fit.
     Returns an IdentificationResult; warns UnidentifiableWarning when rank < 10 nb.
     """
     q, qd, qdd, tau = model.check_states(q=q, qd=qd, qdd=qdd, tau=tau)
@@ -113,7 +115,7 @@ def identify(model, q, qd, qdd, tau, prior=None, weights=None, rcond=1e-8):
         raise ValueError(f'rcond must be in (0, 1), got {rcond}')
 
     Y = (model.regressor(q, qd, qdd) * w[None, :, None]).reshape(N * n, p)
-    y = (tau * w).reshape(N * n)
+    y = ((tau - qdd * model.armature) * w).reshape(N * n)   # the model's armature is known, not fitted
     fit = least_squares(Y, y, prior, rcond)
     r, pi, resid = fit['rank'], fit['parameters'], fit['residual']
     if r == 0:

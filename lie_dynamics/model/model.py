@@ -19,6 +19,7 @@ import numpy as np
 from ..codegen import runtime
 from ..algorithms import aba, aba_derivatives, crba, jacobian, kinematics, lagrangian, regressor, rnea, rnea_derivatives
 from .inertia import RTOL, link_inertia, violations
+from .joint_names import broadcast_joints
 from .inertia import inertia_scale as scale_of  # the constructor's argument has the plain name
 from .link_frames import DROPPED, WORLD
 from ..spatial import exp6, hat3
@@ -139,6 +140,7 @@ class Model:
         self._payloads = {}  # link -> (mass, CoM, inertia about the CoM) in the link frame
         self._locked_values = np.zeros(len(self.locked_joint_names))
         self._locked_index = {name: k for k, name in enumerate(self.locked_joint_names)}
+        self._armature = _frozen(np.zeros(self.n))
         self.gravity_vector = gravity
         self._precompute()
         self._update_offsets()
@@ -192,6 +194,34 @@ class Model:
 
     def set_gravity(self, g):
         self.gravity_vector = g
+
+    @property
+    def armature(self):
+        """Rotor inertia reflected to each controlled joint, (n,) read-only, in q's coordinates
+        (kg m^2; kg for a prismatic joint); 0 by default. Every algorithm uses M + diag(armature):
+        inverse dynamics adds armature * qdd, the mass matrix, forward dynamics (both methods),
+        their derivatives, the kinetic energy and the observer's momentum carry it; the Coriolis
+        matrix and gravity do not change. A mimic joint has none of its own: the value of its
+        master's column stands for the whole rotor inertia that column moves."""
+        return self._armature
+
+    def set_armature(self, values):
+        """Set the armature: one value for every joint or one per controlled joint
+        (model.joint_names order), finite and >= 0. Cheap: bumps `version`, no kernel recompiles."""
+        try:
+            a = broadcast_joints(values, self.n)
+        except (TypeError, ValueError):
+            raise ValueError(f'armature must be numbers, got {values!r}') from None
+        if a is None:
+            raise ValueError(f'armature must be one value or {self.n} values (one per joint of '
+                             f'{self.joint_names}), got shape {np.shape(values)}')
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f'armature must be finite, got {a.tolist()}')
+        if np.any(a < 0):
+            bad = [name for name, v in zip(self.joint_names, a, strict=True) if v < 0]
+            raise ValueError(f'armature must be >= 0, got negative values for {bad}')
+        self._armature = _frozen(a)
+        self._changed()
 
     def set_locked(self, values):
         """Set locked joint values from {name: value}. Cheap; no rebuild.
@@ -525,7 +555,7 @@ class Model:
 
     @_jointless(('q', 'qd'), ())
     def kinetic_energy(self, q, qd):
-        """1/2 qd^T M(q) qd."""
+        """1/2 qd^T M(q) qd (M with the armature: the rotors' energy included)."""
         return lagrangian.kinetic_energy(self, q, qd)
 
     @_jointless(('q', 'qd', 'tau'), (0,))
@@ -546,7 +576,8 @@ class Model:
 
     @_jointless(('q', 'qd', 'qdd'), (0, 0))
     def regressor(self, q, qd, qdd):
-        """Y with inverse_dynamics(q, qd, qdd) = Y @ inertial_parameters(), (n, 10 nb) or (N, n, 10 nb)."""
+        """Y with inverse_dynamics(q, qd, qdd) = Y @ inertial_parameters() + armature * qdd, (n, 10 nb)
+        or (N, n, 10 nb): the rigid-body parameters only (the armature is not among them)."""
         return regressor.regressor(self, q, qd, qdd)
 
     def inertial_parameters(self):
