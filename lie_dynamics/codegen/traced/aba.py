@@ -310,17 +310,18 @@ class _Joint:
         return list(w) + list(v)
 
 
-def trace_aba(fr, geom, g, x, xd, taus, params, a0, fext=None, armature=None):
+def trace_aba(fr, geom, g, x, xd, taus, params, a0, armature, fext=None):
     """The articulated body algorithm of algorithms/aba.py (eqs 17-19), traced in the b''
     frames of `geom`, where S_i = e_z: U_i = Ia_i S_i is column k of Ia_i (k = 2 for a revolute
     joint, 5 for a prismatic one), D_i = its entry k + the joint's armature and u_i = tau_i -
-    (pa_i)_k. The update Ia - U U^T / D has row and column k equal to armature_i U_i / D_i
-    (exactly zero without armature, hence the separate short form then).
+    (pa_i)_k, as Pinocchio's aba. The update Ia - U U^T / D has row and column k equal to
+    armature_i U_i / D_i (zero only without armature: the armature, a parameter, costs the
+    kernel about an eighth more operations on the arm, whatever its value).
 
     x, xd: body coordinates and rates; taus: per body the torque of its joint (0.0 for welded
-    bodies); params: per body (m, h, I) in b''; a0: base linear acceleration -g; fext: optional
-    per-body wrenches (n, f) in b''; armature: None, or per body the armature of its joint
-    (0.0 for welded bodies). Returns per body (xdd_i, D_i, scale_i), None for welded bodies;
+    bodies); params: per body (m, h, I) in b''; a0: base linear acceleration -g; armature: per
+    body the armature of its joint (0.0 for welded bodies); fext: optional per-body wrenches
+    (n, f) in b''. Returns per body (xdd_i, D_i, scale_i), None for welded bodies;
     scale_i is the trace of the 3x3 block of Ia_i that D_i lies in plus the armature (same
     units as D_i, and >= D_i for a positive semi-definite Ia_i).
     """
@@ -354,12 +355,10 @@ def trace_aba(fr, geom, g, x, xd, taus, params, a0, fext=None, armature=None):
             K = _sym6_add(Ia[b], K)
         if free[b]:
             col = [K[i][k] for i in range(6)]
-            ar = 0.0 if armature is None else armature[b]
-            D = col[k] + ar
+            D = col[k] + armature[b]
             Dinv[b] = g.inv(D)
             u[b] = taus[b] - P[k]
-            # U / D; its entry k is 1 without armature, 1 - ar / D with it
-            U[b] = [1.0 if i == k and armature is None else g.bake(col[i] * Dinv[b]) for i in range(6)]
+            U[b] = [g.bake(col[i] * Dinv[b]) for i in range(6)]                      # U / D
             out[b] = (D, K[k - 2][k - 2] + K[k - 1][k - 1] + D)
             if p < 0:
                 continue
@@ -368,13 +367,10 @@ def trace_aba(fr, geom, g, x, xd, taus, params, a0, fext=None, armature=None):
                 for j in range(i, 6):
                     if i != k and j != k:
                         Ka[i][j] = Ka[j][i] = K[i][j] - col[i] * U[b][j]
-            if armature is None:   # pa + Ia^A c + U u / D; its entry k is tau exactly
-                P = [taus[b] if i == k else P[i] + la.dot(Ka[i], c[b]) + U[b][i] * u[b] for i in range(6)]
-            else:                  # row k of Ia^A: col - col col[k] / D = ar U / D
-                w = ar * Dinv[b]
-                for j in range(6):
-                    Ka[k][j] = Ka[j][k] = col[j] * w
-                P = [P[i] + la.dot(Ka[i], c[b]) + U[b][i] * u[b] for i in range(6)]
+            w = armature[b] * Dinv[b]    # row k of Ia^A: col - col col[k] / D = armature col / D
+            for j in range(6):
+                Ka[k][j] = Ka[j][k] = col[j] * w
+            P = [P[i] + la.dot(Ka[i], c[b]) + U[b][i] * u[b] for i in range(6)]    # pa + Ia^A c + U u / D
             K = Ka
         else:
             if p < 0:
@@ -392,17 +388,11 @@ def trace_aba(fr, geom, g, x, xd, taus, params, a0, fext=None, armature=None):
         ap = X[b].twist_to_child(acc[p] if p >= 0 else base)
         ap = [a + e for a, e in zip(ap, c[b], strict=True)]
         if free[b]:
-            s = u[b] * Dinv[b]
+            xdd = u[b] * Dinv[b]
             for i in range(6):
-                if i != k:
-                    s = s - U[b][i] * ap[i]
-            if armature is None:
-                res[b] = (s - ap[k],) + out[b]                   # xdd = (u - U^T a') / D
-                ap[k] = s                                        # a = a' + S xdd
-            else:
-                xdd = s - U[b][k] * ap[k]
-                res[b] = (xdd,) + out[b]
-                ap[k] = ap[k] + xdd
+                xdd = xdd - U[b][i] * ap[i]                      # xdd = (u - U^T a') / D
+            res[b] = (xdd,) + out[b]
+            ap[k] = ap[k] + xdd                                  # a = a' + S xdd
         acc[b] = ap
     return res
 
@@ -439,7 +429,7 @@ def build_aba(fr, wrench=False):
     ararg, arm = fr.trace_armature(g)
     args += [parg, a0arg, co['offset_args'], ararg]
     res = trace_aba(fr, geom, g, co['x'], co['xd'], [0.0 if j is None else taus[j] for j in joint_of],
-                    params, ga, fext, [0.0 if j is None else arm[j] for j in joint_of])
+                    params, ga, [0.0 if j is None else arm[j] for j in joint_of], fext)
     per_joint = [None] * n
     for b in range(nb):
         if joint_of[b] is not None:
