@@ -364,8 +364,9 @@ class Model:
     def massless_joints(self):
         """Controlled joints that move no mass and no inertia at all: every body the joint drives
         carries, with its whole subtree, a zero spatial inertia (up to 1e-12 of the model's
-        inertia scale). Their row of M is zero, so forward dynamics is undefined. O(nb): a
-        subtree sum over the parent array, so it stays cheap for models of thousands of bodies."""
+        inertia scale), and the joint has no armature. Their row of M is zero, so forward
+        dynamics is undefined. O(nb): a subtree sum over the parent array, so it stays cheap for
+        models of thousands of bodies."""
         if not self.n:
             return []
         sub = np.abs(self.J).sum(axis=(1, 2))
@@ -374,7 +375,7 @@ class Model:
                 sub[self.parent[i]] += sub[i]
         tol = 1e-12 * self.inertia_scale
         return [name for k, name in enumerate(self.joint_names)
-                if np.all(sub[np.flatnonzero(self.E[:, k])] <= tol)]
+                if np.all(sub[np.flatnonzero(self.E[:, k])] <= tol) and not self.armature[k] > 0]
 
     # ------------------------------------------------------------------ input checks
     def check_batch(self, name, x, N=None):
