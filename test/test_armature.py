@@ -335,3 +335,24 @@ def test_lagrangian_mass_matrix_is_eq_39_plus_the_armature():
     bare = lagrangian.mass_matrix(model, q)
     model.set_armature(0.7)
     assert _rel(lagrangian.mass_matrix(model, q) - bare, np.broadcast_to(0.7 * np.eye(model.n), bare.shape)) < 1e-15
+
+
+def test_a_joint_that_moves_no_mass_is_defined_with_armature():
+    """A rotor alone gives the joint a positive row of M: massless_joints no longer lists it and
+    forward dynamics (both methods) is tau / armature."""
+    xml = """<robot name="rotor"><link name="base"/><link name="disc"/>
+      <joint name="spin" type="continuous"><parent link="base"/><child link="disc"/><axis xyz="0 0 1"/>
+      <limit effort="1" velocity="1"/></joint></robot>"""
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore')   # the massless moving body is reported
+        model = load_urdf(xml)
+    assert model.massless_joints() == ['spin']
+    with pytest.raises(ValueError, match='not positive definite'):
+        model.forward_dynamics([0.0], [0.0], [1.0])
+    model.set_armature(0.5)
+    assert model.massless_joints() == []
+    for method in ('cholesky', 'aba'):
+        assert np.allclose(model.forward_dynamics([0.3], [2.0], [1.0], method=method), [2.0], rtol=1e-15)
+        ones = np.ones((4, 1))
+        assert np.allclose(model.forward_dynamics(0 * ones, ones, ones, method=method), 2.0)
+    assert np.allclose(model.inverse_dynamics([0.3], [2.0], [4.0]), [2.0], rtol=1e-15)
