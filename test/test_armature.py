@@ -5,9 +5,12 @@ Python kernels (float loop and numpy rows) and the vectorised references; one st
 a chain, a tree, a tree with mimic joints and a vendor robot."""
 import copy
 import glob
+import json
 import os
 import pickle
+import subprocess
 import sys
+import textwrap
 import warnings
 
 import numpy as np
@@ -356,3 +359,37 @@ def test_a_joint_that_moves_no_mass_is_defined_with_armature():
         ones = np.ones((4, 1))
         assert np.allclose(model.forward_dynamics(0 * ones, ones, ones, method=method), 2.0)
     assert np.allclose(model.inverse_dynamics([0.3], [2.0], [4.0]), [2.0], rtol=1e-15)
+
+
+def test_native_switched_off(tmp_path):
+    """LIE_DYNAMICS_NATIVE=0 (a process that never compiles): the Python kernels give the same
+    results with an armature as this process (native where a compiler works)."""
+    model, _, arm = _setup('arm7')
+    runtime.use_native(model, True)
+    q, qd, qdd = _states(model, 5)
+    script = textwrap.dedent(f'''
+        import json, numpy as np
+        from lie_dynamics import load_urdf
+        from lie_dynamics.codegen import native
+        m = load_urdf({ARM!r})
+        m.set_armature({arm.tolist()!r})
+        q, qd, qdd = (np.array(x) for x in json.loads(input()))
+        tau = m.inverse_dynamics(q, qd, qdd)
+        out = [tau, m.inverse_dynamics(q[0], qd[0], qdd[0]), m.mass_matrix(q[0]),
+               m.forward_dynamics(q, qd, tau), m.forward_dynamics(q[1], qd[1], tau[1], method='aba'),
+               m.forward_dynamics(q, qd, tau, method='aba')]
+        print(json.dumps([np.asarray(x).tolist() for x in out]), native.compile_count())
+    ''')
+    env = dict(os.environ, LIE_DYNAMICS_NATIVE='0', LIE_DYNAMICS_CACHE_DIR=str(tmp_path / 'cache'),
+               PYTHONPATH=os.pathsep.join([os.path.join(HERE, '..'), os.environ.get('PYTHONPATH', '')]))
+    r = subprocess.run([sys.executable, '-c', script], input=json.dumps([q.tolist(), qd.tolist(), qdd.tolist()]),
+                       env=env, capture_output=True, text=True, timeout=300, check=True)
+    values, compiles = r.stdout.rsplit(' ', 1)
+    got = [np.array(x) for x in json.loads(values)]
+    tau = model.inverse_dynamics(q, qd, qdd)
+    ref = [tau, model.inverse_dynamics(q[0], qd[0], qdd[0]), model.mass_matrix(q[0]),
+           model.forward_dynamics(q, qd, tau), model.forward_dynamics(q[1], qd[1], tau[1], method='aba'),
+           model.forward_dynamics(q, qd, tau, method='aba')]
+    assert int(compiles) == 0 and not (tmp_path / 'cache').exists()
+    assert all(_rel(a, b) < 1e-12 for a, b in zip(got, ref, strict=True))
+    assert _rel(got[3], qdd) < RTOL and _rel(got[5], qdd) < RTOL
