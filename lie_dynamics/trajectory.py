@@ -109,8 +109,10 @@ KINDS = {'pos.': 'positions', 'vel.': 'velocities', 'acc.': 'accelerations'}
 def read_csv(path):
     """Trajectory arrays from a CSV with columns time, pos.<j>, [vel.<j>], [acc.<j>].
 
-    eff.<j> columns (what `write_csv` adds) are accepted and ignored, so an output can be
-    read back. Raises ValueError naming the file, line and column of the first problem.
+    eff.<j> columns (what `write_csv` adds) are accepted, so an output can be read back; when
+    every joint has one they come back as 'efforts' (measured efforts for calibration;
+    fill_trajectory_efforts does not use them). Raises ValueError naming the file, line and
+    column of the first problem.
     """
     try:
         with open(path, newline='', encoding='utf-8-sig') as fh:  # -sig: spreadsheets write a BOM
@@ -159,6 +161,8 @@ def read_csv(path):
             raise ValueError(f'{path}: {prefix}<joint> columns must cover every joint or none; missing {missing}')
         if idx:
             out[key] = data[:, idx]
+    if all('eff.' + j in header for j in joints):
+        out['efforts'] = data[:, [header.index('eff.' + j) for j in joints]]
     return out
 
 
