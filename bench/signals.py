@@ -166,6 +166,9 @@ def chart(rows, path):
         for key, color, label in (('qd_rel', 'C0', 'q̇'), ('qdd_rel', 'C1', 'q̈'), ('effort_rel', 'C2', 'effort')):
             ax.loglog(x, [r[key] for r in sel], style, color=color, marker='o', ms=3, label=f'{label}, {name}')
     ax.axvline(signals.CUTOFF_FACTOR, color='k', lw=0.8, ls=':')
+    factors = sorted({r['x'] for r in rows if r['sweep'] == 'cutoff'})
+    ax.set_xticks(factors, [f'{f:g}' for f in factors])
+    ax.minorticks_off()
     ax.set_xlabel('cutoff / highest harmonic')
     ax.set_ylabel('RMS error / RMS signal')
     ax.set_title('error against cutoff (dotted: the default)')
