@@ -83,6 +83,13 @@ def test_record_writes_the_accepted_samples(ros, xml, tmp_path):
     np.testing.assert_array_equal(np.round(rec.t * 1e9).astype(np.int64), stamps[keep] - t0)
     assert record(ros, False) == (False, 'not recording')
     assert ros.node.features.get('recording').recorder.written == 1
+    # a recording without any effort: refused, nothing written
+    assert record(ros, True)[0]
+    for k in range(3):
+        send(ros, stamps[-1] + (k + 1) * 2_000_000, q[k], qd[k], [])
+    ok, text = record(ros, False)
+    assert not ok and 'none of the 3 samples recorded has finite efforts' in text, text
+    assert len(os.listdir(tmp_path / 'recs')) == 1
 
 
 def test_recording_max_s_stops_it(ros, xml, tmp_path):

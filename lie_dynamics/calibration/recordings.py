@@ -25,7 +25,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from ..ros.core.cdr import JointStateDecoder
+from ..ros.core.cdr import JointStateDecoder, joint_state_template
 from ..trajectory import read_csv
 
 __all__ = ['JOINT_STATE_TYPE', 'Recording', 'read_bag', 'read_csv_recording', 'read_recording',
@@ -171,23 +171,22 @@ def write_joint_states(folder, names, stamps_ns, q, qd, effort, topic='/joint_st
 
     if os.path.lexists(folder):
         raise ValueError(f'{folder} exists already: a recording is written into a new folder')
-    store = _typestore()
-    JointState = store.types[JOINT_STATE_TYPE]
-    Header = store.types['std_msgs/msg/Header']
-    Time = store.types['builtin_interfaces/msg/Time']
     stamps = np.asarray(stamps_ns, dtype=np.int64)
     log = stamps if log_ns is None else np.asarray(log_ns, dtype=np.int64)
     names = [str(n) for n in names]
-    empty = np.empty(0)
+    n = len(names)
+    # serialized by the node's fixed-layout writer (16x faster than rosbags' serializer here)
+    writers = {}
+    for with_velocity in (True, False):
+        t, stamp_at, slots = joint_state_template(names, (n, n if with_velocity else 0, n))
+        writers[with_velocity] = t.writer(slots if with_velocity else [slots[0], slots[2]], stamp_at)
+    has_velocity = np.isfinite(qd).all(axis=1)
     with Writer(folder, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conn = writer.add_connection(topic, JOINT_STATE_TYPE, typestore=store)
+        conn = writer.add_connection(topic, JOINT_STATE_TYPE, typestore=_typestore())
         for k in range(len(stamps)):
-            s = int(stamps[k])
-            v = qd[k]
-            msg = JointState(header=Header(stamp=Time(sec=s // 1_000_000_000, nanosec=s % 1_000_000_000),
-                                           frame_id=''),
-                             name=names, position=np.asarray(q[k], dtype=np.float64),
-                             velocity=empty if not np.isfinite(v).all() else np.asarray(v, dtype=np.float64),
-                             effort=np.asarray(effort[k], dtype=np.float64))
-            writer.write(conn, int(log[k]), store.serialize_cdr(msg, JOINT_STATE_TYPE))
+            if has_velocity[k]:
+                data = writers[True].message((q[k], qd[k], effort[k]), int(stamps[k]))
+            else:
+                data = writers[False].message((q[k], effort[k]), int(stamps[k]))
+            writer.write(conn, int(log[k]), data)
     return len(stamps)

@@ -71,33 +71,31 @@ class SampleLog:
         self.clock, self.wall = clock, wall
         self.blocks = []
         self.size = 0               # samples kept
-        self.no_effort = 0          # accepted samples without finite efforts (left out)
         self._fill = CHUNK
         self._t0 = None
         self.stamped = None
         self.span_ns = 0
 
     def add(self, sample):
-        """One accepted sample; True once recording_max_s is covered."""
-        e = sample.effort
-        if not np.isfinite(e).all():
-            self.no_effort += 1
-            return False
+        """One accepted sample; True once recording_max_s is covered. (Samples without finite
+        efforts are kept here and left out by the writer: no check on the control path.)"""
         stamp = sample.stamp
         if self.stamped is None:
             self.stamped = bool(stamp)
         t = stamp if self.stamped and stamp else self.clock()
         if self._t0 is None:
             self._t0 = t
-        self.span_ns = max(self.span_ns, t - self._t0)
+        elif t - self._t0 > self.span_ns:
+            self.span_ns = t - self._t0
         if self._fill == CHUNK:
             self.blocks.append((np.zeros(CHUNK, np.int64), np.zeros(CHUNK, np.int64),
                                 *(np.empty((CHUNK, self.n)) for _ in range(3))))
             self._fill = 0
-        block, k = self.blocks[-1], self._fill
-        block[0][k], block[1][k] = stamp, self.wall()
-        block[2][k], block[3][k], block[4][k] = sample.q, sample.velocity, e
-        self._fill += 1
+        stamps, log, q, qd, effort = self.blocks[-1]
+        k = self._fill
+        stamps[k], log[k] = stamp, self.wall()
+        q[k], qd[k], effort[k] = sample.q, sample.velocity, sample.effort
+        self._fill = k + 1
         self.size += 1
         return self.span_ns >= self.max_ns
 
@@ -115,7 +113,7 @@ class Recorder:
     def __init__(self):
         self.log = None            # the SampleLog being filled (None: not recording)
         self.folder = ''           # where the current or last one goes
-        self.unreported = None     # (path or error, ok) of a recording that stopped by itself
+        self.pending = None        # the write of a recording that stopped by itself, until `false` takes it
         self.written = self.failed = 0
         self.last = ''
 
@@ -128,7 +126,7 @@ class Recorder:
         base = settings['recording_dir'] or default_dir()
         self.folder = new_folder(os.path.expanduser(base))
         self.log = SampleLog(names, settings['recording_max_s'])
-        self.unreported = None
+        self.pending = None
         return self.folder
 
     def add(self, sample):
@@ -154,8 +152,9 @@ class WriterProcess:
         self._proc = None
 
     def write(self, folder, log):
-        """Write `log` (a stopped SampleLog) into the new folder; returns the message count.
-        Raises ValueError with the reason (the child's error, or the child lost)."""
+        """Write `log` (a stopped SampleLog) into the new folder; returns (messages written,
+        samples left out without efforts). Raises ValueError with the reason (the child's error,
+        or the child lost)."""
         proc = self._proc
         if proc is None or proc.poll() is not None:
             proc = self._proc = start_child(__name__)
@@ -172,7 +171,7 @@ class WriterProcess:
             self.stop()
             why = answer[1] if isinstance(answer, tuple) and answer[0] == 'error' else 'the writer process was lost'
             raise ValueError(f'{folder} not written: {why}')
-        return answer[1]
+        return answer[1], answer[2]
 
     def stop(self):
         proc, self._proc = self._proc, None
@@ -220,9 +219,10 @@ class RecordService(Feature):
     def on_sample(self, sample):
         """(control path, under the node's lock) Keep the sample; a recording that ends by
         itself is handed to the writer thread."""
-        why = self.recorder.add(sample)
+        r = self.recorder
+        why = r.add(sample)
         if why is not None:
-            self._hand_over(self.recorder.stop(), self.recorder.folder, why)
+            r.pending = self._hand_over(r.stop(), r.folder, why)
 
     def report(self, level, message):
         r = self.recorder
@@ -269,10 +269,9 @@ class RecordService(Feature):
                 r.failed += 1
             r.last = job.result
             if job.why is not None:
-                r.unreported = (job.result, job.ok)
-                text = (f'~/record stopped by itself ({job.why}): {job.log.size} samples written to {job.result}'
+                text = (f'~/record stopped by itself ({job.why}): {job.written} samples written to {job.result}'
                         if job.ok else f'~/record stopped by itself ({job.why}); {job.result}')
-                node.log_event('info' if job.ok else 'error', 'record', text)
+                node.log_event('info' if job.ok else 'error', None, text)
 
     # ------------------------------------------------------------------ service
     def _spin(self):
@@ -291,25 +290,23 @@ class RecordService(Feature):
                 except ValueError as exc:
                     response.success, response.message = False, clip(f'refused: {exc}', DIAG_TEXT_MAX)
                     return response
-                node.log_event('info', 'record', f'~/record: recording into {folder}')
+                node.log_event('info', None, f'~/record: recording into {folder}')   # one per call: never held back
                 response.success = True
                 response.message = (f"recording into {folder} (at most {settings['recording_max_s']:g} s; "
                                     'false stops it and writes the file)')
                 return response
             log = r.stop()
             if log is None:
-                done, r.unreported = r.unreported, None
-                if done is not None:   # it had stopped by itself: its outcome, once
-                    response.success, response.message = done[1], clip(done[0], DIAG_TEXT_MAX)
-                else:
+                job, r.pending = r.pending, None   # one that stopped by itself: its outcome, once
+                if job is None:
                     response.success, response.message = False, 'not recording'
-                return response
-            if log.size == 0:
+                    return response
+            elif log.size == 0:
                 response.success = False
-                response.message = (f'nothing recorded: no accepted joint_states with efforts '
-                                    f'({log.no_effort} without efforts); no file written')
+                response.message = 'nothing recorded: no accepted joint_states; no file written'
                 return response
-            job = self._hand_over(log, r.folder)
+            else:
+                job = self._hand_over(log, r.folder)
         job.done.wait()
         response.success, response.message = job.ok, clip(job.result, DIAG_TEXT_MAX)
         return response
@@ -321,15 +318,15 @@ class _Job:
     def __init__(self, log, folder, why):
         self.log, self.folder, self.why = log, folder, why
         self.done = threading.Event()
-        self.ok, self.result = False, ''
+        self.ok, self.result, self.written = False, '', 0
 
     def run(self, proc, feature):
         try:
             os.makedirs(os.path.dirname(self.folder), exist_ok=True)
-            proc.write(self.folder, self.log)
+            self.written, left_out = proc.write(self.folder, self.log)
             self.ok, self.result = True, self.folder
-            if self.log.no_effort:
-                self.result += f' ({self.log.no_effort} samples without efforts left out)'
+            if left_out:
+                self.result += f' ({left_out} samples without efforts left out)'
         except (ValueError, OSError) as exc:
             self.result = f'not written: {exc}'
         feature.finished(self)
@@ -338,7 +335,7 @@ class _Job:
 
 def serve(parent=None):
     """The writer child's loop: ('begin', folder, names, topic), ('chunk', arrays)..., ('end',)
-    in; ('ok', count) or ('error', text) out."""
+    in; ('ok', messages written, samples left out without efforts) or ('error', text) out."""
     from ...calibration.recordings import write_joint_states
 
     out = child_setup(parent)
@@ -358,10 +355,14 @@ def serve(parent=None):
                 break
             parts.append(item[1])
         try:
-            cols = [np.concatenate([p[i] for p in parts]) if parts else np.empty(0) for i in range(5)]
-            count = write_joint_states(folder, names, cols[0], cols[2], cols[3], cols[4], topic=topic,
-                                       log_ns=cols[1])
-            answer = ('ok', count)
+            cols = [np.concatenate([p[i] for p in parts]) for i in range(5)]
+            keep = np.isfinite(cols[4]).all(axis=1)   # calibration needs the measured efforts
+            if not keep.any():
+                raise ValueError(f'none of the {len(keep)} samples recorded has finite efforts: '
+                                 'nothing to calibrate from')
+            stamps, log_ns, q, qd, effort = (c[keep] for c in cols)
+            count = write_joint_states(folder, names, stamps, q, qd, effort, topic=topic, log_ns=log_ns)
+            answer = ('ok', count, int(len(keep) - count))
         except Exception as exc:  # noqa: BLE001 - any failure goes back as text
             answer = ('error', f'{type(exc).__name__}: {exc}' if not isinstance(exc, ValueError) else str(exc))
         send(out, answer)
