@@ -11,8 +11,9 @@ for unstamped states); then it stops by itself, is written, and says so in one l
 `false` answers with its path). A recording also stops when the controlled joints change. Samples
 without finite efforts are left out and counted: calibration needs the measured torques.
 
-Nothing of it delays the command: on the control path a sample costs three row copies into
-preallocated chunks (`SampleLog`, after the command went out). The messages are serialized and
+Nothing of it delays the command: on the control path a sample costs a few row copies into
+preallocated chunks (`SampleLog`, after the command went out; no check: the writer leaves out
+samples without efforts). The messages are serialized and
 written by a child process (`python -m lie_dynamics.ros.features.recording`, started with exec as
 the model builder is: loading/build_process.py), to which a writer thread of the node hands the
 chunks over a pipe (the interpreter lock is free while it writes or waits). The service is served
@@ -94,7 +95,12 @@ class SampleLog:
         stamps, log, q, qd, effort = self.blocks[-1]
         k = self._fill
         stamps[k], log[k] = stamp, self.wall()
-        q[k], qd[k], effort[k] = sample.q, sample.velocity, sample.effort
+        q[k] = sample.q
+        # the message's own arrays mapped here (SampleResult.columns): a fancy index into the row,
+        # a third of what building the sample's mapped copies costs
+        cols, v, e = sample.columns, sample.message_velocity, sample.message_effort
+        qd[k] = v[cols] if len(v) else np.nan
+        effort[k] = e[cols] if len(e) else np.nan
         self._fill = k + 1
         self.size += 1
         return self.span_ns >= self.max_ns

@@ -1,15 +1,16 @@
 """~/record beside the control path: the joint_states callback's time while the node records and
 while it writes the recording, in one process.
 
-    python -m bench.record_gaps [--seconds S] [--rate HZ]
+    python -m bench.probes.record_gaps [--seconds S] [--rate HZ] [--rounds R]
 
 A DynamicsNode on the bundled arm (gravity mode, observer on: its defaults) in one rclpy context,
 fed serialized, stamped joint_states with efforts by direct calls of its callback (what its
 executor runs per message), paced at RATE Hz of wall time; ~/record is called through a real
-client from another thread. Phases: `idle` (no recording, S s), `recording` (S s of states), and
-`writing`: from the `false` call until its answer, while the writer child serializes and writes
-the S x RATE messages and the callback keeps running. Per phase: calls, the callback's median,
-p99 and largest time. This is a benchmark, not a test: read the columns side by side.
+client from another thread. Phases, in R interleaved rounds (a shared machine's load drifts):
+`idle` (no recording, S/R s), `recording` (S/R s of states), and `writing`: from the `false` call
+until its answer, while the writer child serializes and writes the S/R x RATE messages and the
+callback keeps running. Per phase over the rounds: calls, the callback's median, p99 and largest
+time. This is a benchmark, not a test: read the columns side by side.
 """
 import argparse
 import os
@@ -25,7 +26,7 @@ from lie_dynamics import default_urdf_path, load_urdf
 JOINTS = [f'joint{i}' for i in range(1, 8)]
 
 
-def run(seconds=10.0, rate=1000.0):
+def run(seconds=10.0, rate=1000.0, rounds=5):
     import rclpy
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
@@ -79,15 +80,16 @@ def run(seconds=10.0, rate=1000.0):
             state['k'] += 1
             n += 1
 
-    count = int(seconds * rate)
+    count = max(1, int(seconds * rate / rounds))
     try:
-        feed('idle', lambda n: n >= count)
-        assert client.call(SetBool.Request(data=True)).success
-        feed('recording', lambda n: n >= count)
-        fut = client.call_async(SetBool.Request(data=False))
-        feed('writing', lambda n: fut.done())
-        answer = fut.result()
-        written = answer.message if answer.success else f'failed: {answer.message}'
+        for _ in range(rounds):
+            feed('idle', lambda n: n >= count)
+            assert client.call(SetBool.Request(data=True)).success
+            feed('recording', lambda n: n >= count)
+            fut = client.call_async(SetBool.Request(data=False))
+            feed('writing', lambda n: fut.done())
+            answer = fut.result()
+            written = answer.message if answer.success else f'failed: {answer.message}'
     finally:
         node.destroy_node()
         ex.shutdown(timeout_sec=2.0)
@@ -98,21 +100,22 @@ def run(seconds=10.0, rate=1000.0):
     return rows, os.path.basename(written.split(' (')[0]) if answer.success else written
 
 
-def markdown(rows, note, seconds, rate):
-    lines = [f'~/record: the joint_states callback per phase ({seconds:g} s at {rate:g} Hz recorded; '
-             f'written: {note})', '', '| phase | calls | median (µs) | p99 (µs) | max (µs) |',
+def markdown(rows, note, seconds, rate, rounds):
+    lines = [f'~/record: the joint_states callback per phase ({seconds:g} s at {rate:g} Hz recorded in {rounds} '
+             f'rounds; the last written: {note})', '', '| phase | calls | median (µs) | p99 (µs) | max (µs) |',
              '|---|---:|---:|---:|---:|']
     lines += [f'| {p} | {n} | {m:.0f} | {p99:.0f} | {mx:.0f} |' for p, n, m, p99, mx in rows]
     return '\n'.join(lines)
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(prog='python -m bench.record_gaps', description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m bench.probes.record_gaps', description=__doc__.split('\n')[0])
     ap.add_argument('--seconds', type=float, default=10.0)
     ap.add_argument('--rate', type=float, default=1000.0)
+    ap.add_argument('--rounds', type=int, default=5)
     args = ap.parse_args(argv)
-    rows, note = run(args.seconds, args.rate)
-    print(markdown(rows, note, args.seconds, args.rate))
+    rows, note = run(args.seconds, args.rate, args.rounds)
+    print(markdown(rows, note, args.seconds, args.rate, args.rounds))
     return 0
 
 
