@@ -117,3 +117,44 @@ def test_recorder_refuses_without_a_model():
     with pytest.raises(ValueError, match='no robot model loaded'):
         r.begin(None, {'recording_dir': '', 'recording_max_s': 1.0})
     assert r.stop() is None
+
+
+def _sample(stamp, names, q=None, effort=(1.0, 2.0)):
+    from lie_dynamics.ros.core.sample import SampleResult
+    q = np.array([0.1, 0.2]) if q is None else q
+    return SampleResult.accept(stamp, q.copy(), _Model(), names, np.array([1, 0]), np.array([3.0, 4.0]),
+                               np.asarray(effort, dtype=float))
+
+
+class _Model:
+    version = 0
+
+
+def test_sample_log_and_recorder_without_ros():
+    """The plain part: the message's columns mapped, recording_max_s in stamp time (the steady clock
+    for unstamped states), a change of the controlled joints ends a recording."""
+    names = ['a', 'b']
+    r = Recorder()
+    r.begin(names, {'recording_dir': '/nonexistent', 'recording_max_s': 1.0})
+    assert r.add(_sample(5 * 10 ** 9, names)) is None
+    assert r.add(_sample(5 * 10 ** 9 + 999_999_999, names, effort=())) is None   # no effort: kept as NaN
+    assert r.add(_sample(6 * 10 ** 9, names)) == 'recording_max_s (1 s) reached'
+    log = r.stop()
+    stamps, _, q, qd, e = (np.concatenate(c) for c in zip(*log.chunks()))
+    assert stamps.tolist() == [5 * 10 ** 9, 5 * 10 ** 9 + 999_999_999, 6 * 10 ** 9] and log.size == 3
+    assert q[0].tolist() == [0.1, 0.2] and qd[0].tolist() == [4.0, 3.0] and e[0].tolist() == [2.0, 1.0]
+    assert np.isnan(e[1]).all()
+    r.begin(names, {'recording_dir': '', 'recording_max_s': 0.5})
+    assert r.add(_sample(7 * 10 ** 9, ['a', 'b'])) is None   # an equal list: the same joints
+    assert r.add(_sample(7 * 10 ** 9 + 1, ['b', 'a'])) == 'the controlled joints changed'
+    now = [0]
+    from lie_dynamics.ros.features.recording import SampleLog
+    log = SampleLog(names, 0.5, clock=lambda: now[0])
+    for k in range(5000):   # unstamped: the steady clock, 0.1 ms apart; more than one block
+        now[0] = k * 100_000
+        if log.add(_sample(0, names)):
+            break
+    assert k == 5000 - 1 and log.size == 5000 and not log.stamped
+    now[0] = 500_000_000
+    assert log.add(_sample(0, names))
+    assert sum(len(c[0]) for c in log.chunks()) == 5001

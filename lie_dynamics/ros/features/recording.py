@@ -335,8 +335,12 @@ class _Job:
                 self.result += f' ({left_out} samples without efforts left out)'
         except (ValueError, OSError) as exc:
             self.result = f'not written: {exc}'
-        feature.finished(self)
-        self.done.set()
+        except Exception as exc:  # noqa: BLE001 - reported like the others; the caller still gets its answer
+            self.result = f'not written: {type(exc).__name__}: {exc}'
+        try:
+            feature.finished(self)
+        finally:
+            self.done.set()   # a `false` call waits for this whatever happened
 
 
 def serve(parent=None):
