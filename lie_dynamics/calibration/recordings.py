@@ -61,17 +61,18 @@ def _assemble(stamps_ns, names_of, rows, joints, source):
     joints = list(joints)
     N, n = len(stamps_ns), len(joints)
     q, qd, effort = (np.full((N, n), np.nan) for _ in range(3))
-    columns = {}
-    for k, (which, pos, vel, eff) in enumerate(rows):
-        cols = columns.get(which)
-        if cols is None:
-            index = {name: i for i, name in enumerate(names_of[which])}
-            src = np.array([index.get(j, -1) for j in joints])
-            cols = columns[which] = (src >= 0, src[src >= 0])
-        have, src = cols
-        for out, values in ((q, pos), (qd, vel), (effort, eff)):
-            if len(values) == len(names_of[which]):   # an empty or short array: absent
-                out[k, have] = np.asarray(values, dtype=float)[src]
+    which = np.array([r[0] for r in rows], dtype=int)
+    for w, names in enumerate(names_of):
+        index = {name: i for i, name in enumerate(names)}
+        src = np.array([index.get(j, -1) for j in joints], dtype=int)
+        have, src = src >= 0, src[src >= 0]
+        ks = np.flatnonzero(which == w)
+        for out, col in ((q, 1), (qd, 2), (effort, 3)):
+            # the messages with this name list and a full array (empty or short: absent), stacked
+            full = [k for k in ks if len(rows[k][col]) == len(names)]
+            if full:
+                block = np.array([rows[k][col] for k in full], dtype=float).reshape(len(full), len(names))
+                out[np.ix_(full, np.flatnonzero(have))] = block[:, src]
     if N and not np.isfinite(effort).any():
         raise ValueError(f'{source}: efforts are required, and no sample has an effort for {joints}: record a '
                          'joint_states stream whose effort field carries the measured joint torques')
