@@ -7,8 +7,8 @@ positions, velocities if every sample has them, measured efforts) from
   * a rosbag2 folder (the one `ros2 bag record` writes: metadata.yaml and its files) in either
     storage format, mcap (Jazzy's default) or sqlite3, with sensor_msgs/msg/JointState on `topic`.
     The container is read by the `rosbags` package (no ROS installation needed), the messages by
-    the node's own JointState reader (ros/core/cdr.py). A sample's time is its header stamp, or the time the bag took it when the stamp is
-    zero (a driver that does not stamp);
+    the node's own JointState reader (ros/core/cdr.py). A sample's time is its header stamp, or
+    the time the bag took it when the stamp is zero (a driver that does not stamp);
   * a trajectory CSV (lie_dynamics.trajectory's format: time, pos.<joint>, vel.<joint>,
     acc.<joint>) with eff.<joint> columns, the measured efforts.
 
