@@ -14,6 +14,7 @@ from std_srvs.srv import SetBool  # noqa: E402
 
 from lie_dynamics import default_urdf_path  # noqa: E402
 from lie_dynamics.calibration.recordings import read_recording  # noqa: E402
+from lie_dynamics.ros.core.timebase import TimeBase  # noqa: E402
 from lie_dynamics.ros.features.recording import Recorder  # noqa: E402
 from test_node import Harness, wait_until  # noqa: E402
 
@@ -150,11 +151,12 @@ def test_sample_log_and_recorder_without_ros():
     now = [0]
     from lie_dynamics.ros.features.recording import SampleLog
     log = SampleLog(names, 0.5, clock=lambda: now[0])
+    assert isinstance(log.time, TimeBase)   # the one rule for a sample's time
     for k in range(5000):   # unstamped: the steady clock, 0.1 ms apart; more than one block
-        now[0] = k * 100_000
+        now[0] = 100.0 + k * 1e-4
         if log.add(_sample(0, names)):
             break
-    assert k == 5000 - 1 and log.size == 5000 and not log.stamped
-    now[0] = 500_000_000
+    assert k == 5000 - 1 and log.size == 5000 and not log.time.stamped
+    now[0] = 100.5
     assert log.add(_sample(0, names))
     assert sum(len(c[0]) for c in log.chunks()) == 5001

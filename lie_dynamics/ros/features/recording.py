@@ -33,6 +33,7 @@ from rclpy.node import Node
 
 from .. import interfaces
 from ..core.diagnostics import DIAG_TEXT_MAX, clip
+from ..core.timebase import TimeBase
 from ..loading.build_process import child_setup, receive, send, start_child
 from .base import Feature
 
@@ -62,32 +63,28 @@ def new_folder(base, now=None):
 
 class SampleLog:
     """Accepted samples of n joints in CHUNK-row blocks: header stamp (ns, 0: none), receive time
-    (ns, wall clock: the bag's time), q, velocity (NaN: absent), effort. `add` is the control
+    (ns, wall clock: the bag's time), q, velocity (NaN: absent), effort; `span`, the seconds
+    covered by the core/timebase.py rule. `add` is the control
     path's part; the blocks are handed to the writer once the log is closed."""
 
-    def __init__(self, names, max_s, clock=time.monotonic_ns, wall=time.time_ns):
+    def __init__(self, names, max_s, clock=time.monotonic, wall=time.time_ns):
         self.names = names
         self.n = len(names)
-        self.max_ns = int(round(max_s * 1e9))
-        self.clock, self.wall = clock, wall
+        self.max_s = max_s
+        self.time = TimeBase(clock)   # the one rule for a sample's time (stamp, else the steady clock)
+        self.wall = wall
         self.blocks = []
         self.size = 0               # samples kept
         self._fill = CHUNK
-        self._t0 = None
-        self.stamped = None
-        self.span_ns = 0
+        self.span = 0.0             # s covered (each time base counts from its own first sample)
 
     def add(self, sample):
         """One accepted sample; True once recording_max_s is covered. (Samples without finite
         efforts are kept here and left out by the writer: no check on the control path.)"""
         stamp = sample.stamp
-        if self.stamped is None:
-            self.stamped = bool(stamp)
-        t = stamp if self.stamped and stamp else self.clock()
-        if self._t0 is None:
-            self._t0 = t
-        elif t - self._t0 > self.span_ns:
-            self.span_ns = t - self._t0
+        t = self.time.seconds(stamp)
+        if t > self.span:
+            self.span = t
         if self._fill == CHUNK:
             self.blocks.append((np.zeros(CHUNK, np.int64), np.zeros(CHUNK, np.int64),
                                 *(np.empty((CHUNK, self.n)) for _ in range(3))))
@@ -103,7 +100,7 @@ class SampleLog:
         effort[k] = e[cols] if len(e) else np.nan
         self._fill = k + 1
         self.size += 1
-        return self.span_ns >= self.max_ns
+        return self.span >= self.max_s
 
     def chunks(self):
         """The blocks, the last one cut to its filled rows: (stamps, log times, q, qd, effort)."""
@@ -141,7 +138,7 @@ class Recorder:
         if sample.names is not log.names and list(sample.names) != list(log.names):
             return 'the controlled joints changed'
         if log.add(sample):
-            return f'recording_max_s ({log.max_ns * 1e-9:g} s) reached'
+            return f'recording_max_s ({log.max_s:g} s) reached'
         return None
 
     def stop(self):
@@ -233,7 +230,7 @@ class RecordService(Feature):
     def report(self, level, message):
         r = self.recorder
         state = f'recording ({r.log.size} samples)' if r.log is not None else 'idle'
-        return level, message, [('recording', state), ('recording_last', clip(r.last, DIAG_TEXT_MAX)),
+        return level, message, [('recording', state), ('recording_last', r.last),
                                 ('recordings_written', str(r.written))]
 
     def stop(self):
