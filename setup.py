@@ -15,7 +15,7 @@ setup(
         ('share/' + package_name + '/launch', glob('launch/*.py')),
     ],
     package_data={package_name: ['data/*.urdf', 'codegen/*.c']},
-    install_requires=['setuptools', 'numpy', 'yourdfpy'],
+    install_requires=['setuptools', 'numpy', 'yourdfpy', 'scipy', 'PyYAML'],
     zip_safe=True,
     maintainer='lie_dynamics developers',
     maintainer_email='lie-dynamics@example.org',

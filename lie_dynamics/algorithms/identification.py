@@ -137,8 +137,9 @@ def least_squares(Y, y, prior, rcond=1e-8):
     """The least-squares engine of `identify` (steps 1-4 of the module docstring) on a stacked
     regressor Y (rows, p) and measurements y (rows,): a dict with rank, base_columns,
     base_matrix, base_parameters, base_std, condition_number, parameters (closest to `prior`
-    along the unidentifiable directions), residual and determined (p,) booleans (a parameter the
-    data fix on its own: no null-space direction moves it)."""
+    along the unidentifiable directions), residual, determined (p,) booleans (a parameter the
+    data fix on its own: no null-space direction moves it), scale (p,) the column scaling and
+    null_space (p - rank, p) the directions the data do not see, in scaled units."""
     p = Y.shape[1]
     scale = np.sqrt(np.sum(Y * Y, axis=0))
     seen = scale > 1e-12 * max(scale.max(), 1e-300)
@@ -174,7 +175,7 @@ def least_squares(Y, y, prior, rcond=1e-8):
     return dict(rank=r, base_columns=B, base_matrix=base_matrix, base_parameters=zB / scale[B],
                 base_std=np.sqrt(np.clip(np.diag(cov_z), 0, None)) / scale[B],
                 condition_number=float(sB[0] / sB[-1]) if sB[-1] > 0 else np.inf, parameters=pi,
-                residual=resid, determined=determined)
+                residual=resid, determined=determined, scale=scale, null_space=null)
 
 
 def excitation_trajectory(model, duration=10.0, rate=100.0, harmonics=5, base_frequency=0.1, seed=0,
