@@ -29,6 +29,8 @@ setup(
             'trajectory_source = lie_dynamics.sim.trajectory_source:main',
             'demo = lie_dynamics.sim.demo:main',
             'fill_trajectory = lie_dynamics.trajectory:main',
+            'excitation_trajectory = lie_dynamics.calibration.excitation:main',
+            'identify_dynamics = lie_dynamics.calibration.identify:main',
         ],
     },
 )
