@@ -110,7 +110,7 @@ LIMIT_NAMES = ('position limit', 'velocity limit', 'acceleration bound', 'effort
 
 def optimized_excitation(model, duration=10.0, rate=100.0, harmonics=5, home=None, joints=None, margin=0.1,
                          velocity_fraction=0.8, acceleration=5.0, effort_fraction=0.8, seed=0,
-                         eps=COULOMB_VELOCITY_EPSILON, iterations=60, samples=None):
+                         eps=COULOMB_VELOCITY_EPSILON, iterations=100, samples=None):
     """(t, q, qd, qdd) of the optimised excitation (module docstring): q, qd, qdd (N, n).
 
     home: the pose it starts and ends at, at rest ((n,), default the middle of the position
@@ -158,18 +158,20 @@ def optimized_excitation(model, duration=10.0, rate=100.0, harmonics=5, home=Non
         p, v, a = series(x * mask, n)
         return s * p, s * v, s * a
 
-    def cost(x):
+    bases = _derivative_bases(opt, n)
+    penalty_weight = 1e3
+
+    def cost(x, gradient=True):
         p, v, a = trajectory(opt, x)
-        pen = sum(float(np.sum(e ** 2)) for e in _violation(model, home, lo, hi, vmax, amax, emax, p, v, a))
-        with np.errstate(divide='ignore', invalid='ignore'):
-            c = condition_number(model, home + p, v, a, eps, columns)
-        return (np.log(c) if np.isfinite(c) else 50.0) + 1e3 * pen
+        return _objective(model, home, p, v, a, columns, eps, (lo, hi, vmax, amax, emax), penalty_weight,
+                          bases if gradient else None, mask)
 
     rng = np.random.default_rng(seed)
     x0 = rng.normal(size=(n, 2, harmonics - 1)).reshape(-1)
     x0 *= _shrink(model, home, lo, hi, vmax, amax, emax, lambda s: trajectory(opt, x0, s), 1.0)
-    res = minimize(cost, x0, method='L-BFGS-B', options={'maxiter': iterations})
-    x = res.x if res.fun <= cost(x0) else x0
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+        res = minimize(cost, x0, jac=True, method='L-BFGS-B', options={'maxiter': iterations})
+    x = res.x if np.isfinite(res.fun) and res.fun <= cost(x0, False)[0] else x0
     s = _shrink(model, home, lo, hi, vmax, amax, emax, lambda s: trajectory(fine, x, s), 1.0)
     p, v, a = trajectory(fine, x, s)
     worst = [float(e.max()) for e in _violation(model, home, lo, hi, vmax, amax, emax, p, v, a)]
@@ -178,6 +180,69 @@ def optimized_excitation(model, duration=10.0, rate=100.0, harmonics=5, home=Non
         raise ValueError(f'the limits leave no exciting motion: the {LIMIT_NAMES[k]} binds')
     q = np.where(moving, home + p, home)
     return t, q, np.where(moving, v, 0.0), np.where(moving, a, 0.0)
+
+
+def _derivative_bases(series, n):
+    """d(p, v, a)/dx for one joint's coefficients x = (x_a, x_b): three (m, 2 (H - 1)) matrices."""
+    S, C, w, Ba, Bb = series.S, series.C, series.w, series.Ba, series.Bb
+    return (np.hstack([S @ Ba, (C - 1) @ Bb]), np.hstack([(C * w) @ Ba, -(S * w) @ Bb]),
+            np.hstack([-(S * w ** 2) @ Ba, -(C * w ** 2) @ Bb]))
+
+
+def _objective(model, home, p, v, a, columns, eps, limits, weight, bases, mask, h=1e-6):
+    """log cond of the column-scaled base regressor + weight * the squared relative excess over
+    the limits, and (bases given) its gradient in the coefficients: the singular values'
+    derivatives (d s = u^T dZ v, with the column scaling differentiated too) chained with the
+    regressor's and the inverse dynamics' central differences in q, qd, qdd of every sample."""
+    lo, hi, vmax, amax, emax = limits
+    m, n = p.shape
+    q = home + p
+    states = [q, v, a]
+    if bases is not None:   # the samples, then each state kind and joint moved by +-h
+        batch = [np.stack(states)]
+        for kind in range(3):
+            for j in range(n):
+                for sign in (1, -1):
+                    st = [x.copy() for x in states]
+                    st[kind][:, j] += sign * h
+                    batch.append(np.stack(st))
+        allst = np.concatenate(batch, axis=1)        # (3, m * (1 + 6 n), n)
+    else:
+        allst = np.stack(states)
+    Yall = creg.calibration_regressor(model, *allst, eps)[..., columns]
+    tau_all = model.inverse_dynamics(*allst)
+    Y = Yall[:m].reshape(m * n, -1)
+    D = np.linalg.norm(Y, axis=0)
+    if np.any(D == 0):
+        return (50.0, np.zeros(n * len(bases[0][0]))) if bases is not None else (50.0, None)
+    U, sv, Vt = np.linalg.svd(Y / D, full_matrices=False)
+    value = float(np.log(sv[0] / sv[-1]))
+    tau = tau_all[:m]
+    span = hi - lo
+    ep = np.maximum(q - hi, 0.0) / span - np.maximum(lo - q, 0.0) / span        # signed excess
+    ev = np.sign(v) * np.maximum(np.abs(v) - vmax, 0.0) / vmax
+    ea = np.sign(a) * np.maximum(np.abs(a) - amax, 0.0) / amax
+    escale = np.where(np.isfinite(emax), emax, 1.0)
+    ee = np.sign(tau) * np.maximum(np.abs(tau) - emax, 0.0) / escale
+    value += weight * float(np.sum(ep ** 2) + np.sum(ev ** 2) + np.sum(ea ** 2) + np.sum(ee ** 2))
+    if bases is None:
+        return value, None
+    # d log cond / dY
+    G = np.zeros_like(Y)
+    for i, sign in ((0, 1.0), (-1, -1.0)):
+        G += sign * (np.outer(U[:, i], Vt[i] / D) - sv[i] * Y * (Vt[i] ** 2 / D ** 2)) / sv[i]
+    G = G.reshape(m, n, -1)
+    dY = (Yall[m:].reshape(3, n, 2, m, n, -1))
+    dY = (dY[:, :, 0] - dY[:, :, 1]) / (2 * h)                   # (kind, j, m, rows, cols)
+    dtau = tau_all[m:].reshape(3, n, 2, m, n)
+    dtau = (dtau[:, :, 0] - dtau[:, :, 1]) / (2 * h)              # (kind, j, m, n)
+    gs = np.einsum('sic,kjsic->kjs', G, dY)                        # d value / d state (kind, j, sample)
+    gs += 2 * weight * np.einsum('si,kjsi->kjs', ee / escale, dtau)
+    gs[0] += 2 * weight * (ep / span).T
+    gs[1] += 2 * weight * (ev / vmax).T
+    gs[2] += 2 * weight * (ea / amax).T
+    grad = sum(gs[k] @ bases[k] for k in range(3))                 # (n, 2 (H - 1))
+    return value, grad.reshape(-1) * mask
 
 
 def _shrink(model, home, lo, hi, vmax, amax, emax, traj, s):
