@@ -20,7 +20,7 @@ def arm():
 
 @pytest.fixture(scope='module')
 def optimized(arm):
-    return excitation_trajectory(arm, duration=10.0, rate=100.0, optimize=True, seed=0, iterations=25)
+    return excitation_trajectory(arm, duration=10.0, rate=100.0, optimize=True, seed=0)
 
 
 def test_within_its_limits_on_the_sampled_trajectory_and_at_rest_at_both_ends(arm, optimized):
@@ -44,7 +44,8 @@ def test_within_its_limits_on_the_sampled_trajectory_and_at_rest_at_both_ends(ar
 def test_better_conditioned_than_the_random_excitation(arm, optimized):
     _, q, qd, qdd = optimized
     _, qr, qdr, qddr = excitation_trajectory(arm, duration=10.0, rate=100.0, seed=0)
-    assert ex.condition_number(arm, q, qd, qdd) < 0.85 * ex.condition_number(arm, qr, qdr, qddr)
+    # measured: 11.3 against 20.1 (the target, 1/5, is not reached)
+    assert ex.condition_number(arm, q, qd, qdd) < 0.65 * ex.condition_number(arm, qr, qdr, qddr)
 
 
 def test_joints_home_and_infeasible_limits(arm):
@@ -53,7 +54,7 @@ def test_joints_home_and_infeasible_limits(arm):
                                             iterations=2)
     assert np.allclose(q[:, [0, 2, 4, 5, 6]], home[[0, 2, 4, 5, 6]]) and np.ptp(q[:, 1]) > 0
     assert np.allclose(q[0], home) and np.allclose(q[-1], home)
-    with pytest.raises(ValueError, match=r"position limit of joint 'joint4': home 0.0 is outside"):
+    with pytest.raises(ValueError, match=r"position limit of joint 'joint4': home 0 is outside"):
         ex.optimized_excitation(arm, home=np.zeros(7), iterations=1)
     with pytest.raises(ValueError, match=r"effort limit of joint 'joint2': gravity alone at home needs"):
         ex.optimized_excitation(arm, home=[0, 1.2, 0, 1.5, 0, 1.6, 0], effort_fraction=0.1, iterations=1)

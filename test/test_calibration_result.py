@@ -11,6 +11,7 @@ from lie_dynamics import load_urdf
 from lie_dynamics.algorithms.identification import excitation_trajectory
 from lie_dynamics.calibration import CalibrationResult, identify_dynamics, load_calibration, rewrite_urdf, write_report
 from lie_dynamics.calibration import regressor as creg
+from lie_dynamics.model.inertia import parameter_consistency
 from test_calibration_fit import measured, true_parameters
 
 
@@ -139,3 +140,60 @@ def test_report_files(calibrated, tmp_path):
     assert 'condition number of the base regressor' in text and 'held-out torque prediction RMS' in text
     assert 'beta_0' in text and 'joint1.armature' in text
     assert open(paths[1], 'rb').read(8) == b'\x89PNG\r\n\x1a\n'
+
+
+def _recording_csv(arm, path, seed=0, duration=30.0):
+    """A trajectory CSV with efforts (pos/vel/acc/eff.<joint>) of the true robot at 200 Hz."""
+    true = true_parameters(arm, seed)
+    t, q, qd, qdd = excitation_trajectory(arm, duration=duration, rate=200.0, seed=seed + 3)
+    effort = measured(arm, true, q, qd, qdd)
+    names = arm.joint_names
+    header = ['time'] + [f'{k}.{j}' for k in ('pos', 'vel', 'acc', 'eff') for j in names]
+    rows = np.column_stack([t, q, qd, qdd, effort])
+    with open(path, 'w') as fh:
+        fh.write(','.join(header) + '\n')
+        for r in rows:
+            fh.write(','.join(repr(float(x)) for x in r) + '\n')
+    return true, t, q, qd, effort
+
+
+def test_identify_dynamics_filters_a_recording_on_a_uniform_grid(arm):
+    pytest.importorskip('lie_dynamics.calibration.signals')
+    true = true_parameters(arm, 1)
+    t, q, qd, qdd = excitation_trajectory(arm, duration=30.0, rate=200.0, seed=4)
+    c = identify_dynamics(arm, t, q, measured(arm, true, q, qd, qdd))
+    rep = c.report
+    assert rep['cutoff'] > 0 and rep['rate'] == pytest.approx(200.0)
+    # measured 3-8 % of the effort RMS: the low-pass smooths the Coulomb term's steps in the efforts
+    assert np.all(rep['rms_after'] < 0.1 * rep['rms_effort'])
+    assert np.all(rep['rms_after'] < rep['rms_before'])
+    assert all(ok for ok, _ in parameter_consistency(c.inertial))
+
+
+def _cli(args, cwd):
+    import os
+    import subprocess
+    import sys
+
+    from dyn_cases import ROOT
+    script = ("import sys; sys.argv[0] = 'identify_dynamics'; "
+              'from lie_dynamics.calibration.identify import main; sys.exit(main())')
+    return subprocess.run([sys.executable, '-c', script] + args, cwd=cwd, capture_output=True, text=True,
+                          timeout=600, env=dict(os.environ, PYTHONPATH=ROOT))
+
+
+def test_identify_dynamics_command(arm, tmp_path):
+    pytest.importorskip('lie_dynamics.calibration.recordings')
+    _recording_csv(arm, tmp_path / 'rec.csv')
+    r = _cli(['rec.csv', '--urdf', ARM, '-o', 'calibration.yaml', '--report', 'report', '--urdf-out', 'fixed.urdf'],
+             tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert 'held-out torque RMS per joint, before -> after' in r.stdout
+    c = load_calibration(tmp_path / 'calibration.yaml')
+    assert c.joint_names == arm.joint_names
+    assert (tmp_path / 'report' / 'report.txt').exists()
+    model = load_urdf(str(tmp_path / 'fixed.urdf'))
+    assert np.allclose(model.inertial_parameters(), c.inertial.reshape(-1), rtol=1e-9, atol=1e-12)
+    bad = _cli(['rec.csv', '--urdf', ARM, '-o', 'x.yaml', '--joints', 'joint1,joint9'], tmp_path)
+    assert bad.returncode == 2 and bad.stderr.count('\n') == 1 and bad.stderr.startswith('identify_dynamics: error:')
+    assert 'joint9' in bad.stderr and not (tmp_path / 'x.yaml').exists()
