@@ -162,7 +162,7 @@ def main(argv=None):
     ap.add_argument('--topic', default='/joint_states', help='JointState topic in a bag (default /joint_states)')
     ap.add_argument('--report', metavar='DIR', help='write report.txt and torques.png there')
     ap.add_argument('--urdf-out', metavar='FILE', help='write the corrected URDF there')
-    return run_cli(ap, _identify, argv)
+    run_cli(ap, _identify, argv)   # nothing returned: a console script exits with main()'s value
 
 
 def _identify(args):
@@ -205,7 +205,6 @@ def _identify(args):
         with open(args.urdf_out, 'w') as fh:
             fh.write(text)
         print(f'{args.urdf_out}: the URDF with the identified <inertial> and <dynamics>')
-    return result
 
 
 if __name__ == '__main__':
