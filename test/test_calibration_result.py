@@ -59,6 +59,8 @@ def test_save_load_round_trip_and_calibrated_model(arm, calibrated, tmp_path):
     for model in (arm.with_calibration(path), load_urdf(ARM, calibration=str(path)), arm.with_calibration(c2)):
         assert np.allclose(model.inertial_parameters(), c.inertial.reshape(-1), rtol=1e-12, atol=1e-15)
         assert np.allclose(model.damping, c.viscous) and np.allclose(model.friction, c.coulomb)
+        assert np.allclose(model.armature, np.where(np.isfinite(c.armature), c.armature, 0.0))
+    assert not arm.armature.any()
     # the model it was made from is untouched
     assert arm.damping[0] == 0.5 and arm.friction[0] == 0.3
 

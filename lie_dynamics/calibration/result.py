@@ -319,8 +319,8 @@ def check_robot(model, c):
 
 def with_calibration(model, c):
     """A copy of `model` with the calibration's inertial parameters on its bodies and its friction
-    as Model.damping (viscous) and Model.friction (Coulomb). The effort offsets belong to the
-    sensor and stay in the calibration; armature is kept there too until the model carries it.
+    as Model.damping (viscous) and Model.friction (Coulomb), and its armature as Model.armature
+    (set_armature). The effort offsets belong to the sensor and stay in the calibration.
     `c`: a CalibrationResult or the path of a calibration.yaml. ValueError when it describes
     another robot (check_robot) or holds invalid values."""
     if not isinstance(c, CalibrationResult):
@@ -331,12 +331,16 @@ def with_calibration(model, c):
         pi[model.body_link_names.index(ln)] = c.inertial[b]
     new = model.with_inertial_parameters(pi.reshape(-1), check=True)
     damping, friction = np.array(model.damping, dtype=float), np.array(model.friction, dtype=float)
+    armature = np.array(model.armature, dtype=float)
     for j, name in enumerate(c.joint_names):
         k = model.joint_names.index(name)
         if np.isfinite(c.viscous[j]):
             damping[k] = c.viscous[j]
         if np.isfinite(c.coulomb[j]):
             friction[k] = c.coulomb[j]
+        if np.isfinite(c.armature[j]):
+            armature[k] = c.armature[j]
+    new.set_armature(armature)
     damping.flags.writeable = friction.flags.writeable = False
     new.damping, new.friction = damping, friction
     new.calibration = c

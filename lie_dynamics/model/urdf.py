@@ -335,7 +335,7 @@ def load_urdf(source, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn', ca
     link), 'strict' (ValueError) or 'repair' (nearest consistent tensor; InertiaWarning with
     the before and after values). `Model.physical_consistency()` returns the report.
     calibration: a calibration.yaml path (or CalibrationResult) applied to the loaded model
-    (`Model.with_calibration`: identified inertias, friction as damping and friction).
+    (`Model.with_calibration`: identified inertias, friction as damping and friction, armature).
     Raises ValueError naming the culprit for any malformed or unsupported input.
     """
     policy = check_policy(inertia)
