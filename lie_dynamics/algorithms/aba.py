@@ -12,7 +12,7 @@ body frames with X_i = Ad_{f_{i-1,i}^-1} (f_{i-1,i} = M_i e^{[S_i] x_i}, eq 17):
 
   forward   V_i = X_i V_parent + S_i xd_i,   c_i = ad_{V_i} S_i xd_i                  (eq 18)
             Ia_i = J_i,  pa_i = -ad_{V_i}^T J_i V_i - F_ext,i   (the RNEA's body wrench at Vd = 0)
-  backward  U_i = Ia_i S_i,  D_i = S_i^T U_i,  u_i = tau_i - S_i^T pa_i,
+  backward  U_i = Ia_i S_i,  D_i = S_i^T U_i + armature_i,  u_i = tau_i - S_i^T pa_i,
             Ia_parent += X_i^T (Ia_i - U_i U_i^T / D_i) X_i,
             pa_parent += X_i^T (pa_i + (Ia_i - U_i U_i^T / D_i) c_i + U_i u_i / D_i)
   forward   a'_i = X_i a_parent + c_i,  xdd_i = (u_i - U_i^T a'_i) / D_i,  a_i = a'_i + S_i xdd_i
@@ -185,6 +185,8 @@ def _aba(model, st, x, xd, tau, fext):
     free = st['free']
     taub = np.zeros((N, nb))
     taub[:, free] = tau[:, st['joint_of'][free]]
+    arm = np.zeros(nb)   # the armature of each body's joint: D_i = S_i^T Ia_i S_i + armature
+    arm[free] = model.armature[st['joint_of'][free]]
     U = np.zeros((N, nb, 6))
     D = np.ones((N, nb))
     u = np.zeros((N, nb))
@@ -193,7 +195,7 @@ def _aba(model, st, x, xd, tau, fext):
         Ia, pa = IA[:, idx], pA[:, idx]
         f = free[idx]
         Ui = (Ia @ S[idx][..., None])[..., 0]
-        Di = np.einsum('lj,nlj->nl', S[idx], Ui)
+        Di = np.einsum('lj,nlj->nl', S[idx], Ui) + arm[idx]
         ui = taub[:, idx] - np.einsum('lj,nlj->nl', S[idx], pa)
         scale = np.max(np.abs(Ia), axis=(-1, -2))
         if np.any(f & np.any(~(Di > PD_RTOL * scale), axis=0)):

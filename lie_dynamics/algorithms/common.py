@@ -38,6 +38,15 @@ def to_joints_mat(model, c, X):
     return E.T @ X @ E
 
 
+def with_armature(model, M):
+    """M + diag(Model.armature) for joint-space mass matrices (..., n, n), in place: the one
+    place the vectorised forms add the rotor inertia (the kernels carry it as a parameter)."""
+    if model.armature.any():
+        idx = np.arange(model.n)
+        M[..., idx, idx] += model.armature
+    return M
+
+
 def kinematic_state(model, x, with_ad=False):
     """Root-frame quantities shared by the closed-form algorithms, for body coordinates x (N, nb).
 

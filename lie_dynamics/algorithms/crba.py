@@ -22,7 +22,8 @@ import numpy as np
 from ..codegen import runtime
 from ..codegen.traced import crba as traced
 from ..spatial import transpose
-from .common import body_matrices, body_matrices_validated, kinematic_state, subtree_sum, world_inertias
+from .common import (body_matrices, body_matrices_validated, kinematic_state, subtree_sum, with_armature,
+                     world_inertias)
 
 
 def _work_per_state(nb):
@@ -49,7 +50,9 @@ def mass_matrix_validated(model, q):
     """mass_matrix on a validated (N, n) q (Model.validate) -> (N, n, n): the kernel, else the
     vectorised form. For callers that validated their arguments already."""
     M = runtime.run(model, traced.MASS_MATRIX, [q])
-    return body_matrices_validated(model, q, _crba, _work_per_state(model.nb)) if M is None else M
+    if M is None:
+        M = with_armature(model, body_matrices_validated(model, q, _crba, _work_per_state(model.nb)))
+    return M
 
 
 def _full(model, arrays):
@@ -72,5 +75,6 @@ def mass_matrix_kernel(model, q, mode=None):
 
 
 def mass_matrix_vectorized(model, q):
-    """M(q) by the vectorised composite rigid body algorithm (numpy over bodies and states)."""
-    return body_matrices(model, q, _crba, _work_per_state(model.nb))
+    """M(q) by the vectorised composite rigid body algorithm (numpy over bodies and states),
+    with the armature on the diagonal."""
+    return with_armature(model, body_matrices(model, q, _crba, _work_per_state(model.nb)))

@@ -71,7 +71,7 @@ import numpy as np
 from ..codegen.runtime import structural
 from ..spatial import ad, cross, transpose
 from .common import (body_constants, body_matrices, body_matrices_validated, chunks, kinematic_state, subtree_sum,
-                     to_joints_mat, to_joints_vec, world_inertias)
+                     to_joints_mat, to_joints_vec, with_armature, world_inertias)
 from .kinematics import world_poses
 
 
@@ -86,12 +86,12 @@ def _mass_closed_form(model, x):
 
 
 def mass_matrix(model, q):
-    """M(q) = S^T G^T J G S (paper eq 39, equivalently A^T L^T D L A, eq 34); O(n^3).
+    """M(q) = S^T G^T J G S (paper eq 39, equivalently A^T L^T D L A, eq 34) + diag(armature); O(n^3).
 
     q: (n,) or (N, n). Returns (n, n) or (N, n, n), symmetric positive (semi)definite.
     """
     nb = model.nb
-    return body_matrices(model, q, _mass_closed_form, 12 * nb * nb + 72 * nb)
+    return with_armature(model, body_matrices(model, q, _mass_closed_form, 12 * nb * nb + 72 * nb))
 
 
 def block_factors(model, q):
@@ -257,6 +257,7 @@ def kinetic_energy(model, q, qd):
     """T = 1/2 qd^T M(q) qd (eq 23 with the 1/2 the notes drop). (N,) or scalar."""
     single = np.ndim(q) == 1
     q, qd = model.check_states(q=q, qd=qd)
-    M = body_matrices_validated(model, q, _mass_closed_form, 12 * model.nb * model.nb + 72 * model.nb)
+    nb = model.nb
+    M = with_armature(model, body_matrices_validated(model, q, _mass_closed_form, 12 * nb * nb + 72 * nb))
     T = 0.5 * np.einsum('ni,nij,nj->n', qd, M, qd)
     return float(T[0]) if single else T

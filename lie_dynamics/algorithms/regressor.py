@@ -109,7 +109,8 @@ def _regressor(model, x, xd, xdd, a0):
 
 
 def regressor(model, q, qd, qdd):
-    """Y(q, qd, qdd) with inverse_dynamics(q, qd, qdd) = Y @ inertial_parameters().
+    """Y(q, qd, qdd) with inverse_dynamics(q, qd, qdd) = Y @ inertial_parameters() + armature * qdd
+    (the rigid-body parameters only; Model.armature is not among them).
 
     Shape (n, 10 nb) or (N, n, 10 nb); columns are 10 per body in model.body_joint_names
     order, parameters as PARAMETER_NAMES (Pinocchio's computeJointTorqueRegressor layout).

@@ -28,8 +28,8 @@ from ..spatial import ad, Ad_inv
 # (chunk, nb, 6, 6) arrays in cache.
 _PER_STATE = 4096
 
-_ID_NO_GRAVITY = traced.INVERSE_DYNAMICS.variant(('inertia', 'no_gravity', 'offsets'))
-_ID_WRENCH_NO_GRAVITY = traced.INVERSE_DYNAMICS_WRENCH.variant(('inertia', 'no_gravity', 'offsets'))
+_ID_NO_GRAVITY = traced.INVERSE_DYNAMICS.variant(('inertia', 'no_gravity', 'offsets', 'armature'))
+_ID_WRENCH_NO_GRAVITY = traced.INVERSE_DYNAMICS_WRENCH.variant(('inertia', 'no_gravity', 'offsets', 'armature'))
 
 
 def inverse_dynamics(model, q, qd, qdd, wrenches=None, with_gravity=True, out=None):
@@ -129,6 +129,8 @@ def _vectorized(model, a, fext, with_gravity):
     tau = np.empty((N, model.n))
     for sl in chunks(N, _PER_STATE):
         tau[sl] = _rnea(model, x[sl], xd[sl], xdd[sl], a0, None if fext is None else fext[sl])
+    if model.armature.any():   # the rotors: M + diag(armature), as the kernels
+        tau += qdd * model.armature
     return tau
 
 

@@ -135,6 +135,12 @@ class Frames:
         names = [f'g{k}' for k in range(3)]
         return Params('A0', names), [g.input(nm) for nm in names]
 
+    def trace_armature(self, g):
+        """(the AR argument list, its symbols): the armature of each joint (Model.armature), a
+        parameter, so that setting it never recompiles."""
+        names = [f'ar{j}' for j in range(self.n)]
+        return Params('AR', names), [g.input(nm) for nm in names]
+
     def joint_transform(self, g, b, x):
         """(R, t) of f_{p',b'}(x) as traced 3x3 / 3-vector."""
         R0, t0 = self.R[b], self.t[b]

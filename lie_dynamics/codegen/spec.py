@@ -86,14 +86,15 @@ def _offsets(model, fr):
 
 
 PARAMETERS = {'inertia': _inertia, 'subtree': _subtree, 'gravity': _gravity, 'offsets': _offsets,
-              'no_gravity': lambda model, fr: (0.0, 0.0, 0.0)}
+              'no_gravity': lambda model, fr: (0.0, 0.0, 0.0),
+              'armature': lambda model, fr: tuple(model.armature.tolist())}
 
 
 def parameter(model, kind):
     """One parameter list of the kernels, in the primed frames (codegen.frames), cached until
     the model's version changes: 'inertia' (10 per body), 'subtree' (gravity kernel, 4 per
-    body), 'gravity' (-g), 'no_gravity' (zeros) or 'offsets' (body offsets of locked and
-    offset joints)."""
+    body), 'gravity' (-g), 'no_gravity' (zeros), 'offsets' (body offsets of locked and
+    offset joints) or 'armature' (one per joint, Model.armature)."""
     return derived(model, kind, lambda: PARAMETERS[kind](model, frames(model)))
 
 

@@ -121,7 +121,7 @@ class Algorithms:
 
     @_jointless(('q', 'qd'), ())
     def kinetic_energy(self, q, qd):
-        """1/2 qd^T M(q) qd."""
+        """1/2 qd^T M(q) qd (M with the armature: the rotors' energy included)."""
         return lagrangian.kinetic_energy(self, q, qd)
 
     @_jointless(('q', 'qd', 'tau'), (0,))
@@ -142,7 +142,8 @@ class Algorithms:
 
     @_jointless(('q', 'qd', 'qdd'), (0, 0))
     def regressor(self, q, qd, qdd):
-        """Y with inverse_dynamics(q, qd, qdd) = Y @ inertial_parameters(), (n, 10 nb) or (N, n, 10 nb)."""
+        """Y with inverse_dynamics(q, qd, qdd) = Y @ inertial_parameters() + armature * qdd, (n, 10 nb)
+        or (N, n, 10 nb): the rigid-body parameters only (the armature is not among them)."""
         return regressor.regressor(self, q, qd, qdd)
 
     def inertial_parameters(self):
@@ -152,3 +153,9 @@ class Algorithms:
     def with_inertial_parameters(self, pi, check=True):
         """Copy of this model with the given inertial parameters (payloads folded in)."""
         return regressor.with_inertial_parameters(self, pi, check)
+
+    def with_calibration(self, calibration):
+        """Copy with a calibration (a CalibrationResult or a calibration.yaml path) applied:
+        lie_dynamics.calibration.result.with_calibration."""
+        from ..calibration.result import with_calibration
+        return with_calibration(self, calibration)

@@ -22,6 +22,7 @@ from ..algorithms import kinematics
 from .facade import Algorithms
 from .inertia import RTOL, link_inertia, violations
 from .pickling import Pickled
+from .joint_names import broadcast_joints
 from .inertia import inertia_scale as scale_of  # the constructor's argument has the plain name
 from .link_frames import DROPPED, WORLD
 from ..spatial import exp6, hat3
@@ -93,6 +94,7 @@ class Model(Algorithms, Pickled):
         self._payloads = {}  # link -> (mass, CoM, inertia about the CoM) in the link frame
         self._locked_values = np.zeros(len(self.locked_joint_names))
         self._locked_index = {name: k for k, name in enumerate(self.locked_joint_names)}
+        self._armature = _frozen(np.zeros(self.n))
         self.gravity_vector = gravity
         self._precompute()
         self._update_offsets()
@@ -146,6 +148,34 @@ class Model(Algorithms, Pickled):
 
     def set_gravity(self, g):
         self.gravity_vector = g
+
+    @property
+    def armature(self):
+        """Rotor inertia reflected to each controlled joint, (n,) read-only, in q's coordinates
+        (kg m^2; kg for a prismatic joint); 0 by default. Every algorithm uses M + diag(armature):
+        inverse dynamics adds armature * qdd, the mass matrix, forward dynamics (both methods),
+        their derivatives, the kinetic energy and the observer's momentum carry it; the Coriolis
+        matrix and gravity do not change. A mimic joint has none of its own: the value of its
+        master's column stands for the whole rotor inertia that column moves."""
+        return self._armature
+
+    def set_armature(self, values):
+        """Set the armature: one value for every joint or one per controlled joint
+        (model.joint_names order), finite and >= 0. Cheap: bumps `version`, no kernel recompiles."""
+        try:
+            a = broadcast_joints(values, self.n)
+        except (TypeError, ValueError):
+            raise ValueError(f'armature must be numbers, got {values!r}') from None
+        if a is None:
+            raise ValueError(f'armature must be one value or {self.n} values (one per joint of '
+                             f'{self.joint_names}), got shape {np.shape(values)}')
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f'armature must be finite, got {a.tolist()}')
+        if np.any(a < 0):
+            bad = [name for name, v in zip(self.joint_names, a, strict=True) if v < 0]
+            raise ValueError(f'armature must be >= 0, got negative values for {bad}')
+        self._armature = _frozen(a)
+        self._changed()
 
     def set_locked(self, values):
         """Set locked joint values from {name: value}. Cheap; no rebuild.
@@ -294,8 +324,9 @@ class Model(Algorithms, Pickled):
     def massless_joints(self):
         """Controlled joints that move no mass and no inertia at all: every body the joint drives
         carries, with its whole subtree, a zero spatial inertia (up to 1e-12 of the model's
-        inertia scale). Their row of M is zero, so forward dynamics is undefined. O(nb): a
-        subtree sum over the parent array, so it stays cheap for models of thousands of bodies."""
+        inertia scale), and the joint has no armature. Their row of M is zero, so forward
+        dynamics is undefined. O(nb): a subtree sum over the parent array, so it stays cheap for
+        models of thousands of bodies."""
         if not self.n:
             return []
         sub = np.abs(self.J).sum(axis=(1, 2))
@@ -304,7 +335,7 @@ class Model(Algorithms, Pickled):
                 sub[self.parent[i]] += sub[i]
         tol = 1e-12 * self.inertia_scale
         return [name for k, name in enumerate(self.joint_names)
-                if np.all(sub[np.flatnonzero(self.E[:, k])] <= tol)]
+                if np.all(sub[np.flatnonzero(self.E[:, k])] <= tol) and not self.armature[k] > 0]
 
     # ------------------------------------------------------------------ input checks
     def check_batch(self, name, x, N=None):

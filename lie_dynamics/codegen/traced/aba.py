@@ -310,17 +310,20 @@ class _Joint:
         return list(w) + list(v)
 
 
-def trace_aba(fr, geom, g, x, xd, taus, params, a0, fext=None):
+def trace_aba(fr, geom, g, x, xd, taus, params, a0, armature, fext=None):
     """The articulated body algorithm of algorithms/aba.py (eqs 17-19), traced in the b''
     frames of `geom`, where S_i = e_z: U_i = Ia_i S_i is column k of Ia_i (k = 2 for a revolute
-    joint, 5 for a prismatic one), D_i its entry k and u_i = tau_i - (pa_i)_k. The update
-    Ia - U U^T / D has row and column k exactly zero.
+    joint, 5 for a prismatic one), D_i = its entry k + the joint's armature and u_i = tau_i -
+    (pa_i)_k, as Pinocchio's aba. The update Ia - U U^T / D has row and column k equal to
+    armature_i U_i / D_i (zero only without armature: the armature, a parameter, costs the
+    kernel about an eighth more operations on the arm, whatever its value).
 
     x, xd: body coordinates and rates; taus: per body the torque of its joint (0.0 for welded
-    bodies); params: per body (m, h, I) in b''; a0: base linear acceleration -g; fext: optional
-    per-body wrenches (n, f) in b''. Returns per body (xdd_i, D_i, scale_i), None for welded
-    bodies; scale_i is the trace of the 3x3 block of Ia_i that D_i lies in (same units as D_i,
-    and >= D_i for a positive semi-definite Ia_i).
+    bodies); params: per body (m, h, I) in b''; a0: base linear acceleration -g; armature: per
+    body the armature of its joint (0.0 for welded bodies); fext: optional per-body wrenches
+    (n, f) in b''. Returns per body (xdd_i, D_i, scale_i), None for welded bodies;
+    scale_i is the trace of the 3x3 block of Ia_i that D_i lies in plus the armature (same
+    units as D_i, and >= D_i for a positive semi-definite Ia_i).
     """
     nb = fr.nb
     free = [bool(np.any(fr.E[b] != 0)) for b in range(nb)]
@@ -352,10 +355,10 @@ def trace_aba(fr, geom, g, x, xd, taus, params, a0, fext=None):
             K = _sym6_add(Ia[b], K)
         if free[b]:
             col = [K[i][k] for i in range(6)]
-            D = col[k]
+            D = col[k] + armature[b]
             Dinv[b] = g.inv(D)
             u[b] = taus[b] - P[k]
-            U[b] = [1.0 if i == k else g.bake(col[i] * Dinv[b]) for i in range(6)]    # U / D
+            U[b] = [g.bake(col[i] * Dinv[b]) for i in range(6)]                      # U / D
             out[b] = (D, K[k - 2][k - 2] + K[k - 1][k - 1] + D)
             if p < 0:
                 continue
@@ -364,8 +367,10 @@ def trace_aba(fr, geom, g, x, xd, taus, params, a0, fext=None):
                 for j in range(i, 6):
                     if i != k and j != k:
                         Ka[i][j] = Ka[j][i] = K[i][j] - col[i] * U[b][j]
-            # pa + Ia^A c + U u / D; its entry k is tau exactly
-            P = [taus[b] if i == k else P[i] + la.dot(Ka[i], c[b]) + U[b][i] * u[b] for i in range(6)]
+            w = armature[b] * Dinv[b]    # row k of Ia^A: col - col col[k] / D = armature col / D
+            for j in range(6):
+                Ka[k][j] = Ka[j][k] = col[j] * w
+            P = [P[i] + la.dot(Ka[i], c[b]) + U[b][i] * u[b] for i in range(6)]    # pa + Ia^A c + U u / D
             K = Ka
         else:
             if p < 0:
@@ -383,12 +388,11 @@ def trace_aba(fr, geom, g, x, xd, taus, params, a0, fext=None):
         ap = X[b].twist_to_child(acc[p] if p >= 0 else base)
         ap = [a + e for a, e in zip(ap, c[b], strict=True)]
         if free[b]:
-            s = u[b] * Dinv[b]
+            xdd = u[b] * Dinv[b]
             for i in range(6):
-                if i != k:
-                    s = s - U[b][i] * ap[i]
-            res[b] = (s - ap[k],) + out[b]                       # xdd = (u - U^T a') / D
-            ap[k] = s                                            # a = a' + S xdd
+                xdd = xdd - U[b][i] * ap[i]                      # xdd = (u - U^T a') / D
+            res[b] = (xdd,) + out[b]
+            ap[k] = ap[k] + xdd                                  # a = a' + S xdd
         acc[b] = ap
     return res
 
@@ -396,7 +400,7 @@ def trace_aba(fr, geom, g, x, xd, taus, params, a0, fext=None):
 def build_aba(fr, wrench=False):
     """Trace qdd by the articulated body algorithm (trace_aba) for this tree.
 
-    Arguments (Q, QD, TAU[, FX], P, A0, E0) as the Cholesky kernel's, but P and FX in the
+    Arguments (Q, QD, TAU[, FX], P, A0, E0, AR) as the Cholesky kernel's, but P and FX in the
     frames of _Geometry (its params and wrenches). Outputs qdd, then per joint D_i and its
     scale (trace_aba); the caller checks D_i > PD_RTOL * scale, blind to the scale of the
     masses as the Cholesky kernel's pivot test. None when the frames cannot be built.
@@ -422,9 +426,10 @@ def build_aba(fr, wrench=False):
         args.append(('FX', names))
         fs = [g.input(nm) for nm in names]
         fext = [(tuple(fs[6 * b:6 * b + 3]), tuple(fs[6 * b + 3:6 * b + 6])) for b in range(nb)]
-    args += [parg, a0arg, co['offset_args']]
+    ararg, arm = fr.trace_armature(g)
+    args += [parg, a0arg, co['offset_args'], ararg]
     res = trace_aba(fr, geom, g, co['x'], co['xd'], [0.0 if j is None else taus[j] for j in joint_of],
-                    params, ga, fext)
+                    params, ga, [0.0 if j is None else arm[j] for j in joint_of], fext)
     per_joint = [None] * n
     for b in range(nb):
         if joint_of[b] is not None:
@@ -457,7 +462,7 @@ def wrenches(model, fext):
     return _geometry(model).wrenches(fext)
 
 
-ABA = Spec('aba', lambda fr: build_aba(fr, False), (_inertias, 'gravity', 'offsets'), 'aba',
+ABA = Spec('aba', lambda fr: build_aba(fr, False), (_inertias, 'gravity', 'offsets', 'armature'), 'aba',
            supports=supports, checked=True, result=lambda model: ((model.n,), PD_RTOL))
-ABA_WRENCH = Spec('aba_wrench', lambda fr: build_aba(fr, True), (_inertias, 'gravity', 'offsets'), 'aba',
-                  supports=supports, checked=True, result=lambda model: ((model.n,), PD_RTOL))
+ABA_WRENCH = Spec('aba_wrench', lambda fr: build_aba(fr, True), (_inertias, 'gravity', 'offsets', 'armature'),
+                  'aba', supports=supports, checked=True, result=lambda model: ((model.n,), PD_RTOL))

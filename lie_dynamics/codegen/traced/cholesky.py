@@ -16,22 +16,24 @@ from .rnea import trace_inverse_dynamics, trig
 
 def trace_inputs(fr, g):
     """Symbols of a forward-dynamics kernel: (coordinates, argument lists (Q, QD, TAU, P, A0,
-    E0), inertia parameters, -g, joint torques)."""
+    E0, AR), inertia parameters, -g, joint torques, armature)."""
     co = fr.trace_coordinates(g, rates=1)
     parg, params = fr.trace_params(g)
     a0arg, ga = fr.trace_gravity(g)
+    ararg, arm = fr.trace_armature(g)
     n = fr.n
     taus = [g.input(f'u{j}') for j in range(n)]
-    args = co['args'] + [('TAU', [f'u{j}' for j in range(n)]), parg, a0arg, co['offset_args']]
-    return co, args, params, ga, taus
+    args = co['args'] + [('TAU', [f'u{j}' for j in range(n)]), parg, a0arg, co['offset_args'], ararg]
+    return co, args, params, ga, taus, arm
 
 
-def trace_forward_dynamics(fr, g, x, xd, params, a0, taus):
-    """qdd = M^-1 (tau - h) traced: CRBA, the RNEA bias with qdd = 0, Cholesky and two
-    triangular solves. Returns (qdd, M, L, 1 / diag(L), pivots)."""
+def trace_forward_dynamics(fr, g, x, xd, params, a0, taus, armature):
+    """qdd = M^-1 (tau - h) traced: CRBA (M with the armature), the RNEA bias with qdd = 0
+    (the armature adds nothing to it), Cholesky and two triangular solves. Returns (qdd, M,
+    L, 1 / diag(L), pivots)."""
     n = fr.n
     X = [fr.joint_transform(g, b, x[b]) for b in range(fr.nb)]
-    M = trace_mass_matrix(fr, g, params, X)
+    M = trace_mass_matrix(fr, g, params, X, armature)
     tau_b = trace_inverse_dynamics(fr, trig(fr, g, x), x, xd, [0.0] * fr.nb, params, a0)
     h = [sum((float(fr.E[b, j]) * tau_b[b] for b in range(fr.nb) if fr.E[b, j] != 0), 0.0) for j in range(n)]
     L, inv_d, pivots = trace_cholesky(g, M)
@@ -79,14 +81,14 @@ def trace_cho_solve(L, inv_d, b):
 
 
 def build_forward_dynamics(fr):
-    """k(Q, QD, TAU, P, A0, E0) -> qdd, then the Cholesky pivots d_j^2 and the diagonal of M
+    """k(Q, QD, TAU, P, A0, E0, AR) -> qdd, then the Cholesky pivots d_j^2 and the diagonal of M
     (a negative pivot makes sqrt fail on floats)."""
     g = Graph()
-    co, args, params, ga, taus = trace_inputs(fr, g)
-    z, M, L, inv_d, pivots = trace_forward_dynamics(fr, g, co['x'], co['xd'], params, ga, taus)
+    co, args, params, ga, taus, arm = trace_inputs(fr, g)
+    z, M, L, inv_d, pivots = trace_forward_dynamics(fr, g, co['x'], co['xd'], params, ga, taus, arm)
     outputs = z + pivots + [M[j][j] for j in range(fr.n)]
     return Trace(g, 'forward_dynamics_kernel', args, outputs)
 
 
-FORWARD_DYNAMICS = Spec('forward_dynamics', build_forward_dynamics, ('inertia', 'gravity', 'offsets'),
+FORWARD_DYNAMICS = Spec('forward_dynamics', build_forward_dynamics, ('inertia', 'gravity', 'offsets', 'armature'),
                         'forward_dynamics', checked=True, result=lambda model: ((model.n,), PD_RTOL))

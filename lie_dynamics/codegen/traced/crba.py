@@ -5,8 +5,9 @@ from ..runtime import Spec
 from ..tracer import Graph
 
 
-def trace_mass_matrix(fr, g, params, X):
-    """Traced joint-space M (nested n x n lists) by the composite rigid body algorithm.
+def trace_mass_matrix(fr, g, params, X, armature):
+    """Traced joint-space M (nested n x n lists) by the composite rigid body algorithm, with
+    the armature (one symbol per joint, Frames.trace_armature) on its diagonal.
 
     In the primed body frames (codegen/frames.py), with X the traced joint transforms:
     backward, Jc_parent += (inertia of the subtree of b, moved to the parent frame); then for
@@ -40,19 +41,20 @@ def trace_mass_matrix(fr, g, params, X):
             Mx[j][b] = Mx[b][j] = s_dot(j, F)
     Mq = fr.project(Mx)
     n = fr.n
-    return [[Mq[min(a, c)][max(a, c)] for c in range(n)] for a in range(n)]
+    return [[Mq[a][a] + armature[a] if a == c else Mq[min(a, c)][max(a, c)] for c in range(n)] for a in range(n)]
 
 
 def build_mass_matrix(fr):
-    """k(Q, P, E0) -> M row-major."""
+    """k(Q, P, E0, AR) -> M row-major."""
     g = Graph()
     co = fr.trace_coordinates(g)
     parg, params = fr.trace_params(g)
+    ararg, arm = fr.trace_armature(g)
     X = [fr.joint_transform(g, b, co['x'][b]) for b in range(fr.nb)]
-    M = trace_mass_matrix(fr, g, params, X)
+    M = trace_mass_matrix(fr, g, params, X, arm)
     outputs = [v for row in M for v in row]
-    return Trace(g, 'mass_kernel', co['args'] + [parg, co['offset_args']], outputs)
+    return Trace(g, 'mass_kernel', co['args'] + [parg, co['offset_args'], ararg], outputs)
 
 
-MASS_MATRIX = Spec('mass_matrix', build_mass_matrix, ('inertia', 'offsets'), 'mass_matrix',
+MASS_MATRIX = Spec('mass_matrix', build_mass_matrix, ('inertia', 'offsets', 'armature'), 'mass_matrix',
                    result=lambda model: ((model.n, model.n), None))

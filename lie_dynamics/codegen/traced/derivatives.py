@@ -176,12 +176,12 @@ def _inertia_to_root(ic, R, t):
 
 def build_forward_dynamics_derivatives(fr):
     """Trace qdd (traced/cholesky.py), dtau/dq and dtau/dqd at that qdd (trace_derivatives)
-    and the solves with the same Cholesky factor: (Q, QD, TAU, P, A0, E0) -> dqdd/dq,
+    and the solves with the same Cholesky factor: (Q, QD, TAU, P, A0, E0, AR) -> dqdd/dq,
     dqdd/dqd, M^-1 (row-major), then the pivots and diag(M) for the positive-definiteness
     check (as the Cholesky kernel's)."""
     g = Graph()
-    co, args, params, ga, taus = trace_inputs(fr, g)
-    qdd, M, L, inv_d, pivots = trace_forward_dynamics(fr, g, co['x'], co['xd'], params, ga, taus)
+    co, args, params, ga, taus, arm = trace_inputs(fr, g)
+    qdd, M, L, inv_d, pivots = trace_forward_dynamics(fr, g, co['x'], co['xd'], params, ga, taus, arm)
     n, nb = fr.n, fr.nb
     xdd = [sum((float(fr.E[b, j]) * qdd[j] for j in range(n) if fr.E[b, j] != 0), 0.0) for b in range(nb)]
     dq, dv = trace_derivatives(fr, g, co['x'], co['xd'], xdd, params, ga)
@@ -205,5 +205,5 @@ INVERSE_DYNAMICS_DERIVATIVES_WRENCH = Spec(
 CORIOLIS = Spec('coriolis', lambda fr: build_inverse_dynamics_derivatives(fr, coriolis=True),
                 ('inertia', 'offsets'), 'inverse_dynamics_derivatives', result=lambda model: ((model.n, model.n), None))
 FORWARD_DYNAMICS_DERIVATIVES = Spec(
-    'forward_dynamics_derivatives', build_forward_dynamics_derivatives, ('inertia', 'gravity', 'offsets'),
+    'forward_dynamics_derivatives', build_forward_dynamics_derivatives, ('inertia', 'gravity', 'offsets', 'armature'),
     'forward_dynamics_derivatives', checked=True, result=lambda model: ((3 * model.n * model.n,), PD_RTOL))

@@ -17,12 +17,12 @@ wrote it, then r_k, p_k, beta_k (p and beta start the integral at the first samp
 from ..kernel import Trace
 from ..runtime import Spec
 from ..tracer import Graph
-from .rnea import joint_torques, subtree_inputs, trace_gravity, trace_momentum, trig
+from .rnea import joint_torques, subtree_inputs, trace_gravity, trace_momentum, trig, with_armature
 
 
 def build_observer_step(fr):
-    """k(Q, QD, TAU, Z, O, P, S, A0, E0) -> (p_0, I, c, 0, r, p, beta) tuple (module docstring); P the
-    inertias (trace_momentum), S the subtree parameters (trace_gravity)."""
+    """k(Q, QD, TAU, Z, O, P, S, A0, E0, AR) -> (p_0, I, c, 0, r, p, beta) tuple (module docstring); P the
+    inertias (trace_momentum), S the subtree parameters (trace_gravity), AR the armature (in p only)."""
     n = fr.n
     g = Graph()
     co = fr.trace_coordinates(g, rates=1)
@@ -43,8 +43,9 @@ def build_observer_step(fr):
     p0, integral, carry, dt = z[:n], z[n:2 * n], z[2 * n:3 * n], z[3 * n]
     gain, visc, coul, inv_eps = o[:n], o[n:2 * n], o[2 * n:3 * n], o[3 * n]
     p_b, c_b = trace_momentum(fr, cs, co['x'], co['xd'], params)
-    p, ctqd = joint_torques(fr, p_b), joint_torques(fr, c_b)
+    ararg, arm = fr.trace_armature(g)
     qd = [g.input(nm) for nm in co['args'][1][1]]
+    p, ctqd = with_armature(joint_torques(fr, p_b), arm, qd), joint_torques(fr, c_b)
     half = 0.5 * dt
     r, i_k, c_k, beta = [], [], [], []
     for j in range(n):
@@ -56,10 +57,10 @@ def build_observer_step(fr):
         i_k.append(partial + half * rj)
         c_k.append(b + rj)
         beta.append(b)
-    args = co['args'] + [(k, v) for k, v in lists.items()] + [parg, sarg, a0arg, co['offset_args']]
+    args = co['args'] + [(k, v) for k, v in lists.items()] + [parg, sarg, a0arg, co['offset_args'], ararg]
     return Trace(g, 'observer_step_kernel', args, list(p0) + i_k + c_k + [0.0] + r + p + beta)
 
 
 # Single states only (the step is sequential); `inverse_dynamics` sets its size limits.
-OBSERVER_STEP = Spec('observer_step', build_observer_step, ('inertia', 'subtree', 'gravity', 'offsets'),
+OBSERVER_STEP = Spec('observer_step', build_observer_step, ('inertia', 'subtree', 'gravity', 'offsets', 'armature'),
                      'inverse_dynamics')

@@ -182,18 +182,29 @@ def trace_momentum(fr, cs, x, xd, params):
     return p_b, c_b
 
 
+def with_armature(tau, armature, rates):
+    """tau_j + armature_j rate_j per joint: the rotor term of M + diag(armature) times a joint
+    rate (qdd in inverse dynamics, qd in the momentum). The rotor spins with its joint
+    coordinate, so it adds to no body wrench and nothing else in the recursion."""
+    return [t + a * r for t, a, r in zip(tau, armature, rates, strict=True)]
+
+
 def build_momentum(fr):
-    """k(Q, QD, P, E0) -> (p = M qd, then C^T qd) tuple (trace_momentum)."""
+    """k(Q, QD, P, E0, AR) -> (p = M qd, then C^T qd) tuple (trace_momentum; the armature
+    adds to p only: it is constant, so it adds nothing to Mdot nor to C)."""
     g = Graph()
     co, cs = _coordinates(fr, g, 1)
     parg, params = fr.trace_params(g)
+    ararg, arm = fr.trace_armature(g)
     p_b, c_b = trace_momentum(fr, cs, co['x'], co['xd'], params)
-    return Trace(g, 'momentum_kernel', co['args'] + [parg, co['offset_args']],
-                  joint_torques(fr, p_b) + joint_torques(fr, c_b))
+    qd = [g.input(nm) for nm in co['args'][1][1]]
+    return Trace(g, 'momentum_kernel', co['args'] + [parg, co['offset_args'], ararg],
+                  with_armature(joint_torques(fr, p_b), arm, qd) + joint_torques(fr, c_b))
 
 
 def build_inverse_dynamics(fr, wrench):
-    """k(Q, QD, QDD[, FX], P, A0, E0) -> tau tuple: eqs 18-21 in primed frames (its Trace)."""
+    """k(Q, QD, QDD[, FX], P, A0, E0, AR) -> tau tuple: eqs 18-21 in primed frames, plus the
+    armature times qdd (its Trace)."""
     g = Graph()
     co, cs = _coordinates(fr, g, 2)
     parg, params = fr.trace_params(g)
@@ -203,9 +214,11 @@ def build_inverse_dynamics(fr, wrench):
         names = [f'f{b}_{k}' for b in range(fr.nb) for k in range(6)]
         args.append(('FX', names))
         fx = [g.input(nm) for nm in names]
-    args += [parg, a0arg, co['offset_args']]
+    ararg, arm = fr.trace_armature(g)
+    args += [parg, a0arg, co['offset_args'], ararg]
     tau_b = trace_inverse_dynamics(fr, cs, co['x'], co['xd'], co['xdd'], params, ga, fx)
-    return Trace(g, 'inverse_dynamics_kernel', args, joint_torques(fr, tau_b))
+    qdd = [g.input(nm) for nm in co['args'][2][1]]
+    return Trace(g, 'inverse_dynamics_kernel', args, with_armature(joint_torques(fr, tau_b), arm, qdd))
 
 
 def trace_gravity(fr, cs, x, params, ga):
@@ -260,11 +273,11 @@ def build_gravity(fr):
 
 
 INVERSE_DYNAMICS = Spec('inverse_dynamics', lambda fr: build_inverse_dynamics(fr, False),
-                        ('inertia', 'gravity', 'offsets'), 'inverse_dynamics', rows_arrays=True,
+                        ('inertia', 'gravity', 'offsets', 'armature'), 'inverse_dynamics', rows_arrays=True,
                         pooled=True)
 INVERSE_DYNAMICS_WRENCH = Spec('inverse_dynamics_wrench', lambda fr: build_inverse_dynamics(fr, True),
-                               ('inertia', 'gravity', 'offsets'), 'inverse_dynamics', rows_arrays=True,
+                               ('inertia', 'gravity', 'offsets', 'armature'), 'inverse_dynamics', rows_arrays=True,
                                pooled=True)
-MOMENTUM = Spec('momentum', build_momentum, ('inertia', 'offsets'), 'inverse_dynamics', rows_arrays=True,
-                pooled=True)
+MOMENTUM = Spec('momentum', build_momentum, ('inertia', 'offsets', 'armature'), 'inverse_dynamics',
+                rows_arrays=True, pooled=True)
 GRAVITY = Spec('gravity', build_gravity, ('subtree', 'gravity', 'offsets'), 'gravity', rows_arrays=True, pooled=True)
