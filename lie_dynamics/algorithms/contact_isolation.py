@@ -24,6 +24,14 @@ Isolation (`isolate`), on a settled residual (`Settling`) and per-joint threshol
   4. Some wrench on the isolated link must explain r to within th_j on every joint (the part of
      r outside the range of J_k^T, nonzero only with more supporting joints than 6, e.g. 7 on a
      7-DoF arm): otherwise two contacts, ambiguous.
+  5. When the link's wrench is fully seen (rank 6), the same wrench on the next body beyond (the
+     one with the fewest additional supporting joints, on each branch) must load the joints that
+     body adds by more than quiet th_j beyond what r shows: otherwise a contact there whose own
+     joints stay under their thresholds (a push along the last joint's axis) gives the same r:
+     ambiguous. With fewer components seen (a link near the base) the wrench is not known well
+     enough to rule the next body out: the answer is the literal rule's, and a contact further
+     out that leaves its own joints under their thresholds is named as this link. That is the
+     limit of isolation from joint torques alone.
 An ambiguous answer names its candidate links and the reason; it never picks one.
 
 Identification (`link_wrench`): J_k^T w = r in least squares through the SVD of J_k^T (n x 6),
@@ -219,7 +227,33 @@ def isolate(model, q, r, threshold, quiet=QUIET, rcond=RCOND):
         j = int(np.flatnonzero(bad)[0])
         return ambiguous([k], f"no single wrench on link '{links[k]}' explains the external torques (joint "
                               f"'{names[j]}' off by {abs(est.unexplained[j]):.3g}): two contacts?")
+    alike = _further_alike(model, t, q, r, th * quiet, k, est.wrench) if est.rank == 6 else []
+    if alike:
+        return ambiguous([k] + alike, f"this wrench on link '{links[alike[0]]}' would load its own joints as "
+                                      'little as measured: the contact may be there')
     return Isolation('isolated', links[k], (links[k],), over_names, '', est)
+
+
+def _further_alike(model, t, q, r, tol, k, wrench):
+    """The next bodies beyond k (the fewest supporting joints more than k's) on which `wrench`
+    (at k's origin in k's axes) would give the joints they add what r shows, within tol."""
+    more = np.flatnonzero(np.all(t.support >= t.support[k], axis=1) & (t.support.sum(axis=1) > t.support[k].sum()))
+    if not more.size:
+        return []
+    sub = t.support[more]
+    inner = (sub[:, None, :] <= sub[None, :, :]).all(axis=2) & (sub.sum(axis=1)[:, None] < sub.sum(axis=1)[None, :])
+    nxt = [d for d in more[~inner.any(axis=0)] if model.parent[d] < 0 or t.moving[d]
+           or not (t.support[model.parent[d]] == t.support[d]).all()]
+    T = model.link_pose(model.body_link_names[k], q)
+    f = T[:3, :3] @ wrench[:3]
+    w = np.concatenate([f, T[:3, :3] @ wrench[3:] + np.cross(T[:3, 3], f)])   # at the root origin, root axes
+    out = []
+    for d in nxt:
+        extra = t.support[d] & ~t.support[k]
+        tau = model.jacobian(q, model.body_link_names[d], 'world').T @ w
+        if np.all(np.abs(tau - r)[extra] <= tol[extra]):
+            out.append(int(d))
+    return out
 
 
 class Settling:

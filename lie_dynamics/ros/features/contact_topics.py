@@ -7,13 +7,19 @@ Publishes   ~/external_torques (sensor_msgs/JointState: name = the command layou
             (QoS: interfaces.py). Both are published serialized (cdr.Template, as the dynamics
 topics; ~/external_torques through one cdr.Writer per joint layout): writing the estimate into
 a message serialized once costs less than rclpy's conversion of a message object.
+
+With them, contact_link.py's ContactIsolation: ~/contact/wrench and ~/contact/tool_wrench
+(geometry_msgs/WrenchStamped, the joint_states stamp) and ~/contact/link (std_msgs/String).
 """
+from geometry_msgs.msg import WrenchStamped
 from rclpy.serialization import serialize_message
-from std_msgs.msg import Bool
+from std_msgs.msg import Bool, String
 
 from .. import interfaces
 from .base import Feature
+from ..core.cdr import stamp_parts
 from .contact import ContactMonitor, observer_on
+from .contact_link import ContactIsolation, check_settings
 from .dynamics_topics import joint_state_template
 
 # ~/collision's two possible messages, serialized
@@ -27,9 +33,13 @@ class ContactTopics(Feature):
 
     def __init__(self, node):
         self.monitor = ContactMonitor()
+        self.isolation = ContactIsolation()
         super().__init__()
         self._ext_pub = interfaces.publisher(node, '~/external_torques')
         self._flag_pub = interfaces.publisher(node, '~/collision')
+        self._wrench_pub = interfaces.publisher(node, '~/contact/wrench')
+        self._tool_pub = interfaces.publisher(node, '~/contact/tool_wrench')
+        self._link_pub = interfaces.publisher(node, '~/contact/link')
         self._names = self._ext = None   # the layout of ~/external_torques, its cdr.Writer's message
 
     @property
@@ -38,20 +48,30 @@ class ContactTopics(Feature):
 
     @events.setter
     def events(self, queue):
-        self.monitor.events = queue
+        self.monitor.events = self.isolation.events = queue
+
+    def check(self, settings, model):
+        check_settings(settings, model)
 
     def kernels(self, settings):
-        return (('observer',),) if observer_on(settings) else ()
+        if not observer_on(settings):
+            return ()
+        frame = settings['contact.wrench_frame']
+        return (('observer',),) + ((('jacobian', frame, 'local'),) if frame else ())
 
     def configure(self, settings, model, derived):
         m = self.monitor
         m.sync(settings, model, None if derived is None else derived.friction,
                None if model is None else model.joint_names)
+        self.isolation.sync(settings, model)
         self.active = m.active
 
     def on_sample(self, s):
-        out = self.monitor.on_state(s.columns, s.q, s.message_velocity, s.message_effort, s.stamp)
+        m = self.monitor
+        out = m.on_state(s.columns, s.q, s.message_velocity, s.message_effort, s.stamp)
         if out is None:
+            if m.estimate is None:   # paused: isolation starts anew with the observer
+                self.isolation.reset()
             return
         names = s.names
         if names is not self._names:  # built when the layout changes: no position, no velocity
@@ -59,6 +79,24 @@ class ContactTopics(Feature):
             self._names, self._ext = names, template.writer(slots[2:], stamp_at).message
         self._ext_pub.publish(self._ext((out[0],), s.stamp))
         self._flag_pub.publish(_FLAG[out[1]])
+        pub = self.isolation.update(m.last_stamp, s.q, out[0], out[1], m.threshold)
+        if pub.wrench is not None:
+            self._wrench_pub.publish(_wrench(pub.wrench[0], pub.wrench[1], s.stamp))
+        if pub.tool is not None:
+            self._tool_pub.publish(_wrench(self.isolation.frame, pub.tool, s.stamp))
+        if pub.link is not None:
+            self._link_pub.publish(String(data=pub.link))
 
     def report(self, level, message):
-        return self.monitor.report(level, message, [])
+        level, message, values = self.monitor.report(level, message, [])
+        level, values = self.isolation.report(level, values)
+        return level, message, values
+
+
+def _wrench(frame, w, stamp):
+    msg = WrenchStamped()
+    msg.header.frame_id = frame
+    msg.header.stamp.sec, msg.header.stamp.nanosec = stamp_parts(stamp)
+    f, t = msg.wrench.force, msg.wrench.torque
+    f.x, f.y, f.z, t.x, t.y, t.z = (float(v) for v in w)
+    return msg
