@@ -278,3 +278,33 @@ def test_bad_arguments_are_refused():
     with pytest.raises(ValueError, match='fixed to the root'):
         ci.check_moving_link(model, 'base_link')
     ci.check_moving_link(model, 'tool0')
+
+
+def test_a_contact_further_out_that_its_own_joints_do_not_feel_is_not_guessed():
+    model, oracle = _robot('arm7')
+    q = np.array([0.2, -0.6, 0.1, 2.0, 0.3, 1.6, 0.8])   # link6's wrench fully seen here (rank 6)
+    assert ci.link_wrench(model, q, np.zeros(7), 'link6').rank == 6
+    # a force through the axis of joint 7 on link7: joint 7 feels nothing, r is that of a wrench on link6
+    T7 = model.link_pose('link7', q)
+    f = np.array([3.0, -20.0, 6.0])
+    F7 = np.concatenate([f, np.cross(np.array([0.0, 0.0, 0.05]), f)])       # at (0, 0, 5 cm): on the z axis
+    J7 = pin_jacobian(oracle, q, 'link7')
+    assert np.allclose(T7[:3, 2] @ model.jacobian(q, 'link7', 'world_aligned')[3:, 6], 1.0)   # joint 7 turns about z
+    r = J7.T @ F7
+    assert abs(r[6]) < 1e-9
+    res = ci.isolate(model, q, r, 1e-3)
+    assert res.status == 'ambiguous' and res.candidates == ('link6', 'link7') and 'may be there' in res.reason
+    # off the axis, joint 7 feels it: isolated, the wrench fully seen
+    F7 = np.concatenate([f, np.cross(np.array([0.04, 0.0, 0.05]), f)])
+    res = ci.isolate(model, q, J7.T @ F7, 1e-3)
+    assert res.status == 'isolated' and res.link == 'link7'
+    # a link with fewer than 6 supporting joints: the literal rule names it, strict says it may be further out
+    F3 = np.array([10.0, -20.0, 5.0, 0.5, -1.0, 2.0])
+    r = pin_jacobian(oracle, q, 'link3').T @ F3
+    assert ci.isolate(model, q, r, 1e-3).link == 'link3'
+    res = ci.isolate(model, q, r, 1e-3, strict=True)
+    assert res.status == 'ambiguous' and res.candidates == ('link3', 'link4')
+    # strict still names a link whose wrench on the next one would load that one's joints
+    r6 = pin_jacobian(oracle, q, 'link6').T @ np.array([10.0, -20.0, 5.0, 0.5, -1.0, 2.0])
+    res = ci.isolate(model, q, r6, 1e-3, strict=True)
+    assert res.status == 'isolated' and res.link == 'link6'

@@ -24,14 +24,17 @@ Isolation (`isolate`), on a settled residual (`Settling`) and per-joint threshol
   4. Some wrench on the isolated link must explain r to within th_j on every joint (the part of
      r outside the range of J_k^T, nonzero only with more supporting joints than 6, e.g. 7 on a
      7-DoF arm): otherwise two contacts, ambiguous.
-  5. When the link's wrench is fully seen (rank 6), the same wrench on the next body beyond (the
-     one with the fewest additional supporting joints, on each branch) must load the joints that
-     body adds by more than quiet th_j beyond what r shows: otherwise a contact there whose own
-     joints stay under their thresholds (a push along the last joint's axis) gives the same r:
-     ambiguous. With fewer components seen (a link near the base) the wrench is not known well
-     enough to rule the next body out: the answer is the literal rule's, and a contact further
-     out that leaves its own joints under their thresholds is named as this link. That is the
-     limit of isolation from joint torques alone.
+  5. No wrench on the next body beyond (the one with the fewest additional supporting joints, on
+     each branch) that gives what the link's joints show may load the joints that body adds
+     within quiet th_j of what r shows: otherwise a contact there whose own joints stay under
+     their thresholds (a push along the last joint's axis) gives the same r: ambiguous. With all
+     6 components seen (rank 6) the wrench is fixed and this is checked always. With fewer (a
+     link near the base) the unseen components are free: `strict` fits them to the measured
+     joints (least squares weighted by 1 / th_j), and then such a link whose next joint stays
+     quiet is nearly always ambiguous (joint torques alone cannot tell it from the next link
+     out); without `strict` (the default) the answer is the literal rule's, right unless the
+     contact is further out with its own joints under their thresholds. That is the limit of
+     isolation (docs/benchmarks.md measures both).
 An ambiguous answer names its candidate links and the reason; it never picks one.
 
 Identification (`link_wrench`): J_k^T w = r in least squares through the SVD of J_k^T (n x 6),
@@ -78,6 +81,7 @@ class WrenchEstimate(NamedTuple):
     misfit: np.ndarray   # r - J^T wrench (n,): what the solved components leave
     unexplained: np.ndarray   # (n,) the part of r that no wrench on this link can give (outside
     #                           the range of J^T: nonzero only with more joints than the rank)
+    unseen: np.ndarray   # (6, 6 - rank) orthonormal wrench directions not solved for (their components are 0)
 
 
 class Isolation(NamedTuple):
@@ -153,7 +157,8 @@ def solve_wrench(jacobian_local, r, rcond=RCOND):
     k = int(keep.sum())
     w = Vt[:k].T @ ((U[:, :k].T @ r) / s[:k])
     Ur = U[:, s > _EXACT * s[0]] if s.size else U[:, :0]   # the range of J^T, to rounding
-    return WrenchEstimate(w, k, float(s[k - 1]) if k else 0.0, r - J.T @ w, r - Ur @ (Ur.T @ r))
+    V = np.linalg.svd(J.T)[2] if J.shape[1] < 6 else Vt   # all six directions when J^T has fewer rows
+    return WrenchEstimate(w, k, float(s[k - 1]) if k else 0.0, r - J.T @ w, r - Ur @ (Ur.T @ r), V[k:].T)
 
 
 def link_wrench(model, q, r, link, rcond=RCOND):
@@ -176,10 +181,11 @@ def line_of_action(wrench, tol=1e-9):
     return np.cross(f, m) / ff, f / math.sqrt(ff), float(m @ f) / ff
 
 
-def isolate(model, q, r, threshold, quiet=QUIET, rcond=RCOND):
+def isolate(model, q, r, threshold, quiet=QUIET, rcond=RCOND, strict=False):
     """Isolation of the contact link from a settled residual r (n,) at the state q with the
     per-joint thresholds `threshold` (one value or n): the rule of the module docstring. Returns
-    an Isolation; the wrench of an isolated link comes with it (one Jacobian call)."""
+    an Isolation; the wrench of an isolated link comes with it. strict: step 5 also for a link
+    whose wrench is not fully seen (else only for rank 6)."""
     n = model.n
     r = _vector('r', r, n)
     th = broadcast_joints(threshold, n)
@@ -227,16 +233,19 @@ def isolate(model, q, r, threshold, quiet=QUIET, rcond=RCOND):
         j = int(np.flatnonzero(bad)[0])
         return ambiguous([k], f"no single wrench on link '{links[k]}' explains the external torques (joint "
                               f"'{names[j]}' off by {abs(est.unexplained[j]):.3g}): two contacts?")
-    alike = _further_alike(model, t, q, r, th * quiet, k, est.wrench) if est.rank == 6 else []
+    alike = _further_alike(model, t, q, r, th * quiet, k, est) if strict or est.rank == 6 else []
     if alike:
-        return ambiguous([k] + alike, f"this wrench on link '{links[alike[0]]}' would load its own joints as "
-                                      'little as measured: the contact may be there')
+        return ambiguous([k] + alike, f"a wrench on link '{links[alike[0]]}' that gives what link '{links[k]}' "
+                                      'shows would load its own joints as little as measured: the contact may be '
+                                      'there')
     return Isolation('isolated', links[k], (links[k],), over_names, '', est)
 
 
-def _further_alike(model, t, q, r, tol, k, wrench):
-    """The next bodies beyond k (the fewest supporting joints more than k's) on which `wrench`
-    (at k's origin in k's axes) would give the joints they add what r shows, within tol."""
+def _further_alike(model, t, q, r, tol, k, est):
+    """The next bodies beyond k (the fewest supporting joints more than k's) on which some wrench
+    with k's visible components (est: at k's origin in k's axes; its unseen ones free) would give
+    the joints they add what r shows, within tol (a least-squares fit of the unseen components,
+    weighted by 1 / tol)."""
     more = np.flatnonzero(np.all(t.support >= t.support[k], axis=1) & (t.support.sum(axis=1) > t.support[k].sum()))
     if not more.size:
         return []
@@ -245,13 +254,19 @@ def _further_alike(model, t, q, r, tol, k, wrench):
     nxt = [d for d in more[~inner.any(axis=0)] if model.parent[d] < 0 or t.moving[d]
            or not (t.support[model.parent[d]] == t.support[d]).all()]
     T = model.link_pose(model.body_link_names[k], q)
-    f = T[:3, :3] @ wrench[:3]
-    w = np.concatenate([f, T[:3, :3] @ wrench[3:] + np.cross(T[:3, 3], f)])   # at the root origin, root axes
+    R, p = T[:3, :3], T[:3, 3]
+    X = np.zeros((6, 6))   # (f, m) at k's origin in k's axes -> at the root origin in root axes
+    X[:3, :3] = X[3:, 3:] = R
+    X[3:, :3] = np.cross(p[:, None], R, axis=0)   # [p] R
     out = []
     for d in nxt:
         extra = t.support[d] & ~t.support[k]
-        tau = model.jacobian(q, model.body_link_names[d], 'world').T @ w
-        if np.all(np.abs(tau - r)[extra] <= tol[extra]):
+        P = model.jacobian(q, model.body_link_names[d], 'world')[:, extra].T @ X / tol[extra][:, None]
+        miss = P @ est.wrench - r[extra] / tol[extra]
+        if est.unseen.shape[1]:   # the unseen components chosen to match the measured joints best
+            A = P @ est.unseen
+            miss = miss - A @ np.linalg.lstsq(A, miss, rcond=None)[0]
+        if np.all(np.abs(miss) <= 1.0):
             out.append(int(d))
     return out
 

@@ -13,11 +13,11 @@ ContactMonitor: the estimate r, its time t in s, the debounced flag), returns wh
     settles, and when the answer is ambiguous.
 
 Isolation is decided on a settled residual only (contact_isolation.Settling, window one observer
-time constant 1 / min(observer.gain)): after the flag rises the link stays '' until the residual
-has stopped changing, and while it changes again (the push grows or moves) the last decision
-holds. The Jacobians and the isolation run only while the flag is up, except the tool wrench's.
-A model, gravity, payload or observer change (contact.REINIT_KEYS) and a paused observer start
-it anew, as they start the observer anew.
+time constant 1 / min(observer.gain)), once each time it settles: after the flag rises the link
+stays '' until the residual has stopped changing, and while it changes again (the push grows or
+moves) the last decision holds until it settles anew. The Jacobians and the isolation run only
+while the flag is up, except the tool wrench's. A model, gravity, payload or observer change
+(contact.REINIT_KEYS) and a paused observer start it anew, as they start the observer anew.
 """
 import math
 from typing import NamedTuple, Optional
@@ -58,6 +58,7 @@ class ContactIsolation:
         self.settings = self.model = None
         self.frame = ''
         self.rcond = ci.RCOND
+        self.strict = False
         self.settling = None
         self.isolation = None       # the last decision (contact_isolation.Isolation) while the flag is up
         self.link = ''              # the link last published on ~/contact/link
@@ -65,6 +66,7 @@ class ContactIsolation:
         self.wrench_link = ''
         self.tool = self.wrench = None   # the last WrenchEstimates (diagnostics)
         self.decisions = 0
+        self._settled = False       # the residual was settled at the last sample of the flag
 
     def sync(self, settings, model):
         if settings is self.settings and model is self.model:
@@ -73,6 +75,7 @@ class ContactIsolation:
         reinit = model is not self.model or old is None or any(settings[k] != old[k] for k in REINIT_KEYS)
         self.settings, self.model = settings, model
         self.rcond = settings['contact.rcond']
+        self.strict = settings['contact.strict_isolation']
         self.frame = settings['contact.wrench_frame']
         if self.frame and model is not None:
             try:
@@ -91,6 +94,7 @@ class ContactIsolation:
         if self.settling is not None:
             self.settling.reset()
         self.isolation = None
+        self._settled = False
 
     def update(self, t, q, r, collision, threshold):
         """One observer sample: Published."""
@@ -101,8 +105,9 @@ class ContactIsolation:
             tool = self.tool.wrench
         wrench = None
         if collision:
-            if self.settling.update(t, r, threshold):
-                iso = ci.isolate(model, q, r, threshold, rcond=self.rcond)
+            settled = self.settling.update(t, r, threshold)
+            if settled and not self._settled:   # decided once per settled stretch (cost)
+                iso = ci.isolate(model, q, r, threshold, rcond=self.rcond, strict=self.strict)
                 if self.isolation is None or iso.status != self.isolation.status or iso.link != self.isolation.link:
                     self._log(iso)
                 self.isolation = iso
@@ -110,13 +115,14 @@ class ContactIsolation:
             else:
                 iso = self.isolation
                 est = ci.link_wrench(model, q, r, iso.link, self.rcond) if iso is not None and iso.link else None
+            self._settled = settled
             if est is not None:
                 self.wrench, self.wrench_link, self.up = est, iso.link, True
                 wrench = (iso.link, est.wrench)
         else:
             if self.up:
                 wrench, self.up = (self.wrench_link, ZERO), False
-            if self.isolation is not None:
+            if self.isolation is not None or self._settled:
                 self.reset()
         link = self.isolation.link if self.isolation is not None else ''
         changed = None

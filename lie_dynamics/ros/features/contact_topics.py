@@ -11,7 +11,8 @@ a message serialized once costs less than rclpy's conversion of a message object
 With them, contact_link.py's ContactIsolation: ~/contact/wrench and ~/contact/tool_wrench
 (geometry_msgs/WrenchStamped, the joint_states stamp) and ~/contact/link (std_msgs/String).
 """
-from geometry_msgs.msg import WrenchStamped
+import struct
+
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Bool, String
 
@@ -93,10 +94,17 @@ class ContactTopics(Feature):
         return level, message, values
 
 
+_WRENCH_HEADS = {}
+
+
 def _wrench(frame, w, stamp):
-    msg = WrenchStamped()
-    msg.header.frame_id = frame
-    msg.header.stamp.sec, msg.header.stamp.nanosec = stamp_parts(stamp)
-    f, t = msg.wrench.force, msg.wrench.torque
-    f.x, f.y, f.z, t.x, t.y, t.z = (float(v) for v in w)
-    return msg
+    """A geometry_msgs/WrenchStamped, serialized (plain CDR, little-endian): the header's layout
+    per frame_id once, then the stamp and the six doubles (cheaper than a message object)."""
+    head = _WRENCH_HEADS.get(frame)
+    if head is None:
+        raw = frame.encode('utf-8') + b'\0'
+        body = struct.pack('<I', len(raw)) + raw
+        body += b'\0' * (-(8 + len(body)) % 8)   # the doubles start 8-aligned after the encapsulation
+        head = _WRENCH_HEADS[frame] = body
+    sec, nsec = stamp_parts(stamp)
+    return b'\x00\x01\x00\x00' + struct.pack('<iI', sec, nsec) + head + struct.pack('<6d', *w)
