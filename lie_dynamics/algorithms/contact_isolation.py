@@ -82,6 +82,7 @@ class WrenchEstimate(NamedTuple):
     unexplained: np.ndarray   # (n,) the part of r that no wrench on this link can give (outside
     #                           the range of J^T: nonzero only with more joints than the rank)
     unseen: np.ndarray   # (6, 6 - rank) orthonormal wrench directions not solved for (their components are 0)
+    inverse: np.ndarray  # (6, n): wrench = inverse @ r (the truncated pseudo-inverse of J^T, for other r at this q)
 
 
 class Isolation(NamedTuple):
@@ -155,10 +156,11 @@ def solve_wrench(jacobian_local, r, rcond=RCOND):
     U, s, Vt = np.linalg.svd(J.T, full_matrices=False)      # J^T = U diag(s) Vt, U (n, 6)
     keep = s >= rcond * s[0] if s.size and s[0] > 0 else np.zeros(s.shape, dtype=bool)
     k = int(keep.sum())
-    w = Vt[:k].T @ ((U[:, :k].T @ r) / s[:k])
+    P = Vt[:k].T @ (U[:, :k] / s[:k]).T
+    w = P @ r
     Ur = U[:, s > _EXACT * s[0]] if s.size else U[:, :0]   # the range of J^T, to rounding
     V = np.linalg.svd(J.T)[2] if J.shape[1] < 6 else Vt   # all six directions when J^T has fewer rows
-    return WrenchEstimate(w, k, float(s[k - 1]) if k else 0.0, r - J.T @ w, r - Ur @ (Ur.T @ r), V[k:].T)
+    return WrenchEstimate(w, k, float(s[k - 1]) if k else 0.0, r - J.T @ w, r - Ur @ (Ur.T @ r), V[k:].T, P)
 
 
 def link_wrench(model, q, r, link, rcond=RCOND):
@@ -274,7 +276,9 @@ def _further_alike(model, t, q, r, tol, k, est):
 class Settling:
     """Whether the residual has stopped changing (module docstring): `update(t, r, threshold)`
     returns True once, over the last `window` seconds (one observer time constant, 1 / K), every
-    joint changed by at most tolerance x max(|r_j|, th_j). `reset()` forgets the history."""
+    joint changed by at most tolerance x max(|r_j|, th_j); checked at most every quarter window
+    (the verdict in between is the last one). `reset()` forgets the history. The r given are
+    kept as they are (not copied): give a new array each time, as the observer does."""
 
     def __init__(self, window, tolerance=SETTLE_TOLERANCE):
         if not (math.isfinite(window) and window > 0 and math.isfinite(tolerance) and tolerance > 0):
@@ -284,14 +288,18 @@ class Settling:
 
     def reset(self):
         self._history = collections.deque()
+        self._checked, self._verdict = -math.inf, False
 
     def update(self, t, r, threshold):
         h = self._history
-        h.append((t, np.array(r, dtype=float)))
+        h.append((t, r))
         while len(h) > 2 and h[1][0] <= t - self.window:   # keep one sample at least a window old
             h.popleft()
+        if t - self._checked < 0.25 * self.window and t >= self._checked:
+            return self._verdict   # checked a quarter window ago at most (cost per sample)
         t0, r0 = h[0]
-        if t - t0 < self.window - 1e-9:
-            return False
-        rn = h[-1][1]
-        return bool(np.all(np.abs(rn - r0) <= self.tolerance * np.maximum(np.abs(rn), threshold)))
+        rn = np.asarray(r, dtype=float)
+        self._checked = t
+        self._verdict = bool(t - t0 >= self.window - 1e-9 and np.all(
+            np.abs(rn - r0) <= self.tolerance * np.maximum(np.abs(rn), threshold)))
+        return self._verdict

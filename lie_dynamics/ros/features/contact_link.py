@@ -16,8 +16,10 @@ Isolation is decided on a settled residual only (contact_isolation.Settling, win
 time constant 1 / min(observer.gain)), once each time it settles: after the flag rises the link
 stays '' until the residual has stopped changing, and while it changes again (the push grows or
 moves) the last decision holds until it settles anew. The Jacobians and the isolation run only
-while the flag is up, except the tool wrench's. A model, gravity, payload or observer change
-(contact.REINIT_KEYS) and a paused observer start it anew, as they start the observer anew.
+while the flag is up, except the tool wrench's; a fit (Jacobian and SVD) serves the samples of one
+observer time constant after it (w = inverse r: the estimate r lags the contact by as much, and a
+new fit every sample would cost more than the observer). A model, gravity, payload or observer
+change (contact.REINIT_KEYS) and a paused observer start it anew, as they start the observer anew.
 """
 import math
 from typing import NamedTuple, Optional
@@ -67,6 +69,7 @@ class ContactIsolation:
         self.tool = self.wrench = None   # the last WrenchEstimates (diagnostics)
         self.decisions = 0
         self._settled = False       # the residual was settled at the last sample of the flag
+        self._fits = {}             # 'link' / 'tool' -> (link, time, WrenchEstimate) of the last fit
 
     def sync(self, settings, model):
         if settings is self.settings and model is self.model:
@@ -95,13 +98,26 @@ class ContactIsolation:
             self.settling.reset()
         self.isolation = None
         self._settled = False
+        self._fits = {}
+
+    def _solve(self, kind, t, q, r, link, est=None):
+        """The wrench on `link` for r: est, or the last fit's inverse when it is younger than one
+        time constant (the estimate r lags the contact by as much), else a new fit."""
+        last = self._fits.get(kind)
+        if est is None and last is not None and last[0] == link and 0.0 <= t - last[1] < self.settling.window:
+            est = last[2]
+            return est._replace(wrench=est.inverse @ r)
+        if est is None:
+            est = ci.link_wrench(self.model, q, r, link, self.rcond)
+        self._fits[kind] = (link, t, est)
+        return est
 
     def update(self, t, q, r, collision, threshold):
         """One observer sample: Published."""
         model = self.model
         tool = None
         if self.frame:
-            self.tool = ci.link_wrench(model, q, r, self.frame, self.rcond)
+            self.tool = self._solve('tool', t, q, r, self.frame)
             tool = self.tool.wrench
         wrench = None
         if collision:
@@ -111,10 +127,10 @@ class ContactIsolation:
                 if self.isolation is None or iso.status != self.isolation.status or iso.link != self.isolation.link:
                     self._log(iso)
                 self.isolation = iso
-                est = iso.wrench
+                est = self._solve('link', t, q, r, iso.link, iso.wrench) if iso.link else None
             else:
                 iso = self.isolation
-                est = ci.link_wrench(model, q, r, iso.link, self.rcond) if iso is not None and iso.link else None
+                est = self._solve('link', t, q, r, iso.link) if iso is not None and iso.link else None
             self._settled = settled
             if est is not None:
                 self.wrench, self.wrench_link, self.up = est, iso.link, True
