@@ -21,7 +21,6 @@ observer time constant after it (w = inverse r: the estimate r lags the contact 
 new fit every sample would cost more than the observer). A model, gravity, payload or observer
 change (contact.REINIT_KEYS) and a paused observer start it anew, as they start the observer anew.
 """
-import math
 from typing import NamedTuple, Optional
 
 import numpy as np
@@ -39,7 +38,7 @@ class Published(NamedTuple):
     link: Optional[str]         # for ~/contact/link when it changed, or None
 
 
-def check_settings(settings, model):
+def check_wrench_frame(settings, model):
     """contact.wrench_frame against `model` (None: not loaded yet): ValueError with the close matches
     or the reason (contact.rcond's range is checked with the other parameters, params.py)."""
     frame = settings['contact.wrench_frame']
@@ -68,6 +67,7 @@ class ContactIsolation:
         self.wrench_link = ''
         self.tool = self.wrench = None   # the last WrenchEstimates (diagnostics)
         self.decisions = 0
+        self.flag = False           # the collision flag of the last sample
         self._settled = False       # the residual was settled at the last sample of the flag
         self._fits = {}             # 'link' / 'tool' -> (link, time, WrenchEstimate) of the last fit
 
@@ -82,7 +82,7 @@ class ContactIsolation:
         self.frame = settings['contact.wrench_frame']
         if self.frame and model is not None:
             try:
-                check_settings(settings, model)
+                check_wrench_frame(settings, model)
             except ValueError as exc:   # a new description without that link: the rest goes on
                 self.events.append(('error', 'contact:frame', f'~/contact/tool_wrench off: {exc}'))
                 self.frame = ''
@@ -115,6 +115,7 @@ class ContactIsolation:
     def update(self, t, q, r, collision, threshold):
         """One observer sample: Published."""
         model = self.model
+        self.flag = collision
         tool = None
         if self.frame:
             self.tool = self._solve('tool', t, q, r, self.frame)
@@ -162,7 +163,7 @@ class ContactIsolation:
     def report(self, level, values):
         """(level, [(key, value)]) of the diagnostics: the link, its wrench's conditioning, the tool's."""
         iso = self.isolation
-        status = 'no contact' if iso is None else iso.status
+        status = ('settling' if self.flag else 'no contact') if iso is None else iso.status
         if iso is not None and iso.status == 'ambiguous':
             level = max(level, WARN)
             status = f'ambiguous: {iso.reason}'
@@ -174,5 +175,5 @@ class ContactIsolation:
         t = self.tool if self.frame else None
         out += [('contact_tool_wrench_rank', '' if t is None else str(t.rank)),
                 ('contact_tool_wrench_sigma_min', '' if t is None else f'{t.sigma_min:.4g}'),
-                ('contact_rcond', f'{self.rcond:g}' if math.isfinite(self.rcond) else str(self.rcond))]
+                ('contact_rcond', f'{self.rcond:g}')]
         return level, list(values) + out

@@ -20,7 +20,7 @@ from .. import interfaces
 from .base import Feature
 from ..core.cdr import stamp_parts
 from .contact import ContactMonitor, observer_on
-from .contact_link import ContactIsolation, check_settings
+from .contact_link import ContactIsolation, check_wrench_frame
 from .dynamics_topics import joint_state_template
 
 # ~/collision's two possible messages, serialized
@@ -52,7 +52,7 @@ class ContactTopics(Feature):
         self.monitor.events = self.isolation.events = queue
 
     def check(self, settings, model):
-        check_settings(settings, model)
+        check_wrench_frame(settings, model)
 
     def kernels(self, settings):
         if not observer_on(settings):
