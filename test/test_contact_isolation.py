@@ -204,15 +204,14 @@ def test_two_contacts_are_ambiguous_never_guessed():
         assert one.status == 'isolated' and one.link == 'link7'
         res = ci.isolate(model, q, r, th)
         assert res.status == 'ambiguous' and res.candidates == ('link7',) and 'two contacts' in res.reason, res
-    # a contact further out that stays under the thresholds of its own joints but is felt there
-    # (between quiet and 1 x threshold) is named there, not at the last joint over threshold
+    # a contact further out that stays under its thresholds (between quiet and 1 x threshold)
     q = states(model, N=1, seed=1)[0][0]
-    F6 = np.array([10.0, -5, 3, 1, 0.5, -1])
-    r = residual(oracle, q, {'link6': F6})
-    th = np.concatenate([np.full(4, 0.01), np.abs(r[4:6]) / 0.7, [1.0]])   # joints 5, 6 at 70 %
+    r = residual(oracle, q, {'link4': np.array([10.0, -5, 3, 1, 0.5, -1])})
+    r[5] = 0.7
+    th = np.array([0.01] * 4 + [1.0] * 3)
+    assert ci.isolate(model, q, np.where(np.arange(7) < 4, r, 0.0), th).link == 'link4'
     res = ci.isolate(model, q, r, th)
-    assert res.over == ('joint1', 'joint2', 'joint3', 'joint4') and res.link == 'link6'
-    assert ci.isolate(model, q, r, th, quiet=0.8).link == 'link4'   # not felt: the literal rule
+    assert res.status == 'ambiguous' and res.candidates == ('link4',) and 'further out' in res.reason
     assert ci.isolate(model, q, np.zeros(7), 1.0).status == 'none'
 
 

@@ -5,40 +5,42 @@ residual r (observer.py), after the collision survey of Haddadin, De Luca & Albu
 A single wrench F on link k gives r = J_k^T F (observer.py's sign convention), with J_k the
 link's frame Jacobian (jacobian.py, eqs 13-15): column j is joint j's current screw seen from
 the link, zero for every joint that does not move link k. So r is zero on every joint that does
-not support k, and the support grows from the root outwards: every joint that feels the contact
+not support k, and the support grows from the root outwards: every joint over its threshold
 supports the contact link.
 
 Isolation (`isolate`), on a settled residual (`Settling`) and per-joint thresholds th:
-  1. over = {j : |r_j| > th_j}; none: no contact. The joints that feel the contact are those with
-     |r_j| > quiet th_j (over threshold among them): a contact on link k leaves every other joint
-     at its noise, which the threshold is set above.
-  2. The candidate bodies are those whose supporting joints include every joint that feels the
-     contact; the isolated body is the least supported of them: on a chain the most proximal,
-     the body of the most distal joint that feels it (a candidate with more supporting joints is
-     further out, and step 4 rules it out). No candidate (joints feel it on two branches: two
-     contacts) or several least supported ones: ambiguous. Bodies behind locked joints are rigid
-     with their parent: the named link (the child link of the body's joint) stands for every
-     link fixed to it. A body that a mimic of an existing joint moves is a body of its own, so a
-     master joint whose mimic moves another branch (two gripper fingers) is ambiguous.
-  3. Some wrench on the isolated link must explain r to within th_j on every joint (the part of
+  1. over = {j : |r_j| > th_j}; none: no contact.
+  2. The candidate bodies are those whose supporting joints include every joint of `over`; the
+     isolated body is the least supported of them: on a chain the most proximal, the body of the
+     most distal joint over its threshold (a candidate with more supporting joints is further
+     out, and step 4 rules it out). No candidate (joints over threshold on two branches) or
+     several least supported ones: ambiguous. Bodies behind locked joints are rigid with their
+     parent: the named link (the child link of the body's joint) stands for every link fixed to
+     it. A body that a mimic of an existing joint moves is a body of its own, so a master joint
+     whose mimic moves another branch (two gripper fingers) is ambiguous.
+  3. Every joint that does not move the isolated link must be quiet, |r_j| <= quiet th_j: a
+     joint beyond the link between quiet th_j and th_j may be a contact further out that stays
+     under its thresholds (a joint on another branch, a second contact): ambiguous.
+  4. Some wrench on the isolated link must explain r to within th_j on every joint (the part of
      r outside the range of J_k^T, nonzero only with more supporting joints than 6, e.g. 7 on a
      7-DoF arm): otherwise two contacts, ambiguous.
-  4. No wrench on the next body beyond (the one with the fewest additional supporting joints, on
+  5. No wrench on the next body beyond (the one with the fewest additional supporting joints, on
      each branch) that gives what the link's joints show may load the joints that body adds
-     within quiet th_j of what r shows: otherwise a contact there whose own joints stay quiet (a
-     push along the last joint's axis) gives the same r: ambiguous. With all 6 components seen
-     (rank 6) the wrench is fixed and this is checked always. With fewer (a link near the base)
-     the unseen components are free: `strict` fits them to the measured joints (least squares
-     weighted by 1 / th_j), and then such a link whose next joint stays quiet is nearly always
-     ambiguous (joint torques alone cannot tell it from the next link out); without `strict`
-     (the default) the answer stands, right unless the contact is further out with its own
-     joints quiet. That is the limit of isolation (docs/benchmarks.md measures both).
+     within quiet th_j of what r shows: otherwise a contact there whose own joints stay under
+     their thresholds (a push along the last joint's axis) gives the same r: ambiguous. With all
+     6 components seen (rank 6) the wrench is fixed and this is checked always. With fewer (a
+     link near the base) the unseen components are free: `strict` fits them to the measured
+     joints (least squares weighted by 1 / th_j), and then such a link whose next joint stays
+     quiet is nearly always ambiguous (joint torques alone cannot tell it from the next link
+     out); without `strict` (the default) the answer is the literal rule's, right unless the
+     contact is further out with its own joints under their thresholds. That is the limit of
+     isolation (docs/benchmarks.md measures both).
 An ambiguous answer names its candidate links and the reason; it never picks one.
 
 Identification (`link_wrench`): J_k^T w = r in least squares through the SVD of J_k^T (n x 6),
 w = (f, m) at the link's origin in link axes (J_k in the 'local' frame: its rows (v, w) pair
-with (f, m)). Singular values below rcond x the largest (default RCOND) are dropped: with fewer
-than 6 supporting joints (a link near the base) or at a singularity only the components the joints see
+with (f, m)). Singular values below rcond x the largest (default RCOND) are dropped: with fewer than 6
+supporting joints (a link near the base) or at a singularity only the components the joints see
 are solved for, the others are 0 (the minimum-norm solution at the link origin), and the rank
 and the smallest singular value used are reported. The same fit at a chosen link is the tool
 wrench (all contact at that frame), Franka's O_F_ext_hat_K. `line_of_action` is the line of a
@@ -66,7 +68,7 @@ from .jacobian import target
 RCOND = 1e-3
 # Singular values below this fraction of the largest are rounding: the range of J^T is the rest.
 _EXACT = 1e-10
-# A joint feels the contact above QUIET x its threshold (below it: noise, which thresholds are set above).
+# A joint that does not move the isolated link is quiet below QUIET x its threshold.
 QUIET = 0.5
 # Settling: every joint changed by at most this fraction of max(|r_j|, th_j) over one time constant.
 SETTLE_TOLERANCE = 0.05
@@ -203,13 +205,12 @@ def isolate(model, q, r, threshold, quiet=QUIET, rcond=RCOND, strict=False):
     def ambiguous(bodies, reason):
         return Isolation('ambiguous', '', tuple(links[b] for b in bodies), over_names, reason, None)
 
-    felt = np.abs(r) > quiet * th   # joints that feel the contact (over threshold among them)
-    felt_names = ', '.join(names[j] for j in np.flatnonzero(felt))
-    cand = np.all(t.support[:, felt], axis=1)
+    cand = np.all(t.support[:, over], axis=1)
     if not cand.any():
-        return ambiguous((), f'joints feel the contact on more than one branch ({felt_names}): two contacts or more')
+        return ambiguous((), f'joints over threshold on more than one branch ({", ".join(over_names)}): '
+                             'two contacts or more')
     # the least supported candidates: a body with more supporting joints is further out (step 4
-    # rules it out by the joints it adds); among bodies with one support, those rigid with their
+    # rules it out by its quiet joints); among bodies with one support, those rigid with their
     # parent (locked joints) are their parent, those a mimic moves are bodies of their own
     sup = t.support[cand]
     fewer = (sup[:, None, :] <= sup[None, :, :]).all(axis=2) & (sup.sum(axis=1)[:, None] < sup.sum(axis=1)[None, :])
@@ -218,9 +219,16 @@ def isolate(model, q, r, threshold, quiet=QUIET, rcond=RCOND, strict=False):
     reps = [b for b in np.flatnonzero(least) if model.parent[b] < 0 or not least[model.parent[b]] or t.moving[b]]
     if len(reps) > 1:
         alike = all((t.support[b] == t.support[reps[0]]).all() for b in reps)
-        return ambiguous(reps, 'the joints that feel the contact move these links alike (a mimic coupling)' if alike
-                         else f'the joints that feel the contact ({felt_names}) fit links on several branches')
+        return ambiguous(reps, 'the joints over threshold move these links alike (a mimic coupling)' if alike else
+                         'the joints over threshold fit links on several branches')
     k = reps[0]
+    loud = ~t.support[k] & (np.abs(r) > quiet * th)
+    if loud.any():
+        j = int(np.flatnonzero(loud)[0])
+        beyond = bool(t.below[k][t.own[:, j]].any())
+        where = 'beyond it: the contact may be further out' if beyond else 'on another branch: a second contact?'
+        return ambiguous([k], f"joint '{names[j]}' does not move link '{links[k]}' but its external torque is "
+                              f'{abs(r[j]) / th[j]:.0%} of its threshold ({where})')
     est = link_wrench(model, q, r, links[k], rcond)
     bad = np.abs(est.unexplained) > th
     if bad.any():

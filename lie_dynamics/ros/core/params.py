@@ -214,8 +214,8 @@ PARAMS = (
               'rank and smallest singular value used in the diagnostics).', True, (1e-12, 0.999)),
     ParamSpec('contact.strict_isolation', 'bool', False,
               'Name a link with fewer than 6 supporting joints only if no contact further out could give the same '
-              'external torques (else: ambiguous). false: the child link of the most distal joint that feels the '
-              'contact (over half its threshold).', True),
+              'external torques (else: ambiguous). false: the literal rule, the child link of the most distal joint '
+              'over its threshold.', True),
     # dynamics terms for other nodes (dynamics_topics.py)
     ParamSpec('dynamics.publish', 'string_array', None,
               'Dynamics terms published on ~/dynamics/<term> after each command: gravity (g(q)), coriolis '
