@@ -28,8 +28,9 @@ Isolation (`isolate`), on a settled residual (`Settling`) and per-joint threshol
      each branch) that gives what the link's joints show may load the joints that body adds
      within quiet th_j of what r shows: otherwise a contact there whose own joints stay under
      their thresholds (a push along the last joint's axis) gives the same r: ambiguous. With all
-     6 components seen (rank 6) the wrench is fixed and this is checked always. With fewer (a
-     link near the base) the unseen components are free: `strict` fits them to the measured
+     6 components seen (rank 6 with singular values above RULE_RCOND x the largest) the wrench
+     is fixed and this is checked always. With fewer (a link near the base, a singularity) the
+     unseen components are free: `strict` fits them to the measured
      joints (least squares weighted by 1 / th_j), and then such a link whose next joint stays
      quiet is nearly always ambiguous (joint torques alone cannot tell it from the next link
      out); without `strict` (the default) the answer is the literal rule's, right unless the
@@ -39,8 +40,8 @@ An ambiguous answer names its candidate links and the reason; it never picks one
 
 Identification (`link_wrench`): J_k^T w = r in least squares through the SVD of J_k^T (n x 6),
 w = (f, m) at the link's origin in link axes (J_k in the 'local' frame: its rows (v, w) pair
-with (f, m)). Singular values below rcond x the largest (default RCOND) are dropped: with fewer than 6
-supporting joints (a link near the base) or at a singularity only the components the joints see
+with (f, m)). Singular values below rcond x the largest (default RCOND) are dropped: with fewer
+than 6 supporting joints (a link near the base) or at a singularity only the components the joints see
 are solved for, the others are 0 (the minimum-norm solution at the link origin), and the rank
 and the smallest singular value used are reported. The same fit at a chosen link is the tool
 wrench (all contact at that frame), Franka's O_F_ext_hat_K. `line_of_action` is the line of a
@@ -66,6 +67,10 @@ from .jacobian import target
 # a component seen 1000 times more weakly than the best one would carry 1000 times its noise.
 # (On the bundled arm and a Panda at random states within +-pi, about 3 % of the states drop one.)
 RCOND = 1e-3
+# Step 5 of isolation trusts a component of the wrench only above this fraction of the largest
+# singular value: with 1e-3 (RCOND), a pushed link's wrench fitted at the link before it near a
+# singularity predicted its joint's torque far from the truth and named the wrong link.
+RULE_RCOND = 1e-2
 # Singular values below this fraction of the largest are rounding: the range of J^T is the rest.
 _EXACT = 1e-10
 # A joint that does not move the isolated link is quiet below QUIET x its threshold.
@@ -235,7 +240,10 @@ def isolate(model, q, r, threshold, quiet=QUIET, rcond=RCOND, strict=False):
         j = int(np.flatnonzero(bad)[0])
         return ambiguous([k], f"no single wrench on link '{links[k]}' explains the external torques (joint "
                               f"'{names[j]}' off by {abs(est.unexplained[j]):.3g}): two contacts?")
-    alike = _further_alike(model, t, q, r, th * quiet, k, est) if strict or est.rank == 6 else []
+    # step 5 on the components seen well enough to rule a link out (a nearly unseen one would
+    # carry the lag and the noise of r, times 1 / sigma, into the prediction)
+    sure = est if est.rank < 6 else link_wrench(model, q, r, links[k], max(rcond, RULE_RCOND))
+    alike = _further_alike(model, t, q, r, th * quiet, k, sure) if strict or sure.rank == 6 else []
     if alike:
         return ambiguous([k] + alike, f"a wrench on link '{links[alike[0]]}' that gives what link '{links[k]}' "
                                       'shows would load its own joints as little as measured: the contact may be '
