@@ -72,3 +72,32 @@ def test_math_core_imports_no_ros_package():
         r = subprocess.run([sys.executable, '-c', code, *group], cwd=ROOT, capture_output=True, text=True,
                            timeout=120)
         assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_codegen_imports_nothing_from_algorithms():
+    """codegen/ lies below algorithms/ (every algorithm calls its runtime): none of its modules
+    imports an algorithm, at module level or inside a function."""
+    bad = []
+    for name in _module_names():
+        if not name.startswith('codegen.'):
+            continue
+        path = os.path.join(PACKAGE, *name.split('.')) + '.py'
+        with open(path, encoding='utf-8') as fh:
+            tree = ast.parse(fh.read())
+        depth = name.count('.')   # relative levels up to lie_dynamics/
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                target = node.module or ''
+                if node.level == 0:
+                    hit = target.startswith('lie_dynamics.algorithms')
+                else:
+                    hit = node.level == depth + 1 and target.split('.')[0] == 'algorithms'
+                hit = hit or (node.level == depth + 1 and not target and
+                              any(a.name == 'algorithms' for a in node.names))
+            elif isinstance(node, ast.Import):
+                hit = any(a.name.startswith('lie_dynamics.algorithms') for a in node.names)
+            else:
+                continue
+            if hit:
+                bad.append(f'{name}:{node.lineno}')
+    assert not bad, bad
