@@ -117,12 +117,11 @@ def simulate(model, settings, q0, link, wrench_mf, rng, noise, tool=''):
     sim = ArmSim(model, DT, q0=q0, limits=False)   # no stops: their impulses would be contact too
     sim.set_external(link, wrench_mf, START, PUSH_S)
     kp, kd = hold_gains(model, q0)
-    idx = np.arange(model.n)
     named, flagged, last = {m: set() for m in MODES}, False, None
     for _ in range(int(round((START + PUSH_S + AFTER_S) / DT))):
         t = sim.t
         motor = sim.motor + rng.normal(0.0, noise, model.n) * th
-        out = mon.on_state(idx, sim.q, sim.qd, motor, stamp=1_000_000_000 + int(round(t * 1e9)))
+        out = mon.on_state(sim.q, sim.qd, motor, stamp=1_000_000_000 + int(round(t * 1e9)))
         if out is not None:
             pubs = {m: iso.update(mon.last_stamp, sim.q, out[0], out[1], mon.threshold) for m, iso in isos.items()}
             if START <= t < START + PUSH_S:

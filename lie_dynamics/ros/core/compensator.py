@@ -77,8 +77,8 @@ class Compensator(TrajectoryInput):
             gains(s['kd'], len(self.layout), 'kd')
         self.model = None
         self.model_info = ''          # where the current model came from
-        self.loading = ''             # what is being loaded in the background (the node sets it)
-        self.executor = ''            # which executor spins the node (the node sets it)
+        self.loading = ''             # what is being loaded in the background (note_context)
+        self.executor = ''            # which executor spins the node (note_context)
         self.inertia_report = []      # physical_consistency() of the current model
         self.inertia_repaired = 0     # entries of it with repaired=True
         self.events = []
@@ -103,7 +103,7 @@ class Compensator(TrajectoryInput):
         self.last_cmd = None          # the last command returned for publishing
         self.held = None              # while disabling without input: the command being ramped down
         # desired state (controlled order) and its fallback state
-        self.desired_topic = s['desired_topic']   # the node sets the resolved name
+        self.desired_topic = s['desired_topic']   # the resolved name: note_context
         self.desired_map = NameMap()
         self.desired = None           # (q_d, qd_d, qdd_d)
         self.desired_time = None
@@ -118,6 +118,21 @@ class Compensator(TrajectoryInput):
     def _error(self, text):
         self.last_error = clip(text, DIAG_TEXT_MAX)
         return self.last_error
+
+    def note_error(self, text):
+        """Keep `text` as the last error (diagnostics); returns it as kept (bounded)."""
+        return self._error(text)
+
+    def note_context(self, loading=None, executor=None, desired_topic=None):
+        """What the node around the core says for the diagnostics and log lines (None: unchanged):
+        the description being loaded in the background ('' none), the executor that spins the
+        node, the resolved name of the desired-state topic."""
+        if loading is not None:
+            self.loading = loading
+        if executor is not None:
+            self.executor = executor
+        if desired_topic is not None:
+            self.desired_topic = desired_topic
 
     # ------------------------------------------------------------------ configuration
     def plan(self, changes=None, model=None, info=''):

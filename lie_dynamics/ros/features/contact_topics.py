@@ -19,7 +19,8 @@ from std_msgs.msg import Bool, String
 from .. import interfaces
 from .base import Feature
 from ..core.cdr import stamp_parts
-from .contact import ContactMonitor, observer_on
+from ..loading.models import jacobian_at_rest
+from .contact import ContactMonitor, check_settings, observer_on, warm_observer
 from .contact_link import ContactIsolation, check_wrench_frame
 from .dynamics_topics import joint_state_template
 
@@ -28,14 +29,16 @@ _FLAG = {v: serialize_message(Bool(data=v)) for v in (False, True)}
 
 
 class ContactTopics(Feature):
-    """ContactMonitor fed each accepted sample, its estimate and flag published."""
+    """ContactMonitor fed each accepted sample, its estimate and flag published. Attached to a
+    DynamicsNode `node` (its public core: the command layout before a model is loaded)."""
 
     name = 'contact'
 
     def __init__(self, node):
+        super().__init__()
         self.monitor = ContactMonitor()
         self.isolation = ContactIsolation()
-        super().__init__()
+        self._core = node.core
         self._ext_pub = interfaces.publisher(node, '~/external_torques')
         self._flag_pub = interfaces.publisher(node, '~/collision')
         self._wrench_pub = interfaces.publisher(node, '~/contact/wrench')
@@ -43,22 +46,20 @@ class ContactTopics(Feature):
         self._link_pub = interfaces.publisher(node, '~/contact/link')
         self._names = self._ext = None   # the layout of ~/external_torques, its cdr.Writer's message
 
-    @property
-    def events(self):   # the monitor's queue is the feature's
-        return self.monitor.events
-
-    @events.setter
-    def events(self, queue):
-        self.monitor.events = self.isolation.events = queue
+    def use_events(self, queue):
+        super().use_events(queue)
+        self.monitor.events = self.isolation.events = queue   # their lines go to the one queue too
 
     def check(self, settings, model):
+        layout = self._core.layout   # known before the model when `joints` is set
+        check_settings(settings, model.n if model is not None else len(layout) if layout else None)
         check_wrench_frame(settings, model)
 
     def kernels(self, settings):
         if not observer_on(settings):
             return ()
         frame = settings['contact.wrench_frame']
-        return (('observer',),) + ((('jacobian', frame, 'local'),) if frame else ())
+        return ((warm_observer,),) + (((jacobian_at_rest, frame, 'local'),) if frame else ())
 
     def configure(self, settings, model, derived):
         m = self.monitor
@@ -69,7 +70,7 @@ class ContactTopics(Feature):
 
     def on_sample(self, s):
         m = self.monitor
-        out = m.on_state(s.columns, s.q, s.message_velocity, s.message_effort, s.stamp)
+        out = m.on_sample(s)
         if out is None:
             if m.estimate is None:   # paused: isolation starts anew with the observer
                 self.isolation.reset()
