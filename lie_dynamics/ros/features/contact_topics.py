@@ -17,12 +17,11 @@ from rclpy.serialization import serialize_message
 from std_msgs.msg import Bool, String
 
 from .. import interfaces
+from ..core.cdr import joint_state_template, stamp_parts
 from .base import Feature
-from ..core.cdr import stamp_parts
 from ..loading.models import jacobian_at_rest
 from .contact import ContactMonitor, check_settings, observer_on, warm_observer
 from .contact_link import ContactIsolation, check_wrench_frame
-from .dynamics_topics import joint_state_template
 
 # ~/collision's two possible messages, serialized
 _FLAG = {v: serialize_message(Bool(data=v)) for v in (False, True)}
