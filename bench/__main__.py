@@ -1,7 +1,7 @@
 """All benchmarks in one command: tables (Markdown + CSV/JSON) and PNG charts in one folder.
 
     python -m bench [--quick] [--out DIR] [--only core,lagrangian,accuracy,scaling,stability,robots,node,payload,
-                     observer,jacobian,compile,signals] [--docs-img DIR]
+                     observer,contact,jacobian,compile,signals] [--docs-img DIR]
     make bench ARGS="--quick"
 
 Sections (each writes its own files into DIR, default bench/out/):
@@ -21,6 +21,9 @@ Sections (each writes its own files into DIR, default bench/out/):
   observer    external-torque observer: estimate error against gain, detection delay against
               threshold, the node's cost per message with the observer beside without it
               (bench/observer.py)
+  contact     contact isolation and the external wrench: random pushes on the bundled arm, Panda and
+              UR5 through the observer and the node's decision logic; tool wrench; the node's cost
+              with isolation beside without it (bench/contact.py)
   jacobian    frame Jacobians and J̇q̇ in the three frames beside pin.computeFrameJacobian and
               getFrameClassicalAcceleration, one state and batches (bench/jacobian.py)
   compile     native kernels: compile time of each family at first use, load time from the
@@ -41,7 +44,7 @@ import traceback
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 SECTIONS = ('core', 'lagrangian', 'accuracy', 'scaling', 'stability', 'robots', 'node', 'payload', 'observer',
-            'jacobian', 'compile', 'signals')
+            'contact', 'jacobian', 'compile', 'signals')
 
 
 def _core(quick, out):
@@ -92,6 +95,11 @@ def _observer(quick, out):
     observer.run(quick=quick, out=out)
 
 
+def _contact(quick, out):
+    from bench import contact
+    contact.run(quick=quick, out=out)
+
+
 def _jacobian(quick, out):
     from bench import jacobian
     print(jacobian.run(quick=quick, out=out))
@@ -121,7 +129,7 @@ def _small_copy(src, dst):
 
 RUNNERS = {'core': _core, 'lagrangian': _lagrangian, 'accuracy': _accuracy, 'scaling': _scaling,
            'stability': _stability, 'robots': _robots, 'node': _node, 'payload': _payload,
-           'observer': _observer, 'jacobian': _jacobian,
+           'observer': _observer, 'contact': _contact, 'jacobian': _jacobian,
            'compile': _compile, 'signals': _signals}
 
 

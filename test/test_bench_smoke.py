@@ -87,6 +87,21 @@ def test_jacobian_section_runs_every_frame_beside_pinocchio(tmp_path):
     assert all(r['native'] == str(native.module() is not None) for r in rows)   # the C kernels where they build
 
 
+def test_contact_section_pushes_each_robot_and_times_the_node(tmp_path):
+    from bench import contact
+    iso, ident, tool, cost = contact.run(quick=True, out=str(tmp_path), pushes=3)
+    robots = {name for name, _, _ in contact.robots()}
+    assert {r['robot'] for r in iso} == robots and {r['robot'] for r in tool} == robots
+    assert all(r['pushes'] >= 1 and 0 <= r['literal_right_pct'] <= 100 for r in iso)
+    assert all(r['strict_wrong_pct'] <= r['literal_wrong_pct'] for r in iso)   # strict only adds 'ambiguous'
+    # exact efforts: the tool wrench is the pushed one (lag only)
+    assert all(r['force_error_median_pct'] < 2 for r in tool if r['noise'] == 0)
+    assert {(r['flag'], r['case']) for r in cost} >= {('up', 'isolation on'), ('down', 'isolation on')}
+    assert all(r['collision'] == (r['flag'] == 'up') for r in cost)
+    assert [r['link'] for r in cost if r['flag'] == 'up' and r['case'] != 'isolation stubbed (peer)'] == ['link7'] * 2
+    assert os.path.exists(tmp_path / 'contact.csv') and os.path.exists(tmp_path / 'contact.md')
+
+
 def test_core_benchmark_still_runs(tmp_path):
     res = core.run(quick=True, sizes=(1, 100), rounds=2)
     core.write(res, str(tmp_path))

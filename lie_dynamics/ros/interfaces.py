@@ -12,7 +12,7 @@ the timer instead (`description_qos_problems`).
 from typing import NamedTuple
 
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import Vector3Stamped
+from geometry_msgs.msg import Vector3Stamped, WrenchStamped
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rcl_interfaces.srv import SetParametersAtomically
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
@@ -75,6 +75,9 @@ INTERFACES = {
     '~/trajectory_out': Interface('pub', JointTrajectory, TRAJECTORY_QOS, 'trajectory_process (a child)'),
     '~/external_torques': Interface('pub', JointState, ESTIMATE_QOS, 'features.contact_topics'),
     '~/collision': Interface('pub', Bool, ESTIMATE_QOS, 'features.contact_topics'),
+    '~/contact/wrench': Interface('pub', WrenchStamped, ESTIMATE_QOS, 'features.contact_topics'),
+    '~/contact/tool_wrench': Interface('pub', WrenchStamped, ESTIMATE_QOS, 'features.contact_topics'),
+    '~/contact/link': Interface('pub', String, ESTIMATE_QOS, 'features.contact_topics'),
     '~/dynamics/gravity': Interface('pub', JointState, OUT_QOS, 'features.dynamics_topics'),
     '~/dynamics/coriolis': Interface('pub', JointState, OUT_QOS, 'features.dynamics_topics'),
     '~/dynamics/mass_matrix': Interface('pub', Float64MultiArray, OUT_QOS, 'features.dynamics_topics'),

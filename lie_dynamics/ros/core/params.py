@@ -13,6 +13,7 @@ from typing import Optional, Tuple
 import numpy as np
 
 # MODES: the torque laws (lie_dynamics.laws). Every mode but `gravity` needs the desired-state stream.
+from ...algorithms.contact_isolation import RCOND
 from ...laws import COULOMB_VELOCITY_EPSILON, MODES
 from ...model.joint_names import broadcast_joints
 from .diagnostics import clip
@@ -209,6 +210,19 @@ PARAMS = (
               above=True, unit='N m'),
     ParamSpec('collision.hold_time', 'double', 0.01,
               'Seconds a threshold crossing (and its end) must last before ~/collision changes.', True, (0.0, 10.0)),
+    # the contact link and the external wrench (contact_link.py)
+    ParamSpec('contact.wrench_frame', 'string', '',
+              'Link at which ~/contact/tool_wrench gives the wrench the external torques imply if all contact '
+              'happens there (force and torque at its origin in its axes), at every observer sample. Empty: off. '
+              'A link no controlled joint moves is refused.', True),
+    ParamSpec('contact.rcond', 'double', RCOND,
+              'Singular values of the transposed link Jacobian below this fraction of the largest are not solved '
+              'for: the wrench components the joints barely see stay 0 (~/contact/wrench, ~/contact/tool_wrench; '
+              'rank and smallest singular value used in the diagnostics).', True, (1e-12, 0.999)),
+    ParamSpec('contact.strict_isolation', 'bool', False,
+              'Name a link with fewer than 6 supporting joints only if no contact further out could give the same '
+              'external torques (else: ambiguous). false: the literal rule, the child link of the most distal joint '
+              'over its threshold.', True),
     # dynamics terms for other nodes (dynamics_topics.py)
     ParamSpec('dynamics.publish', 'string_array', None,
               'Dynamics terms published on ~/dynamics/<term> after each command: gravity (g(q)), coriolis '

@@ -7,14 +7,21 @@ Publishes   ~/external_torques (sensor_msgs/JointState: name = the command layou
             (QoS: interfaces.py). Both are published serialized (cdr.Template, as the dynamics
 topics; ~/external_torques through one cdr.Writer per joint layout): writing the estimate into
 a message serialized once costs less than rclpy's conversion of a message object.
+
+With them, contact_link.py's ContactIsolation: ~/contact/wrench and ~/contact/tool_wrench
+(geometry_msgs/WrenchStamped, the joint_states stamp) and ~/contact/link (std_msgs/String).
 """
+import struct
+
 from rclpy.serialization import serialize_message
-from std_msgs.msg import Bool
+from std_msgs.msg import Bool, String
 
 from .. import interfaces
-from ..core.cdr import joint_state_template
+from ..core.cdr import joint_state_template, stamp_parts
 from .base import Feature
+from ..loading.models import jacobian_at_rest
 from .contact import ContactMonitor, check_settings, observer_on, warm_observer
+from .contact_link import ContactIsolation, check_wrench_frame
 
 # ~/collision's two possible messages, serialized
 _FLAG = {v: serialize_message(Bool(data=v)) for v in (False, True)}
@@ -29,31 +36,43 @@ class ContactTopics(Feature):
     def __init__(self, node):
         super().__init__()
         self.monitor = ContactMonitor()
+        self.isolation = ContactIsolation()
         self._core = node.core
         self._ext_pub = interfaces.publisher(node, '~/external_torques')
         self._flag_pub = interfaces.publisher(node, '~/collision')
+        self._wrench_pub = interfaces.publisher(node, '~/contact/wrench')
+        self._tool_pub = interfaces.publisher(node, '~/contact/tool_wrench')
+        self._link_pub = interfaces.publisher(node, '~/contact/link')
         self._names = self._ext = None   # the layout of ~/external_torques, its cdr.Writer's message
 
     def use_events(self, queue):
         super().use_events(queue)
-        self.monitor.events = queue   # the monitor's lines go to the one queue too
+        self.monitor.events = self.isolation.events = queue   # their lines go to the one queue too
 
     def check(self, settings, model):
         layout = self._core.layout   # known before the model when `joints` is set
         check_settings(settings, model.n if model is not None else len(layout) if layout else None)
+        check_wrench_frame(settings, model)
 
     def kernels(self, settings):
-        return ((warm_observer,),) if observer_on(settings) else ()
+        if not observer_on(settings):
+            return ()
+        frame = settings['contact.wrench_frame']
+        return ((warm_observer,),) + (((jacobian_at_rest, frame, 'local'),) if frame else ())
 
     def configure(self, settings, model, derived):
         m = self.monitor
         m.sync(settings, model, None if derived is None else derived.friction,
                None if model is None else model.joint_names)
+        self.isolation.sync(settings, model)
         self.active = m.active
 
     def on_sample(self, s):
-        out = self.monitor.on_sample(s)
+        m = self.monitor
+        out = m.on_sample(s)
         if out is None:
+            if m.estimate is None:   # paused: isolation starts anew with the observer
+                self.isolation.reset()
             return
         names = s.names
         if names is not self._names:  # built when the layout changes: no position, no velocity
@@ -61,6 +80,31 @@ class ContactTopics(Feature):
             self._names, self._ext = names, template.writer(slots[2:], stamp_at).message
         self._ext_pub.publish(self._ext((out[0],), s.stamp))
         self._flag_pub.publish(_FLAG[out[1]])
+        pub = self.isolation.update(m.last_stamp, s.q, out[0], out[1], m.threshold)
+        if pub.wrench is not None:
+            self._wrench_pub.publish(_wrench(pub.wrench[0], pub.wrench[1], s.stamp))
+        if pub.tool is not None:
+            self._tool_pub.publish(_wrench(self.isolation.frame, pub.tool, s.stamp))
+        if pub.link is not None:
+            self._link_pub.publish(String(data=pub.link))
 
     def report(self, level, message):
-        return self.monitor.report(level, message, [])
+        level, message, values = self.monitor.report(level, message, [])
+        level, values = self.isolation.report(level, values)
+        return level, message, values
+
+
+_WRENCH_HEADS = {}
+
+
+def _wrench(frame, w, stamp):
+    """A geometry_msgs/WrenchStamped, serialized (plain CDR, little-endian): the header's layout
+    per frame_id once, then the stamp and the six doubles (cheaper than a message object)."""
+    head = _WRENCH_HEADS.get(frame)
+    if head is None:
+        raw = frame.encode('utf-8') + b'\0'
+        body = struct.pack('<I', len(raw)) + raw
+        body += b'\0' * (-(8 + len(body)) % 8)   # the doubles start 8-aligned after the encapsulation
+        head = _WRENCH_HEADS[frame] = body
+    sec, nsec = stamp_parts(stamp)
+    return b'\x00\x01\x00\x00' + struct.pack('<iI', sec, nsec) + head + struct.pack('<6d', *w)

@@ -1,0 +1,179 @@
+"""Where and how hard, for the dynamics node: the contact link and the external wrench from the
+observer's estimate, in plain Python (no rclpy import). The math is
+lie_dynamics.algorithms.contact_isolation; this module decides when to use it.
+
+`ContactIsolation.update(t, q, r, collision)`, after each observer sample (contact.py's
+ContactMonitor: the estimate r, its time t in s, the debounced flag), returns what to publish:
+
+  * the wrench of the isolated link (link name, (fx fy fz mx my mz) at its origin in its axes)
+    at every sample while the flag is up and a link is isolated, and one zero wrench (the last
+    link's, '' if none was) when the flag falls;
+  * the tool wrench (`contact.wrench_frame`, all contact at that link) at every sample, when set;
+  * the isolated link when it changes: '' while nothing is in contact, while the residual
+    settles, and when the answer is ambiguous.
+
+Isolation is decided on a settled residual only (contact_isolation.Settling, window one observer
+time constant 1 / min(observer.gain)), once each time it settles: after the flag rises the link
+stays '' until the residual has stopped changing, and while it changes again (the push grows or
+moves) the last decision holds until it settles anew. The Jacobians and the isolation run only
+while the flag is up, except the tool wrench's; a fit (Jacobian and SVD) serves the samples of one
+observer time constant after it (w = inverse r: the estimate r lags the contact by as much, and a
+new fit every sample would cost more than the observer). A model, gravity, payload or observer
+change (contact.REINIT_KEYS) and a paused observer start it anew, as they start the observer anew.
+"""
+from typing import NamedTuple, Optional
+
+import numpy as np
+
+from ...algorithms import contact_isolation as ci
+from ..core.diagnostics import WARN, clip
+from .contact import REINIT_KEYS
+
+ZERO = np.zeros(6)
+
+
+class Published(NamedTuple):
+    wrench: Optional[tuple]     # (link, (6,) wrench) for ~/contact/wrench, or None
+    tool: Optional[np.ndarray]  # (6,) for ~/contact/tool_wrench, or None
+    link: Optional[str]         # for ~/contact/link when it changed, or None
+
+
+def check_wrench_frame(settings, model):
+    """contact.wrench_frame against `model` (None: not loaded yet): ValueError with the close matches
+    or the reason (contact.rcond's range is checked with the other parameters, params.py)."""
+    frame = settings['contact.wrench_frame']
+    if frame and model is not None:
+        try:
+            ci.check_moving_link(model, frame)
+        except ValueError as exc:
+            raise ValueError(f"contact.wrench_frame '{clip(frame, 80)}' cannot be used with robot "
+                             f"'{model.name}': {exc}") from None
+
+
+class ContactIsolation:
+    """The decisions of the module docstring. `sync(settings, model)` on every configuration;
+    `update(...)` per observer sample; `reset()` when the observer pauses."""
+
+    def __init__(self):
+        self.events = []
+        self.settings = self.model = None
+        self.frame = ''
+        self.rcond = ci.RCOND
+        self.strict = False
+        self.settling = None
+        self.isolation = None       # the last decision (contact_isolation.Isolation) while the flag is up
+        self.link = ''              # the link last published on ~/contact/link
+        self.up = False             # a wrench went out since the flag rose: a zero one is owed
+        self.wrench_link = ''
+        self.tool = self.wrench = None   # the last WrenchEstimates (diagnostics)
+        self.decisions = 0
+        self.flag = False           # the collision flag of the last sample
+        self._settled = False       # the residual was settled at the last sample of the flag
+        self._fits = {}             # 'link' / 'tool' -> (link, time, WrenchEstimate) of the last fit
+
+    def sync(self, settings, model):
+        if settings is self.settings and model is self.model:
+            return
+        old = self.settings
+        reinit = model is not self.model or old is None or any(settings[k] != old[k] for k in REINIT_KEYS)
+        self.settings, self.model = settings, model
+        self.rcond = settings['contact.rcond']
+        self.strict = settings['contact.strict_isolation']
+        self.frame = settings['contact.wrench_frame']
+        if self.frame and model is not None:
+            try:
+                check_wrench_frame(settings, model)
+            except ValueError as exc:   # a new description without that link: the rest goes on
+                self.events.append(('error', 'contact:frame', f'~/contact/tool_wrench off: {exc}'))
+                self.frame = ''
+        if model is not None:
+            gain = np.atleast_1d(np.asarray(settings['observer.gain'], dtype=float))
+            self.settling = ci.Settling(1.0 / float(gain.min()))
+        if reinit:
+            self.reset()
+
+    def reset(self):
+        """Forget the history and the decision (the observer starts anew); a zero wrench stays owed."""
+        if self.settling is not None:
+            self.settling.reset()
+        self.isolation = None
+        self._settled = False
+        self._fits = {}
+
+    def _solve(self, kind, t, q, r, link, est=None):
+        """The wrench on `link` for r: est, or the last fit's inverse when it is younger than one
+        time constant (the estimate r lags the contact by as much), else a new fit."""
+        last = self._fits.get(kind)
+        if est is None and last is not None and last[0] == link and 0.0 <= t - last[1] < self.settling.window:
+            est = last[2]
+            return est._replace(wrench=est.inverse @ r)
+        if est is None:
+            est = ci.link_wrench(self.model, q, r, link, self.rcond)
+        self._fits[kind] = (link, t, est)
+        return est
+
+    def update(self, t, q, r, collision, threshold):
+        """One observer sample: Published."""
+        model = self.model
+        self.flag = collision
+        tool = None
+        if self.frame:
+            self.tool = self._solve('tool', t, q, r, self.frame)
+            tool = self.tool.wrench
+        wrench = None
+        if collision:
+            settled = self.settling.update(t, r, threshold)
+            if settled and not self._settled:   # decided once per settled stretch (cost)
+                iso = ci.isolate(model, q, r, threshold, rcond=self.rcond, strict=self.strict)
+                if self.isolation is None or iso.status != self.isolation.status or iso.link != self.isolation.link:
+                    self._log(iso)
+                self.isolation = iso
+                est = self._solve('link', t, q, r, iso.link, iso.wrench) if iso.link else None
+            else:
+                iso = self.isolation
+                est = self._solve('link', t, q, r, iso.link) if iso is not None and iso.link else None
+            self._settled = settled
+            if est is not None:
+                self.wrench, self.wrench_link, self.up = est, iso.link, True
+                wrench = (iso.link, est.wrench)
+        else:
+            if self.up:
+                wrench, self.up = (self.wrench_link, ZERO), False
+            if self.isolation is not None or self._settled:
+                self.reset()
+        link = self.isolation.link if self.isolation is not None else ''
+        changed = None
+        if link != self.link:
+            self.link = changed = link
+        return Published(wrench, tool, changed)
+
+    def _log(self, iso):
+        self.decisions += 1
+        if iso.status == 'isolated':
+            w = iso.wrench
+            f = float(np.linalg.norm(w.wrench[:3]))
+            text = (f"collision at link '{iso.link}': force {f:.3g} N, torque {np.linalg.norm(w.wrench[3:]):.3g} N m "
+                    f'at its origin (rank {w.rank} of 6; joints over threshold: {", ".join(iso.over)})')
+        else:
+            text = f'collision, contact link ambiguous: {iso.reason}'
+            if iso.candidates:
+                text += f" (links {', '.join(repr(c) for c in iso.candidates)})"
+        self.events.append(('warn', 'collision:link', clip(text, 400)))
+
+    def report(self, level, values):
+        """(level, [(key, value)]) of the diagnostics: the link, its wrench's conditioning, the tool's."""
+        iso = self.isolation
+        status = ('settling' if self.flag else 'no contact') if iso is None else iso.status
+        if iso is not None and iso.status == 'ambiguous':
+            level = max(level, WARN)
+            status = f'ambiguous: {iso.reason}'
+        out = [('contact_link', self.link), ('contact_isolation', status)]
+        w = self.wrench if iso is not None and iso.link else None
+        out += [('contact_wrench_rank', '' if w is None else str(w.rank)),
+                ('contact_wrench_sigma_min', '' if w is None else f'{w.sigma_min:.4g}'),
+                ('contact_wrench_frame', self.frame or 'off')]
+        t = self.tool if self.frame else None
+        out += [('contact_tool_wrench_rank', '' if t is None else str(t.rank)),
+                ('contact_tool_wrench_sigma_min', '' if t is None else f'{t.sigma_min:.4g}'),
+                ('contact_rcond', f'{self.rcond:g}')]
+        return level, list(values) + out

@@ -1,0 +1,310 @@
+"""Contact isolation and the external wrench (algorithms/contact_isolation.py) on residuals made
+from known wrenches through Pinocchio's frame Jacobians (computeFrameJacobian, LOCAL): chains,
+trees, mimic and locked joints, a real robot; rank-deficient links; two contacts; settling."""
+import glob
+import os
+import sys
+import warnings
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from dyn_cases import ARM, states
+from lie_dynamics import load_urdf
+from lie_dynamics.algorithms import contact_isolation as ci
+from oracle import Oracle
+from robots import named_urdf
+
+ERD = next(iter(glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-packages', 'cmeel.prefix', 'share',
+                                       'example-robot-data', 'robots'))), None)
+needs_erd = pytest.mark.skipif(ERD is None, reason='example-robot-data is a test dependency')
+
+
+def _read(path):
+    with open(path, encoding='utf-8') as fh:
+        return fh.read()
+
+
+def _panda():
+    return _read(os.path.join(ERD, 'panda_description', 'urdf', 'panda.urdf'))
+
+
+def _robot(name):
+    """(model, oracle): the model with its controlled and locked joints, Pinocchio beside it."""
+    ctrl = locked = None
+    if name == 'arm7':
+        xml = _read(ARM)
+    elif name == 'panda_mimic':     # panda_finger_joint2 mimics panda_finger_joint1 (two branches)
+        xml = _panda()
+    elif name == 'panda_locked':    # arm joints only: the fingers locked (folded into the hand)
+        xml, ctrl, locked = _panda(), [f'panda_joint{i}' for i in range(1, 8)], {'panda_finger_joint1': 0.03}
+    elif name == 'ur5':
+        xml = _read(os.path.join(ERD, 'ur_description', 'urdf', 'ur5_robot.urdf'))
+    else:
+        xml = named_urdf(name)
+        if name == 'tree12':        # half the joints controlled, the rest locked at random values
+            names = load_urdf(xml).joint_names
+            rng = np.random.default_rng(12)
+            ctrl = sorted(rng.choice(names, size=len(names) // 2, replace=False), key=names.index)
+            locked = {n: float(rng.uniform(-1, 1)) for n in names if n not in ctrl}
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore')
+        model = load_urdf(xml, joints=ctrl)
+    if locked:
+        model.set_locked(locked)
+    return model, Oracle(xml, joints=model.joint_names, locked=locked)
+
+
+def pin_jacobian(oracle, q, link):
+    """Pinocchio's LOCAL frame Jacobian of a link, (6, n) in our columns (rows v, w)."""
+    fid = oracle.model.getFrameId(link, pin.FrameType.BODY)
+    J = pin.computeFrameJacobian(oracle.model, oracle.data, oracle.pin_q(q), fid, pin.LOCAL)
+    return J @ oracle.E
+
+
+def residual(oracle, q, pushes):
+    """r = sum J_k^T F_k for {link: wrench (f, m) at its origin in its axes}."""
+    return sum(pin_jacobian(oracle, q, link).T @ np.asarray(F, dtype=float) for link, F in pushes.items())
+
+
+def _expected_support(model):
+    """Per body, the controlled joints that move it: a walk to the root (independent of the tree
+    matrices the module uses)."""
+    out = []
+    for b in range(model.nb):
+        s, a = np.zeros(model.n, dtype=bool), b
+        while a >= 0:
+            s |= model.E[a] != 0
+            a = model.parent[a]
+        out.append(s)
+    return np.array(out)
+
+
+def _rigid_root(model, support, b):
+    """The body whose link names a contact on body b: up while a body adds no controlled joint."""
+    while model.parent[b] >= 0 and (support[b] == support[model.parent[b]]).all():
+        b = model.parent[b]
+    return b
+
+
+ROBOTS = ['arm7', 'tree12', 'tree20_mimic', 'mimic', 'mixed_types', 'fixed_heavy', 'panda_mimic', 'panda_locked',
+          'ur5']
+
+
+@pytest.mark.parametrize('name', ROBOTS)
+def test_a_push_on_each_link_is_isolated_and_its_wrench_recovered(name):
+    if name.startswith(('panda', 'ur5')) and ERD is None:
+        pytest.skip('example-robot-data is not installed')
+    model, oracle = _robot(name)
+    support = _expected_support(model)
+    rng = np.random.default_rng(33)
+    q = states(model, N=1, seed=34)[0][0]
+    checked = isolated = 0
+    for link, (b, _) in model.link_frames.items():
+        if b < 0:
+            continue
+        # the supporting joints are Pinocchio's nonzero columns
+        Jp = pin_jacobian(oracle, q, link)
+        assert np.array_equal(ci.supporting_joints(model, link), np.abs(Jp).sum(axis=0) > 1e-12), link
+        if not support[b].any():
+            continue
+        F = rng.normal(size=6) * np.array([20, 20, 20, 2, 2, 2])
+        r = Jp.T @ F
+        th = np.full(model.n, 1e-6 * np.abs(r).max())
+        res = ci.isolate(model, q, r, th)
+        checked += 1
+        named = model.body_link_names[_rigid_root(model, support, b)]
+        if model.mimic_joints and res.status == 'ambiguous':   # other links move with these joints alike
+            assert named in res.candidates and res.link == '' and res.wrench is None, (link, res)
+            continue
+        assert res.status == 'isolated' and res.link == named, (link, res)
+        isolated += 1
+        # the wrench at the named link explains r; with 6 independent joints it is F itself
+        w = res.wrench
+        Jn = pin_jacobian(oracle, q, named)
+        assert np.allclose(Jn.T @ w.wrench, r, atol=1e-9 * np.abs(r).max()), link
+        sv = np.linalg.svd(Jn, compute_uv=False)
+        assert w.rank == int((sv >= ci.RCOND * sv[0]).sum())
+        assert w.sigma_min == pytest.approx(sv[w.rank - 1], rel=1e-9)
+        if w.rank == 6 and link == named:
+            assert np.allclose(w.wrench, F, rtol=1e-8, atol=1e-8 * np.abs(F).max()), link
+    assert checked >= 3 and isolated >= 1
+
+
+def test_line_of_action_of_a_pure_force():
+    model, oracle = _robot('arm7')
+    q = states(model, N=1, seed=2)[0][0]
+    rng = np.random.default_rng(4)
+    for link in ('link6', 'link7'):
+        p, f = rng.uniform(-0.1, 0.1, 3), rng.normal(size=3) * 30
+        F = np.concatenate([f, np.cross(p, f)])            # the force f at p: the wrench at the origin
+        res = ci.isolate(model, q, residual(oracle, q, {link: F}), 1e-6)
+        assert res.link == link and res.wrench.rank == 6
+        point, direction, pitch = ci.line_of_action(res.wrench.wrench)
+        assert np.allclose(direction, f / np.linalg.norm(f), atol=1e-9)
+        assert abs(pitch) < 1e-9
+        assert np.linalg.norm(np.cross(p - point, direction)) < 1e-9    # p lies on the line
+        assert abs(point @ direction) < 1e-9                            # the point closest to the origin
+    assert ci.line_of_action(np.array([0, 0, 0, 1.0, 2.0, 3.0])) is None   # a pure torque has no line
+
+
+def test_rank_deficient_links_solve_the_visible_components():
+    model, oracle = _robot('arm7')
+    rng = np.random.default_rng(6)
+    q = states(model, N=1, seed=7)[0][0]
+    for link, rank in (('link1', 1), ('link2', 2), ('link3', 3), ('link5', 5)):
+        F = rng.normal(size=6) * 10
+        J = pin_jacobian(oracle, q, link)
+        res = ci.isolate(model, q, J.T @ F, 1e-6)
+        w = res.wrench
+        assert res.link == link and w.rank == rank
+        # the visible part of F: its projection on the row space of J (the minimum-norm solution)
+        U, s, _ = np.linalg.svd(J)
+        visible = U[:, :rank] @ (U[:, :rank].T @ F)
+        assert np.allclose(w.wrench, visible, atol=1e-9 * np.abs(F).max())
+        assert w.sigma_min == pytest.approx(s[rank - 1], rel=1e-9)
+        assert np.abs(w.misfit).max() < 1e-9 * np.abs(F).max()
+    # rcond decides what is solved for: between the two smallest singular values, one is dropped
+    J = model.jacobian(q, 'link7', 'local')
+    s = np.linalg.svd(J, compute_uv=False)
+    r = J.T @ rng.normal(size=6)
+    w = ci.link_wrench(model, q, r, 'link7', rcond=np.sqrt(s[4] * s[5]) / s[0])
+    assert w.rank == 5 and w.sigma_min == pytest.approx(s[4], rel=1e-9)
+    assert np.abs(w.misfit).max() > 1e-6 and np.abs(w.unexplained).max() < 1e-9   # dropped, not unexplainable
+    assert ci.link_wrench(model, q, r, 'link7').rank == 6
+    assert ci.link_wrench(model, q, r, 'link7', rcond=0.999).rank == 1
+
+
+def test_two_contacts_are_ambiguous_never_guessed():
+    # on a tree: joints over threshold on two branches
+    model, oracle = _robot('tree12')
+    support = _expected_support(model)
+    q = states(model, N=1, seed=8)[0][0]
+    bodies = [b for b in range(model.nb) if support[b].any()]
+    pair = next((a, b) for a in bodies for b in bodies
+                if not model.ancestors[a, b] and not model.ancestors[b, a]
+                and not (support[a] & support[b]).any())
+    rng = np.random.default_rng(9)
+    r = residual(oracle, q, {model.body_link_names[b]: rng.normal(size=6) * 20 for b in pair})
+    res = ci.isolate(model, q, r, 1e-6 * np.abs(r).max())
+    assert res.status == 'ambiguous' and res.link == '' and res.wrench is None and 'branch' in res.reason
+    # on a 7-joint chain: two contacts that no single wrench on the outer link explains
+    model, oracle = _robot('arm7')
+    for seed in range(5):
+        q = states(model, N=1, seed=seed)[0][0]
+        rng = np.random.default_rng(seed)
+        r = residual(oracle, q, {'link3': rng.normal(size=6) * 20, 'link7': rng.normal(size=6) * 20})
+        # thresholds under what no wrench on link7 can give (the part of r outside the range of J7^T)
+        J = pin_jacobian(oracle, q, 'link7')
+        U = np.linalg.svd(J.T, full_matrices=False)[0]
+        th = min(0.5 * np.abs(r - U @ (U.T @ r)).max(), 0.5 * np.abs(r).min())
+        assert th > 1e-3
+        one = ci.isolate(model, q, residual(oracle, q, {'link7': rng.normal(size=6) * 20}), th)
+        assert one.status == 'isolated' and one.link == 'link7'
+        res = ci.isolate(model, q, r, th)
+        assert res.status == 'ambiguous' and res.candidates == ('link7',) and 'two contacts' in res.reason, res
+    # a contact further out that stays under its thresholds (between quiet and 1 x threshold)
+    q = states(model, N=1, seed=1)[0][0]
+    r = residual(oracle, q, {'link4': np.array([10.0, -5, 3, 1, 0.5, -1])})
+    r[5] = 0.7
+    th = np.array([0.01] * 4 + [1.0] * 3)
+    assert ci.isolate(model, q, np.where(np.arange(7) < 4, r, 0.0), th).link == 'link4'
+    res = ci.isolate(model, q, r, th)
+    assert res.status == 'ambiguous' and res.candidates == ('link4',) and 'further out' in res.reason
+    assert ci.isolate(model, q, np.zeros(7), 1.0).status == 'none'
+
+
+@needs_erd
+def test_mimic_fingers_and_locked_fingers():
+    model, oracle = _robot('panda_mimic')
+    q = states(model, N=1, seed=3)[0][0]
+    F = np.array([30.0, 10, 5, 0.1, 0.2, 0.3])
+    res = ci.isolate(model, q, residual(oracle, q, {'panda_leftfinger': F}), 1e-3)
+    assert res.status == 'ambiguous' and set(res.candidates) == {'panda_leftfinger', 'panda_rightfinger'}
+    # locked fingers are folded into the hand: a push on a finger is a push on the hand's body
+    model, oracle = _robot('panda_locked')
+    q = states(model, N=1, seed=3)[0][0]
+    r = residual(oracle, q, {'panda_leftfinger': F})
+    res = ci.isolate(model, q, r, 1e-3)
+    assert res.status == 'isolated' and res.link == model.body_link_names[model.link_frames['panda_leftfinger'][0]]
+    assert np.allclose(pin_jacobian(oracle, q, res.link).T @ res.wrench.wrench, r, atol=1e-9)
+
+
+@needs_erd
+def test_tool_wrench_at_a_frame_on_a_real_robot():
+    model, oracle = _robot('ur5')
+    q = states(model, N=1, seed=5)[0][0]
+    F = np.array([12.0, -4, 20, 0.5, -1, 0.2])
+    est = ci.link_wrench(model, q, residual(oracle, q, {'tool0': F}), 'tool0', rcond=1e-6)
+    assert est.rank == 6 and np.allclose(est.wrench, F, atol=1e-9)
+
+
+def test_settling_waits_for_the_first_order_rise():
+    K, dt = 50.0, 0.001
+    s = ci.Settling(1.0 / K)
+    tau = np.array([30.0, -12.0, 4.0])
+    th = np.full(3, 2.0)
+    settled_at = None
+    for k in range(400):
+        t = k * dt
+        r = (1 - np.exp(-K * t)) * tau
+        if s.update(t, r, th) and settled_at is None:
+            settled_at = t
+        if settled_at is not None:
+            assert s.update(t + 1e-6, r, th)   # and it stays settled
+    # after about 3.6 time constants: the residual within 3 % of tau
+    assert 3.0 / K < settled_at < 4.5 / K
+    s.reset()
+    assert not s.update(0.0, tau, th)          # no history: not settled
+    with pytest.raises(ValueError, match='settling'):
+        ci.Settling(0.0)
+
+
+def test_bad_arguments_are_refused():
+    model, _ = _robot('arm7')
+    q = np.zeros(7)
+    with pytest.raises(ValueError, match='r must be 7 finite'):
+        ci.isolate(model, q, np.full(7, np.nan), 1.0)
+    with pytest.raises(ValueError, match='threshold'):
+        ci.isolate(model, q, np.zeros(7), [1.0, 2.0])
+    with pytest.raises(ValueError, match='threshold'):
+        ci.isolate(model, q, np.zeros(7), 0.0)
+    for bad in (0.0, -1.0, float('nan'), float('inf'), 1.0):
+        with pytest.raises(ValueError, match='rcond'):
+            ci.link_wrench(model, q, np.zeros(7), 'link7', rcond=bad)
+    with pytest.raises(ValueError, match="did you mean 'link7'"):
+        ci.check_moving_link(model, 'lnk7')
+    with pytest.raises(ValueError, match='fixed to the root'):
+        ci.check_moving_link(model, 'base_link')
+    ci.check_moving_link(model, 'tool0')
+
+
+def test_a_contact_further_out_that_its_own_joints_do_not_feel_is_not_guessed():
+    model, oracle = _robot('arm7')
+    q = np.array([0.2, -0.6, 0.1, 2.0, 0.3, 1.6, 0.8])   # link6's wrench fully seen here (rank 6)
+    assert ci.link_wrench(model, q, np.zeros(7), 'link6').rank == 6
+    # a force through the axis of joint 7 on link7: joint 7 feels nothing, r is that of a wrench on link6
+    T7 = model.link_pose('link7', q)
+    f = np.array([3.0, -20.0, 6.0])
+    F7 = np.concatenate([f, np.cross(np.array([0.0, 0.0, 0.05]), f)])       # at (0, 0, 5 cm): on the z axis
+    J7 = pin_jacobian(oracle, q, 'link7')
+    assert np.allclose(T7[:3, 2] @ model.jacobian(q, 'link7', 'world_aligned')[3:, 6], 1.0)   # joint 7 turns about z
+    r = J7.T @ F7
+    assert abs(r[6]) < 1e-9
+    res = ci.isolate(model, q, r, 1e-3)
+    assert res.status == 'ambiguous' and res.candidates == ('link6', 'link7') and 'may be there' in res.reason
+    # off the axis, joint 7 feels it: isolated, the wrench fully seen
+    F7 = np.concatenate([f, np.cross(np.array([0.04, 0.0, 0.05]), f)])
+    res = ci.isolate(model, q, J7.T @ F7, 1e-3)
+    assert res.status == 'isolated' and res.link == 'link7'
+    # a link with fewer than 6 supporting joints: the literal rule names it, strict says it may be further out
+    F3 = np.array([10.0, -20.0, 5.0, 0.5, -1.0, 2.0])
+    r = pin_jacobian(oracle, q, 'link3').T @ F3
+    assert ci.isolate(model, q, r, 1e-3).link == 'link3'
+    res = ci.isolate(model, q, r, 1e-3, strict=True)
+    assert res.status == 'ambiguous' and res.candidates == ('link3', 'link4')
+    # strict still names a link whose wrench on the next one would load that one's joints
+    r6 = pin_jacobian(oracle, q, 'link6').T @ np.array([10.0, -20.0, 5.0, 0.5, -1.0, 2.0])
+    res = ci.isolate(model, q, r6, 1e-3, strict=True)
+    assert res.status == 'isolated' and res.link == 'link6'

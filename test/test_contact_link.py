@@ -1,0 +1,78 @@
+"""The node's contact decisions in plain Python (features/contact_link.py), with a first-order
+residual as the observer gives it: the link only on a settled residual, the wrench while the
+flag is up and one zero wrench after it, the tool wrench every sample, re-initialisation."""
+import numpy as np
+
+from lie_dynamics import default_urdf_path, load_urdf
+from lie_dynamics.ros.core.params import defaults
+from lie_dynamics.ros.features.contact_link import ContactIsolation
+
+K, DT = 50.0, 1e-3
+TH = np.array([3.0, 3.0, 3.0, 3.0, 0.5, 0.5, 0.5])
+Q = np.array([0.0, -0.6, 0.0, 2.0, 0.0, 1.6, 0.8])
+
+
+def settings(**extra):
+    s = defaults()
+    s.update({'observer.gain': K, 'collision.threshold': TH.tolist()}, **extra)
+    return s
+
+
+def test_the_link_waits_for_a_settled_residual_and_the_wrench_follows_the_flag():
+    model = load_urdf(default_urdf_path())
+    iso = ContactIsolation()
+    iso.sync(settings(**{'contact.wrench_frame': 'tool0'}), model)
+    f = np.array([12.0, -20.0, 8.0])
+    F = np.concatenate([f, np.cross([0.04, 0.03, 0.02], f)])    # at tool0: isolated at link7
+    tau = model.jacobian(Q, 'tool0', 'local').T @ F
+    links, wrenches, tools = [], [], []
+    on, off = 10, 300
+    for k in range(400):
+        t = k * DT
+        r = tau * (1 - np.exp(-K * (t - on * DT))) if on <= k < off else \
+            tau * (np.exp(-K * (t - off * DT)) - np.exp(-K * (t - on * DT))) if k >= off else np.zeros(7)
+        flag = on + 2 <= k < off + 40
+        pub = iso.update(t, Q, r, flag, TH)
+        links.append(pub.link)
+        wrenches.append(pub.wrench)
+        tools.append(pub.tool)
+    first = next(k for k, w in enumerate(wrenches) if w is not None)
+    assert links[first] == 'link7' and all(x is None for x in links[:first])
+    assert (first - on) * DT > 3.0 / K            # not on the rising residual
+    assert all(w is not None and w[0] == 'link7' for w in wrenches[first:off + 40])
+    J7 = model.jacobian(Q, 'link7', 'local')
+    np.testing.assert_allclose(J7.T @ wrenches[off - 1][1], tau, atol=1e-3 * np.abs(tau).max())
+    # the fall: one zero wrench, then nothing; the link goes back to ''
+    assert wrenches[off + 40] == ('link7', wrenches[off + 40][1]) and not np.any(wrenches[off + 40][1])
+    assert all(w is None for w in wrenches[off + 41:])
+    assert [x for x in links if x is not None] == ['link7', '']
+    # the tool wrench at every sample, F once settled (a fit serves one time constant: lag only)
+    assert all(w is not None for w in tools)
+    np.testing.assert_allclose(tools[off - 1], F, rtol=1e-3, atol=1e-3 * np.abs(F).max())
+    level, values = iso.report(0, [])
+    assert dict(values)['contact_isolation'] == 'no contact' and dict(values)['contact_wrench_frame'] == 'tool0'
+    assert any("collision at link 'link7'" in text for _, _, text in iso.events)
+
+
+def test_changes_that_restart_the_observer_restart_isolation_and_a_lost_frame_turns_the_tool_off():
+    model = load_urdf(default_urdf_path())
+    iso = ContactIsolation()
+    s = settings(**{'contact.wrench_frame': 'tool0'})
+    iso.sync(s, model)
+    tau = model.jacobian(Q, 'link7', 'local').T @ np.array([10.0, -20.0, 5.0, 0.5, -1.0, 2.0])
+    for k in range(200):
+        iso.update(k * DT, Q, tau, True, TH)
+    assert iso.link == 'link7' and iso.isolation is not None
+    level, values = iso.report(0, [])
+    assert dict(values)['contact_isolation'] == 'isolated' and dict(values)['contact_wrench_rank'] == '6'
+    iso.sync(dict(s, gravity=[0.0, 0.0, -9.0]), model)     # as the observer: a new integral
+    assert iso.isolation is None
+    assert dict(iso.report(0, [])[1])['contact_isolation'] == 'settling'   # the flag was up
+    iso.sync(dict(s, **{'collision.hold_time': 0.02}), model)   # not an observer change
+    other = load_urdf(default_urdf_path())
+    other.name = 'renamed'
+    iso.sync(dict(s), other)
+    assert iso.frame == 'tool0'
+    xml = open(default_urdf_path()).read().replace('tool0', 'tool9')
+    iso.sync(dict(s), load_urdf(xml))
+    assert iso.frame == '' and any('tool_wrench off' in text for _, _, text in iso.events)
