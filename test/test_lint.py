@@ -72,3 +72,66 @@ def test_math_core_imports_no_ros_package():
         r = subprocess.run([sys.executable, '-c', code, *group], cwd=ROOT, capture_output=True, text=True,
                            timeout=120)
         assert r.returncode == 0, r.stdout + r.stderr
+
+
+def _imports(name):
+    """The lie_dynamics modules (dotted, below lie_dynamics) module `name` imports anywhere in its
+    code, relative imports resolved."""
+    path = os.path.join(PACKAGE, *name.split('.')) + '.py'
+    with open(path) as fh:
+        tree = ast.parse(fh.read())
+    package = name.split('.')[:-1]
+    known = {n.removesuffix('.__init__') for n in _module_names()}
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            targets = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package[:len(package) - (node.level - 1)] if node.level > 1 else package
+                stem = '.'.join(['lie_dynamics'] + base + ([node.module] if node.module else []))
+            else:
+                stem = node.module or ''
+            # `from . import x` may name a module (counted) or a name in the package's __init__
+            targets = [stem] + [f'{stem}.{a.name}' for a in node.names]
+        else:
+            continue
+        out |= {t.removeprefix('lie_dynamics.') for t in targets if t.startswith('lie_dynamics.')}
+    return out & known
+
+
+# (modules under this prefix, what they must not import, why) - docs/architecture.md, "Layers"
+LAYERS = (
+    ('ros.core.', ('ros.',), ('ros.core',), 'ros/core is the bottom of the node'),
+)
+
+
+def _under(target, prefixes):
+    return any(target == p.rstrip('.') or target.startswith(p if p.endswith('.') else p + '.') for p in prefixes)
+
+
+def test_layers_only_point_down():
+    """Imports found by parsing every module (a new module is checked too): ros/core imports
+    nothing else of ros/ (loading, trajectories, features, the shell), the math core nothing of
+    ros/ or sim/."""
+    names = _module_names()
+    bad = []
+    for prefix, forbidden, allowed, why in LAYERS:
+        checked = [n for n in names if n.startswith(prefix)]
+        assert len(checked) >= 5, (prefix, checked)
+        for name in checked:
+            for t in sorted(_imports(name)):
+                if _under(t, forbidden) and not _under(t, allowed):
+                    bad.append(f'{name} imports {t} ({why})')
+    math_core = [n for n in names if n.split('.')[0] not in ROS_PARTS and n not in ROS_SHIMS]
+    assert 'algorithms.rnea' in math_core and 'laws' in math_core
+    for name in math_core:
+        bad += [f'{name} imports {t} (the math core knows no node)' for t in sorted(_imports(name))
+                if _under(t, ROS_PARTS)]
+    assert not bad, '\n'.join(bad)
+
+
+def test_the_import_parser_sees_relative_imports():
+    assert 'ros.core.descriptions' in _imports('ros.loading.build_process')
+    assert 'ros.core.pipe' in _imports('ros.trajectories.process')
+    assert {'ros.core', 'ros.core.watchdog'} & _imports('ros.features.gravity_source')

@@ -16,7 +16,7 @@ from lie_dynamics.ros.core.params import check_value, defaults
 from lie_dynamics.ros.core.ramp import Ramp
 from lie_dynamics.ros.loading.worker import Worker
 from oracle import Oracle
-from core_cases import Clock, big_limits, make
+from core_cases import Clock, big_limits, fill_trajectory, make
 from robots import random_urdf
 
 TOL = 1e-9
@@ -326,7 +326,7 @@ def test_texts_quoting_input_are_bounded(arm):
     assert len(c.last_error) <= DIAG_TEXT_MAX
     from trajectory_msgs.msg import JointTrajectoryPoint
     pts = [JointTrajectoryPoint(positions=[0.0] * 10_000)]
-    assert c.on_trajectory(many + many[:3], pts * 2) is None and len(c.last_error) <= DIAG_TEXT_MAX
+    assert fill_trajectory(c, many + many[:3], pts * 2) is None and len(c.last_error) <= DIAG_TEXT_MAX
     assert c.note_description_error('x' * 1_000_000) and len(c.description_error) <= DIAG_TEXT_MAX
 
 

@@ -17,7 +17,7 @@ from lie_dynamics.ros.core.params import (PARAMS, PAYLOAD_KEYS, SPECS, ParamSpec
 from lie_dynamics.ros.core.watchdog import Watchdog, fresh
 from lie_dynamics.ros.features import contact, payload_service
 from lie_dynamics.ros.features.gravity_source import GravitySource
-from lie_dynamics.ros.loading.models import update_refusal
+from lie_dynamics.ros.core.descriptions import update_refusal
 from lie_dynamics.ros.trajectories.fill import TrajectoryFill
 from lie_dynamics.laws import effort_limits
 from lie_dynamics.sim.trajectory_source import per_joint as sim_per_joint

@@ -36,7 +36,7 @@ from .loading.parameter_change import start_source
 from .loading.sources import Sources
 from .outputs import Outputs
 from .run import node_parser, run
-from .trajectory_process import child_config
+from .trajectories.trajectory_process import child_config
 
 __all__ = ['DESCRIPTION_QOS', 'FEATURES', 'JOINT_STATES_QOS', 'LOG_THROTTLE_S', 'NO_PUB_EVENTS', 'NO_SUB_EVENTS',
            'SERVICE_QOS', 'SERVICE_QUEUE', 'TRAJECTORY_QOS', 'DynamicsNode', 'main']

@@ -11,8 +11,8 @@ that then fails to load is reported in the log and diagnostics, and the previous
 running.
 """
 from ..core.diagnostics import DIAG_TEXT_MAX, clip
+from ..core.descriptions import update_refusal
 from ..core.params import check_value
-from .models import update_refusal
 from .sources import source_label
 
 # The description parameters, in the order start-up tries them, and the source kind of each.
