@@ -20,6 +20,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from ..ros.core.cdr import stamp_ns
 from ..ros.core.params import broadcast_joints
+from ..ros.core.settings import Values
 from ..ros.run import node_parser, run
 
 # (name, default, meaning): declared in this order; --help lists them. Arrays: one value for
@@ -58,11 +59,11 @@ def per_joint(values, n, name):
 class TrajectorySource(Node):
     def __init__(self, **kwargs):
         super().__init__('trajectory_source', **kwargs)
-        v = {name: self.declare_parameter(name, default).value for name, default, _ in PARAMETERS}
+        v = Values({name: self.declare_parameter(name, default).value for name, default, _ in PARAMETERS})
         self.home, self.amplitude, self.frequency = (np.array(v[k], dtype=float)
                                                      for k in ('home', 'amplitude', 'frequency'))
-        self.lead = float(v['lead'])
-        topic = v['desired_topic']
+        self.lead = float(v.lead)
+        topic = v.desired_topic
         # The joint count is only known from joint_states: refuse now what no count can fix.
         sizes = {}
         for k in ('home', 'amplitude', 'frequency'):
@@ -77,7 +78,7 @@ class TrajectorySource(Node):
             raise ValueError(f'lead must be finite, got {self.lead}')
         if not topic.strip():
             raise ValueError('desired_topic must not be empty')
-        self.min_subscribers = int(v['min_subscribers'])
+        self.min_subscribers = int(v.min_subscribers)
         if self.min_subscribers < 0:
             raise ValueError(f'min_subscribers must be >= 0, got {self.min_subscribers}')
         self.pub = self.create_publisher(JointTrajectory, topic, 10)

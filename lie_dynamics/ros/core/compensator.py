@@ -58,19 +58,19 @@ class Compensator(Configuration):
         s = self.settings
         self.executor = ''            # which executor spins the node (the node sets it)
         self.window = Window(self.count, clock())
-        self.watchdog = Watchdog(s['stale_timeout'], clock)
+        self.watchdog = Watchdog(s.stale_timeout, clock)
         self.last_q = None            # positions of the last valid joint_states (the stale action holds them)
         self.last_stamp = 0           # stamp (ns) of the last accepted joint_states; 0: none
         self.result = None            # sample.SampleResult of the last joint_states message
         self.clamped = None           # joints clamped in the last command
         # transitions: while silent nothing is published (disabled and ramped down)
-        self.ramp = Ramp(s['ramp_time'], 1.0 if s['enabled'] else 0.0)
-        self.silent = not s['enabled']
+        self.ramp = Ramp(s.ramp_time, 1.0 if s.enabled else 0.0)
+        self.silent = not s.enabled
         self.published = False        # a command went out since the node last fell silent
         self.last_cmd = None          # the last command returned for publishing
         self.held = None              # while disabling without input: the command being ramped down
         # desired state (controlled order) and its fallback state
-        self.desired_topic = s['desired_topic']   # the node sets the resolved name
+        self.desired_topic = s.desired_topic   # the node sets the resolved name
         self.desired_map = NameMap()
         self.desired = None           # (q_d, qd_d, qdd_d)
         self.desired_time = None
@@ -84,14 +84,14 @@ class Compensator(Configuration):
 
     def _applied(self, plan, old, now):
         s = self.settings
-        self.ramp.set_duration(s['ramp_time'])
-        self.watchdog.timeout = s['stale_timeout']
-        if plan.model is not None or any(s[k] != old[k] for k in BLEND_KEYS):
+        self.ramp.set_duration(s.ramp_time)
+        self.watchdog.timeout = s.stale_timeout
+        if plan.model is not None or s.differs(old, BLEND_KEYS):
             self.ramp.switch()
-        if s['mode'] != old['mode']:
+        if s.mode != old.mode:
             self.desired_state.reset()  # a later stale desired state is reported again
-            self.event('info', 'mode', f"mode: {s['mode']}")
-        if s['enabled'] != old['enabled']:
+            self.event('info', 'mode', f"mode: {s.mode}")
+        if s.enabled != old.enabled:
             return self._sent(self._on_enabled_changed(now))
         return None
 
@@ -101,7 +101,7 @@ class Compensator(Configuration):
 
     def _on_enabled_changed(self, now):
         ramp = self.ramp
-        if self.settings['enabled']:
+        if self.settings.enabled:
             self.silent = False
             self.held = None
             ramp.set_target(1.0, now)
@@ -181,7 +181,7 @@ class Compensator(Configuration):
             return self._reject(exc.kind, exc.text, stamp)
         s = self.settings
         now = self.clock() if now is None else now
-        law = s['mode']
+        law = s.mode
         if law != 'gravity' and not self._desired_fresh(now):
             law = 'gravity'
             self.law = 'gravity (fallback)'
@@ -193,7 +193,7 @@ class Compensator(Configuration):
             if not complete:
                 count.velocity_unavailable += 1
         tau = LAWS[law](self.model, q, qd, self.desired, self.kp, self.kd, self.friction,
-                        s['include_velocity_terms'], gravity=not s['robot_compensates_gravity'])
+                        s.include_velocity_terms, gravity=not s.robot_compensates_gravity)
         ramp = self.ramp
         if ramp.idle:
             ramp.note(tau)
@@ -238,17 +238,17 @@ class Compensator(Configuration):
         if over is not None:
             self.count.clamp_count += 1
             self.clamped = [self.layout[k] for k in np.flatnonzero(over)]
-            self.event('warn', 'clamp', f'effort clamped to limit x {self.settings["effort_limit_scale"]}'
+            self.event('warn', 'clamp', f'effort clamped to limit x {self.settings.effort_limit_scale}'
                                          f' for {names_text(self.clamped)} (total {self.count.clamp_count})')
         return tau
 
     def _desired_fresh(self, now):
         """Is the desired state usable at `now`? Queues the fallback / recovery log lines."""
-        ok, line = self.desired_state.check(self.desired_time, self.settings['desired_timeout'], now,
+        ok, line = self.desired_state.check(self.desired_time, self.settings.desired_timeout, now,
                                             self.desired_topic)
         if line is not None:
             severity, key, text = line
-            mode = self.settings['mode']
+            mode = self.settings.mode
             if ok:
                 self.event(severity, key, f'{text}: mode {mode} resumed')
             else:
@@ -259,7 +259,7 @@ class Compensator(Configuration):
     # ------------------------------------------------------------------ desired state
     def desired_is_fresh(self, now=None):
         now = self.clock() if now is None else now
-        return fresh(self.desired_time, self.settings['desired_timeout'], now)
+        return fresh(self.desired_time, self.settings.desired_timeout, now)
 
     def on_desired(self, names, points, now=None):
         """One desired-state message (JointTrajectory joint_names and points) -> accepted?
@@ -298,13 +298,13 @@ class Compensator(Configuration):
         return None
 
     def _stale(self, age, now):
-        action = self.settings['stale_action']
+        action = self.settings.stale_action
         self.event('warn', 'stale', f'no valid joint_states for {age:.3f} s '
                                      f'(stale_timeout {self.watchdog.timeout} s): {action}')
         model = self.model
         if self.silent or model is None:
             return None
-        if (action == 'zero' or self.settings['robot_compensates_gravity'] or self.last_q is None
+        if (action == 'zero' or self.settings.robot_compensates_gravity or self.last_q is None
                 or len(self.last_q) != model.n):
             cmd = np.zeros(model.n)
         else:

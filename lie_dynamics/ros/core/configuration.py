@@ -20,8 +20,8 @@ from ...laws import LAWS, uses_velocity
 from .descriptions import build, model_changes, update_refusal
 from .diagnostics import DIAG_TEXT_MAX, INERTIA_LOG_LINES, INERTIA_TEXT_MAX, Counters, clip, names_text
 from .messages import JointStateReader
-from .params import check_value, defaults
-from .settings import PAYLOAD_KEYS, Plan, check_payload_pair, derive, gains, payload_link, place_payload
+from .params import check_value
+from .settings import PAYLOAD_KEYS, Plan, Settings, check_payload_pair, derive, gains, payload_link, place_payload
 
 
 class Configuration:
@@ -31,15 +31,13 @@ class Configuration:
     def __init__(self, settings=None, clock=time.monotonic, builder=None):
         self.clock = clock
         self.builder = builder or build   # description -> (model, other warnings), as descriptions.build
-        s = defaults()
-        for k, v in (settings or {}).items():
-            s[k] = check_value(k, v)
+        s = Settings(settings)   # ValueError on a bad value
         check_payload_pair(s)
         self.settings = s
-        self.layout = list(s['joints']) or None  # command joint order, fixed once known
+        self.layout = list(s.joints) or None  # command joint order, fixed once known
         if self.layout is not None:
-            gains(s['kp'], len(self.layout), 'kp')
-            gains(s['kd'], len(self.layout), 'kd')
+            gains(s.kp, len(self.layout), 'kp')
+            gains(s.kd, len(self.layout), 'kd')
         self.model = None
         self.model_info = ''          # where the current model came from
         self.loading = ''             # what is being loaded in the background (the node sets it)
@@ -76,10 +74,8 @@ class Configuration:
         Only a new model is touched (configured with the settings); a payload on the current
         model is tried on a scratch copy of it."""
         changes = dict(changes or {})
-        new = dict(self.settings)
-        for k, v in changes.items():
-            new[k] = check_value(k, v)
-        if new['joints'] != self.settings['joints']:
+        new = self.settings.replace(changes)
+        if new.joints != self.settings.joints:
             raise ValueError('joints cannot change at run time')
         check_payload_pair(new)
         derived = None
@@ -87,7 +83,7 @@ class Configuration:
             if self.layout is not None and list(model.joint_names) != self.layout:
                 raise ValueError(f'the model controls {names_text(model.joint_names)}, but the command layout is '
                                  f'{names_text(self.layout)}')
-            refusal = update_refusal(new['description_update'], self.model, model)
+            refusal = update_refusal(new.description_update, self.model, model)
             if refusal:
                 raise ValueError(refusal)
             derived = derive(model, new)
@@ -95,11 +91,11 @@ class Configuration:
             place_payload(model, new, payload_link(self.settings))
         elif self.model is not None:
             derived = derive(self.model, new)
-            if payload_link(new) and any(new[k] != self.settings[k] for k in PAYLOAD_KEYS):
+            if payload_link(new) and new.differs(self.settings, PAYLOAD_KEYS):
                 place_payload(copy.deepcopy(self.model), new, payload_link(self.settings))
         elif self.layout is not None:  # gains are checked against the layout early
-            gains(new['kp'], len(self.layout), 'kp')
-            gains(new['kd'], len(self.layout), 'kd')
+            gains(new.kp, len(self.layout), 'kp')
+            gains(new.kd, len(self.layout), 'kd')
         report = None
         if model is not None:
             report = (model_changes(self.model, model) if self.model is not None else [], model.physical_consistency())
@@ -132,7 +128,7 @@ class Configuration:
         self.limits, self.friction, self.kp, self.kd = derived.limits, derived.friction, derived.kp, derived.kd
         if self.reader is not None:
             self.reader.bounds = derived.bounds
-        vt = self.settings['include_velocity_terms']
+        vt = self.settings.include_velocity_terms
         self.needs_velocity = {mode: uses_velocity(mode, self.kd, self.friction, vt) for mode in LAWS}
 
     def _install(self, model, info, report):
@@ -169,11 +165,11 @@ class Configuration:
         policy (`inertia` overrides `inertia_policy`); not made current. Raises ValueError (also
         for a strict refusal). builder: a callable with descriptions.build's signature (the
         node's build process: BuildProcess.build); None: the one this core was given."""
-        policy = check_value('inertia_policy', self.settings['inertia_policy'] if inertia is None else inertia)
+        policy = check_value('inertia_policy', self.settings.inertia_policy if inertia is None else inertia)
         # InertiaWarnings are recorded: set_model reports the model's own report once per link;
         # a model description_update refuses is refused where it is built (plan checks it again)
-        running = None if self.model is None else (self.settings['description_update'], self.model.name)
-        model, other = (builder or self.builder)(source, joints=self.layout, gravity=self.settings['gravity'],
+        running = None if self.model is None else (self.settings.description_update, self.model.name)
+        model, other = (builder or self.builder)(source, joints=self.layout, gravity=self.settings.gravity,
                                                  inertia=policy, running=running)
         for message, category, filename, lineno in other:  # other warnings are not ours to swallow
             warnings.warn_explicit(message, category, filename, lineno)

@@ -108,10 +108,10 @@ class Background:
     def precheck(self, kind, text, settings=None):
         """Why the description (kind, text) is refused before it is read, or None."""
         s = self.core.settings if settings is None else settings
-        refusal = update_refusal(s['description_update'], self.core.model)
+        refusal = update_refusal(s.description_update, self.core.model)
         if refusal:
             return refusal
-        cap = s['max_description_bytes']
+        cap = s.max_description_bytes
         if kind == 'file':
             path = resolve_path(text)
             if not os.path.isfile(path):
@@ -132,7 +132,7 @@ class Background:
         core = self.core
         s = core.settings
         source, label = open_source(kind, text)
-        caps = (kind == 'file', s['max_description_bytes'], s['max_description_links'])
+        caps = (kind == 'file', s.max_description_bytes, s.max_description_links)
         xml = read_description(source, caps) if kind == 'file' else text   # what a repeat is compared with
         keys = self.kernels(s)
         builder = (functools.partial(self.process.build, caps=caps, warm=keys) if remote
@@ -242,7 +242,7 @@ class Background:
     def _answer(self, child, seq, points):
         """(worker thread) Answer the trajectory process: the fill of the running model and
         settings, or a refusal, returned as (text, kind) for the control path to count."""
-        cap = self.core.settings['max_trajectory_points']
+        cap = self.core.settings.max_trajectory_points
         job = self.trajectory_input.job(points)
         refused = isinstance(job, Rejected)
         try:

@@ -68,13 +68,13 @@ class TrajectoryInput:
         if core.model is None:
             return Rejected('model', 'no robot model yet')
         s = core.settings
-        if not s['enabled']:
+        if not s.enabled:
             return Rejected('disabled', 'node disabled')
-        cap = s['max_trajectory_points']
+        cap = s.max_trajectory_points
         if points > cap:
             return Rejected('points', f'{points} points, more than max_trajectory_points ({cap})')
-        return TrajectoryFill(core.model, core.friction, core.limits, s['effort_limit_scale'],
-                              s['robot_compensates_gravity'])
+        return TrajectoryFill(core.model, core.friction, core.limits, s.effort_limit_scale,
+                              s.robot_compensates_gravity)
 
     def done(self, error=None, note=None, kind='malformed'):
         """Count a trajectory fill and queue its log lines: error is why it was rejected
