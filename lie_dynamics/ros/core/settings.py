@@ -197,7 +197,7 @@ def place_payload(model, s, prev_link):
 
 class Plan(NamedTuple):
     """A validated change (Compensator.plan), made current by Compensator.apply."""
-    settings: dict             # all settings after the change
+    settings: 'Settings'       # all settings after the change
     changes: dict              # the requested changes (to check again if the state moved meanwhile)
     model: Optional[object]    # a new model, already configured with `settings`; None: keep the current one
     info: str                  # where the new model comes from
