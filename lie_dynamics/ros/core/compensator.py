@@ -50,7 +50,9 @@ class Compensator(Configuration):
     `on_desired`, `tick`, `set_enabled`.
     Outputs: command arrays (None = publish nothing) and `events`, a list of
     (severity, throttle_key, text) the caller drains and logs. Totals are in `count`
-    (diagnostics.Counters), the stale state in `watchdog`.
+    (diagnostics.Counters), the stale state in `watchdog`. settings: {parameter: value} over the
+    defaults; clock: steady seconds; builder: how `load` builds a model (descriptions.build here
+    by default; the node hands its build process per load).
     """
 
     def __init__(self, settings=None, clock=time.monotonic, builder=None):
