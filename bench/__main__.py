@@ -6,7 +6,7 @@
 
 Sections (each writes its own files into DIR, default bench/out/):
   core        inverse dynamics and gravity against Pinocchio and Modern Robotics (bench/core.py)
-  lagrangian  mass matrix, Coriolis, forward dynamics, derivatives (bench/lagrangian.py, if present)
+  lagrangian  mass matrix, Coriolis, forward dynamics, derivatives (bench/lagrangian.py)
   accuracy    speed against accuracy, every method, arm and 30-joint chain (bench/accuracy.py)
   scaling     time against number of joints, chains and trees, fitted slopes (bench/scaling.py)
   stability   where methods fail: exp/log, chain length, ill-conditioned M, FD step, energy
@@ -49,10 +49,7 @@ def _core(quick, out):
 
 
 def _lagrangian(quick, out):
-    try:
-        from bench import lagrangian
-    except ImportError:
-        return 'skipped (bench/lagrangian.py not present)'
+    from bench import lagrangian
     lagrangian.run(quick=quick, out=out)
 
 
@@ -138,8 +135,8 @@ def main(argv=None):
         t0 = time.perf_counter()
         print(f'[bench] {name} ...', flush=True)
         try:
-            note = RUNNERS[name](args.quick, args.out)
-            status[name] = f'{note or "ok"} ({time.perf_counter() - t0:.0f} s)'
+            RUNNERS[name](args.quick, args.out)
+            status[name] = f'ok ({time.perf_counter() - t0:.0f} s)'
         except Exception:   # keep going: one broken section must not hide the others' results
             traceback.print_exc()
             status[name] = f'FAILED ({time.perf_counter() - t0:.0f} s)'

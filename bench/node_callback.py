@@ -2,7 +2,7 @@
 
     python -m bench.node_callback BEFORE_SRC [--rounds R] [--quick]
 
-BEFORE_SRC is the root of another checkout (as for bench.ab, whose loader imports it as
+BEFORE_SRC is the root of another checkout (as for bench.probes.ab, whose loader imports it as
 `lie_dynamics_before`). Both nodes run in one rclpy context, with real publishers (no DDS
 reader), on the bundled arm in gravity mode, with the observer on (its default) and off, and
 this tree's node once more with all four dynamics topics at every state (dynamics.publish:
@@ -20,7 +20,7 @@ import sys
 
 import numpy as np
 
-from bench.ab import load_before
+from bench.probes.ab import load_before
 from bench.common import time_interleaved
 from lie_dynamics import default_urdf_path
 

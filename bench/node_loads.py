@@ -36,7 +36,7 @@ event runs R times and each column is the median. --nice N (negative: needs the 
 runs this process and the node at that niceness, the busy loops at the usual one: on a machine
 that others load, the gaps then show the node rather than the scheduler. --node-src DIR runs
 the node of another checkout (the root that holds its lie_dynamics/), to compare before/after
-under the same conditions. --trace runs the node through bench.node_trace and adds, per event,
+under the same conditions. --trace runs the node through bench.probes.node_trace and adds, per event,
 the node's side: its longest joint_states callback (wall ms), that callback's CPU time and its
 wait for a CPU (ms), the most CPU any callback of the window used, and the longest log line.
 This is a benchmark, not a test: the numbers depend on the machine and its load.
@@ -297,7 +297,7 @@ def _event(driver, windows, name, start, done, timeout):
 
 
 def _node_side(trace, t0, t1):
-    """--trace: what the node's own callbacks and log lines did in [t0, t1] (bench.node_trace)."""
+    """--trace: what the node's own callbacks and log lines did in [t0, t1] (bench.probes.node_trace)."""
     calls = [c for c in trace['callbacks'] if t0 <= c[0] <= t1]
     lines = [w for t, w in trace['lines'] if t0 <= t <= t1]
     if not calls:
@@ -340,7 +340,7 @@ def run(raised=False, busy=0, quick=False, repeat=1, node_src=None, nice=0, trac
     trace_file = os.path.join(tmp, 'trace.json')
     if trace:
         env['LIE_DYNAMICS_NODE_TRACE'] = trace_file
-    module = 'bench.node_trace' if trace else 'lie_dynamics.dynamics_node'
+    module = 'bench.probes.node_trace' if trace else 'lie_dynamics.dynamics_node'
     proc = subprocess.Popen([sys.executable, '-m', module, '--ros-args', *params], env=env,
                             cwd=os.path.abspath(node_src) if node_src else None,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -523,7 +523,8 @@ def main(argv=None):
     ap.add_argument('--node-src', help='run the node of this checkout instead')
     ap.add_argument('--nice', type=int, default=0, help='niceness of this process and the node')
     ap.add_argument('--quick', action='store_true', help='no trajectory event')
-    ap.add_argument('--trace', action='store_true', help="the node's callbacks and log lines timed (bench.node_trace)")
+    ap.add_argument('--trace', action='store_true',
+                    help="the node's callbacks and log lines timed (bench.probes.node_trace)")
     ap.add_argument('--send-trajectory', action='store_true', help=argparse.SUPPRESS)
     ap.add_argument('--stream', action='store_true', help=argparse.SUPPRESS)
     a = ap.parse_args(argv)

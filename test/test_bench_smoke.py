@@ -119,15 +119,15 @@ def test_compare_takes_the_median_over_pairs(tmp_path, capsys):
 
 
 def test_ab_times_two_package_copies_in_one_process(tmp_path):
-    """bench.ab against this very tree: the copy is imported as a second package, agrees with
+    """bench.probes.ab against this very tree: the copy is imported as a second package, agrees with
     the original on every row, and every row gets a positive ratio (no timing threshold)."""
     import json
     import sys
 
     import lie_dynamics
-    from bench import ab
+    from bench.probes import ab
 
-    root = os.path.dirname(os.path.dirname(os.path.abspath(ab.__file__)))
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(ab.__file__))))   # this tree
     try:
         assert ab.main([root, '--quick', '--out', str(tmp_path)]) == 0
         before = sys.modules[ab.BEFORE_NAME]
@@ -173,7 +173,7 @@ def test_node_loads_trace_reports_the_node_side(tmp_path):
     from bench import node_loads
     path = tmp_path / 'trace.json'
     env = dict(os.environ, LIE_DYNAMICS_NODE_TRACE=str(path))
-    done = subprocess.run([sys.executable, '-m', 'bench.node_trace', '--help'], env=env, capture_output=True,
+    done = subprocess.run([sys.executable, '-m', 'bench.probes.node_trace', '--help'], env=env, capture_output=True,
                           text=True, timeout=120)
     assert done.returncode == 0 and 'dynamics_node' in done.stdout
     assert json.loads(path.read_text()) == {'callbacks': [], 'lines': []}
@@ -210,9 +210,9 @@ SCHED_TRACE = [
 
 
 def test_sched_trace_finds_each_wait_for_a_cpu_and_what_held_it():
-    """bench.sched_trace's analysis on a hand-written trace: the node's thread waits 4 ms behind
+    """bench.probes.sched_trace's analysis on a hand-written trace: the node's thread waits 4 ms behind
     cc1 while the other CPU idles 3.5 of them, then 0.2 ms after a preemption."""
-    from bench import sched_trace
+    from bench.probes import sched_trace
     events = list(sched_trace.parse(SCHED_TRACE))
     assert len(events) == 7 and events[2][2] == 'sched_wakeup' and events[2][5] is None
     out, tgid_of, busy = sched_trace.waits(sorted(events))
@@ -232,10 +232,10 @@ def test_sched_trace_finds_each_wait_for_a_cpu_and_what_held_it():
 
 
 def test_log_line_bench_times_both_paths():
-    """bench.log_line runs (its own process: it starts rclpy) and reports both logging paths."""
+    """bench.probes.log_line runs (its own process: it starts rclpy) and reports both logging paths."""
     import subprocess
     import sys
-    done = subprocess.run([sys.executable, '-m', 'bench.log_line', '--rounds', '1', '--lines', '3'],
+    done = subprocess.run([sys.executable, '-m', 'bench.probes.log_line', '--rounds', '1', '--lines', '3'],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     rows = [ln for ln in done.stdout.splitlines() if ln.startswith("| rclpy's Python logger |")

@@ -242,7 +242,8 @@ def test_a_stream_that_starts_at_stamp_zero_switches_time_base_quietly(model, or
 
 
 def test_motor_torque_keeps_its_documented_path():
-    """docs/node.md names lie_dynamics.ros.contact.motor_torque: the same function as the observer's."""
+    """lie_dynamics.ros.contact.motor_torque, the path docs/node.md named first, still imports: the same
+    function as the observer's."""
     from lie_dynamics.ros.contact import motor_torque as public
     assert public is motor_torque
 

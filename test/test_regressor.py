@@ -12,7 +12,8 @@ from lie_dynamics import load_urdf
 from lie_dynamics.algorithms import regressor as rg
 from lie_dynamics.codegen import runtime
 from lie_dynamics.codegen.traced.regressor import REGRESSOR
-from lie_dynamics.algorithms.regressor import inertia_to_parameters, parameters_to_inertia, physical_consistency
+from lie_dynamics.algorithms.regressor import physical_consistency
+from lie_dynamics.model.inertia import inertia_to_parameters, parameters_to_inertia
 from oracle import Oracle
 from robots import random_urdf
 

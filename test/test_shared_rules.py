@@ -8,12 +8,11 @@ import numpy as np
 import pytest
 
 from lie_dynamics import default_urdf_path, load_urdf
-from lie_dynamics.model.joint_names import joint_columns
+from lie_dynamics.model.joint_names import broadcast_joints, joint_columns
 from lie_dynamics.ros.core import settings as settings_module
 from lie_dynamics.ros.core.compensator import Compensator
 from lie_dynamics.ros.core.messages import NameMap, Rejected, read_desired
-from lie_dynamics.ros.core.params import (PARAMS, PAYLOAD_KEYS, SPECS, ParamSpec, broadcast_joints, check_value,
-                                          per_joint_values)
+from lie_dynamics.ros.core.params import PARAMS, PAYLOAD_KEYS, SPECS, ParamSpec, check_value, per_joint_values
 from lie_dynamics.ros.core.settings import Settings
 from lie_dynamics.ros.core.watchdog import Freshness, Watchdog, fresh
 from lie_dynamics.ros.features import contact, payload_service
@@ -323,8 +322,8 @@ def test_the_observer_gain_follows_the_per_joint_rule():
     """The math core's observer expands its gain by the same rule as the node's parameters."""
     from lie_dynamics import default_urdf_path, load_urdf
     from lie_dynamics.algorithms.observer import MomentumObserver
-    from lie_dynamics.model import joint_names
-    assert broadcast_joints is joint_names.broadcast_joints
+    from lie_dynamics.ros.core import params
+    assert params.broadcast_joints is broadcast_joints   # the rule per_joint_values expands by
     model = load_urdf(default_urdf_path())
     n = model.n
     for gain in (5.0, [5.0], np.full(n, 5.0)):

@@ -34,7 +34,7 @@ from .cholesky import PD_RTOL, cho_solve, cholesky
 from ..codegen import runtime
 from ..codegen.traced import aba as traced_aba
 from ..codegen.traced import cholesky as traced_cholesky
-from .lagrangian import chunks, kinematic_state
+from .common import chunks, kinematic_state
 from .rnea import external_body_wrenches
 from ..spatial import ad, transpose
 

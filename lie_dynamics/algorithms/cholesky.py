@@ -3,11 +3,10 @@ definiteness test shared by every forward-dynamics path (the generated kernels' 
 their Spec.result gives PD_RTOL to codegen.runtime.accepts)."""
 import numpy as np
 
+from ..codegen.thresholds import PD_RTOL
 from ..spatial import transpose
 
-# A pivot d_j^2 below PD_RTOL times its diagonal entry M_jj means near-dependence: a joint
-# that moves no mass of its own (massless body or chain). Blind to the scale of the masses.
-PD_RTOL = 1e-12
+__all__ = ['PD_RTOL', 'cho_solve', 'cholesky']
 
 
 def cholesky(M):

@@ -22,7 +22,7 @@ import numpy as np
 from ..codegen import runtime
 from ..codegen.traced import crba as traced
 from ..spatial import transpose
-from .lagrangian import body_matrices, kinematic_state, subtree_sum, world_inertias
+from .common import body_matrices, kinematic_state, subtree_sum, world_inertias
 
 
 def _crba(model, x):

@@ -44,17 +44,18 @@ import numpy as np
 
 from ..codegen import runtime
 from ..codegen.traced import jacobian as traced
+from ..model.link_frames import WORLD
 from ..spatial import cross
+from .common import chunks
 from .kinematics import adjoints, spatial_motion, spatial_screws, world_poses
-from .lagrangian import chunks
 
 FRAMES = traced.FRAMES
 MODES = (None, 'loop', 'rows', 'vectorized')
 
 
 def _link(model, link):
-    """(body, pose of the link in the body's URDF frame, kernel parameters or None); body -1
-    when no controlled joint moves the link."""
+    """(body, pose of the link in the body's URDF frame, kernel parameters or None); body WORLD
+    when no controlled joint moves the link (a DROPPED link too: its Jacobian is zero as well)."""
     if not isinstance(link, str) or link not in model.link_frames:
         close = difflib.get_close_matches(str(link), list(model.link_frames), n=3)
         hint = f"; did you mean {', '.join(repr(c) for c in close)}?" if close else \
@@ -62,13 +63,13 @@ def _link(model, link):
         raise ValueError(f'unknown link {link!r}{hint}')
     b, T = model.link_frames[link]
     if b < 0:
-        return -1, None, None
+        return WORLD, None, None
     fr = runtime.frames(model)
     return b, T, (fr.point_params(b, T) if fr.supported else None)
 
 
 def target(model, link, frame, point):
-    """Validated (body, T, X, p): the link's body (-1: no controlled joint moves it), its pose T
+    """Validated (body, T, X, p): the link's body (WORLD: no controlled joint moves it), its pose T
     (4x4) in the body's URDF frame, the target frame's 12 kernel parameters X (None without a
     kernel) and the point as 3 floats (None: the link frame's origin)."""
     if frame not in FRAMES:
@@ -130,7 +131,7 @@ def _call(model, kind, states, link, frame, point, mode):
             return r
     arrays, single = model.validate(('q', 'qd')[:len(states)], states)
     N = len(arrays[0])
-    if b < 0:
+    if b == WORLD:
         out = np.zeros((N,) + shape)
     else:
         out = _evaluate(model, kind, frame, b, T, X, p, arrays, mode)

@@ -28,9 +28,9 @@ import numpy as np
 
 from ..codegen import runtime
 from ..codegen.traced import regressor as traced
-from ..model.inertia import PARAMETER_NAMES, inertia_to_parameters, parameter_consistency, parameters_to_inertia  # noqa: F401
+from ..model.inertia import inertia_to_parameters, parameter_consistency, parameters_to_inertia
 from ..spatial import ad, cross, hat3, transpose
-from .lagrangian import body_constants, chunks, kinematic_state
+from .common import body_constants, chunks, kinematic_state
 
 # L(u): I u = L(u) iota, iota = (xx, xy, yy, xz, yz, zz); entry (row, col) <- u[idx]
 _L_ROW = np.array([0, 0, 0, 1, 1, 1, 2, 2, 2])

@@ -20,8 +20,8 @@ import numpy as np
 
 from ..codegen import runtime
 from ..codegen.traced import rnea as traced
+from .common import chunks
 from .kinematics import adjoints, spatial_motion, spatial_screws, world_poses
-from .lagrangian import chunks
 from ..spatial import ad, Ad_inv
 
 # Vectorised path: floats of work per state, so that chunks of 512 states keep the

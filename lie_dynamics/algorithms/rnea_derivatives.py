@@ -36,8 +36,8 @@ import numpy as np
 from ..codegen import runtime
 from ..codegen.traced import derivatives as traced
 from ..spatial import ad, transpose
+from .common import body_constants, chunks, kinematic_state, subtree_sum, to_joints_mat, world_inertias
 from .rnea import external_body_wrenches
-from .lagrangian import body_constants, chunks, kinematic_state, subtree_sum, to_joints_mat, world_inertias
 
 
 def _mv(M, v):

@@ -25,7 +25,7 @@ import weakref
 import numpy as np
 
 from . import native as _native
-from .thresholds import THRESHOLDS, Limits  # noqa: F401 (Limits: part of this module's interface)
+from .thresholds import THRESHOLDS
 from .frames import Frames
 from .kernel import Kernel, builds as _kernel_builds
 

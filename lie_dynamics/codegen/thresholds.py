@@ -1,8 +1,15 @@
-"""THRESHOLDS: every size threshold of the generated kernels, with the measurement that chose it.
+"""THRESHOLDS: every size threshold of the generated kernels, with the measurement that chose it;
+PD_RTOL: the positive-definiteness tolerance every forward-dynamics path shares.
 
 runtime.py routes by it (runtime.route) and re-exports it: `runtime.THRESHOLDS` is this dict.
 """
 from typing import NamedTuple
+
+# A pivot d_j^2 below PD_RTOL times its diagonal entry M_jj means near-dependence: a joint
+# that moves no mass of its own (massless body or chain). Blind to the scale of the masses.
+# Here, below the algorithms, because the generated kernels' results are checked with it too
+# (their Spec.result gives it to runtime.accepts); algorithms/cholesky.py re-exports it.
+PD_RTOL = 1e-12
 
 
 class Limits(NamedTuple):

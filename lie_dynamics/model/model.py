@@ -20,6 +20,7 @@ from ..codegen import runtime
 from ..algorithms import aba, aba_derivatives, crba, jacobian, kinematics, lagrangian, regressor, rnea, rnea_derivatives
 from .inertia import RTOL, link_inertia, violations
 from .inertia import inertia_scale as scale_of  # the constructor's argument has the plain name
+from .link_frames import DROPPED, WORLD
 from ..spatial import exp6, hat3
 
 
@@ -93,7 +94,7 @@ class Model:
                  folded_bodies=(), gravity=(0.0, 0.0, -9.81), inertia_scale=None, body_link_names=None,
                  inertia_report=()):
         """Built by urdf.load_urdf. link_frames: link -> (kind, index, T) with kind 'kept' (index:
-        body, -1 the world), 'folded' (index into folded_bodies) or 'dropped'; T the link's pose in
+        body, WORLD the world), 'folded' (index into folded_bodies) or 'dropped'; T the link's pose in
         that frame. link_inertias: link -> (mass, CoM, inertia about the CoM) in the link frame.
         folded_bodies: locked bodies folded into a parent's inertia (parents first), dicts with
         parent ('kept' | 'folded', index), M, S, column (locked joint), multiplier, offset.
@@ -238,7 +239,7 @@ class Model:
                 fb, X = folded[b]
                 frames[link] = (fb, _frozen(X @ T))
             else:
-                frames[link] = (b if kind == 'kept' else -2, _frozen(T))
+                frames[link] = (b if kind == 'kept' else DROPPED, _frozen(T))
         self.link_frames = frames
         if self._J_override is not None:
             self.J_links = self._J_override
@@ -426,9 +427,9 @@ class Model:
         if link not in self.link_frames:
             raise ValueError(f"unknown link '{link}'")
         b, T = self.link_frames[link]
-        if b == -2:
+        if b == DROPPED:
             raise ValueError(f"link '{link}' is not modelled (it cannot influence the controlled joints)")
-        if b == -1:
+        if b == WORLD:
             return T.copy() if np.ndim(q) == 1 else np.broadcast_to(T, (len(q), 4, 4)).copy()
         return self.forward_kinematics(q)[..., b, :, :] @ T
 

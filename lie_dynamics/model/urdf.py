@@ -19,6 +19,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from .inertia import InertiaWarning, RTOL, check_policy, inertia_scale, link_inertia, repair, violations
+from .link_frames import DROPPED, WORLD
 from .model import Model
 
 MOVABLE = ('revolute', 'continuous', 'prismatic')
@@ -194,9 +195,9 @@ def _graph(robot):
 
 def _walk(links, root, children, as_fixed=()):
     """Depth-first walk (a joint's subtree before its next sibling). Returns the links in walk
-    order, link -> (body, pose in that body's frame) with body -1 the world, and the bodies
+    order, link -> (body, pose in that body's frame) with body WORLD the world, and the bodies
     (one per movable or free joint not in `as_fixed`, parents first)."""
-    link_body = {root: (-1, np.eye(4))}
+    link_body = {root: (WORLD, np.eye(4))}
     bodies, order, stack, seen = [], [], [(root, None)], set()
     while stack:
         name, j = stack.pop()
@@ -415,19 +416,19 @@ def load_urdf(source, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn'):
     # Every link hangs from a kept body (its inertia is part of J), a folded body, the world
     # or a dropped body (neither changes a controlled torque: not checked, not modelled).
     link_inertias, link_frames, link_home = {}, {}, {}
-    home = {-1: np.eye(4)}
+    home = {WORLD: np.eye(4)}
     for i, bd in enumerate(bodies):
         home[i] = home[bd['parent']] @ bd['M']
     for name in order:
         b, T = link_body[name]
-        if b < 0:
-            link_frames[name] = ('kept', -1, T)
+        if b == WORLD:
+            link_frames[name] = ('kept', WORLD, T)
         elif keep[b]:
             link_frames[name] = ('kept', int(new_index[b]), T)
         elif fold[b]:
             link_frames[name] = ('folded', fold_index[b], T)
         else:
-            link_frames[name] = ('dropped', -2, T)
+            link_frames[name] = ('dropped', DROPPED, T)
         mic = _link_inertia(links[name])
         if mic is not None and b >= 0 and (keep[b] or fold[b]):
             link_inertias[name] = mic

@@ -1,2 +1,5 @@
-"""The documented path of `motor_torque` (docs/node.md); the observer lives in features/contact.py."""
-from .features.contact import motor_torque  # noqa: F401
+"""`lie_dynamics.ros.contact.motor_torque`: the path docs/node.md gave before the function moved to
+ros/features/contact.py (where the docs point now), kept importable: code outside the package may use it."""
+from .features.contact import motor_torque
+
+__all__ = ['motor_torque']

@@ -4,9 +4,10 @@ Every stepper has the signature step(model, q, qd, dt, tau=None, damping=None) -
 the applied torque tau - damping * qd is re-evaluated wherever the method needs a force.
 
 * explicit_euler:       q += dt qd,  qd += dt qdd(q, qd)                  (order 1, energy grows)
-* semi_implicit_euler:  qd += dt qdd(q, qd),  q += dt qd_new              (order 1; sim.py's
-  default. Symplectic only for a constant M: with M(q) the energy drifts, in the benchmark's
-  undamped free fall faster than with explicit Euler)
+* semi_implicit_euler:  qd += dt qdd(q, qd),  q += dt qd_new              (order 1; ArmSim's
+  default, which arm.py steps inline to add an external wrench. Symplectic only for a constant
+  M: with M(q) the energy drifts, in bench/stability.py's undamped free fall faster than with
+  explicit Euler)
 * rk4:                  classical Runge-Kutta on (q, qd)                   (order 4, not symplectic:
   a slow energy drift remains)
 * lie_midpoint:         the implicit midpoint rule in canonical coordinates (q, p = M(q) qd) on

@@ -43,6 +43,7 @@ from ..ros.run import node_parser, run
 from ..ros.core.cdr import stamp_parts
 from ..ros.core.settings import Values
 from .arm import ArmSim
+from ..model.joint_names import broadcast_joints
 from ..model.urdf import load_urdf
 
 DESCRIPTION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -119,10 +120,10 @@ class SimNode(Node):
         except OSError as exc:
             raise ValueError(f'urdf_path {urdf_path!r}: {exc.strerror or exc}') from None
         model = load_urdf(self.xml, joints=[j for j in joints if j] or None)
-        if len(q0) == 1 and model.n != 1:
-            q0 = q0 * model.n
-        if len(q0) != model.n:
-            raise ValueError(f'initial_positions needs {model.n} values, got {len(q0)}')
+        q = broadcast_joints(q0, model.n)
+        if q is None:
+            raise ValueError(f'initial_positions needs {model.n} values, got {len(q0)} (or one for every joint)')
+        q0 = q
         if v.payload.link or v.payload.mass:  # simulated, never published: the controller must find it
             model.set_payload(v.payload.link, v.payload.mass, list(v.payload.com), list(v.payload.inertia))
         self.sim = ArmSim(model, dt=1.0 / rate, q0=q0, damping=damping)

@@ -19,7 +19,7 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from ..ros.core.cdr import stamp_ns
-from ..ros.core.params import broadcast_joints
+from ..model.joint_names import broadcast_joints
 from ..ros.core.settings import Values
 from ..ros.run import node_parser, run
 

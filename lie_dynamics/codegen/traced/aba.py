@@ -16,8 +16,8 @@ import numpy as np
 from .. import algebra as la
 from .. import runtime
 from ..kernel import Trace
-from ...algorithms.cholesky import PD_RTOL
 from ..runtime import Spec
+from ..thresholds import PD_RTOL
 from ..tracer import SNAP, Graph, Sym, snap
 from ...spatial import hat3
 

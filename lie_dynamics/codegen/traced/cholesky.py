@@ -7,8 +7,8 @@ with the pivots d_j^2 and diag(M): callers test positive definiteness with them
 (algorithms/cholesky.py), blind to the scale of the masses.
 """
 from ..kernel import Trace
-from ...algorithms.cholesky import PD_RTOL
 from ..runtime import Spec
+from ..thresholds import PD_RTOL
 from ..tracer import Graph
 from .crba import trace_mass_matrix
 from .rnea import trace_inverse_dynamics, trig

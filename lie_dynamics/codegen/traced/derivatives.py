@@ -2,8 +2,8 @@
 and algorithms/aba_derivatives.py)."""
 from .. import algebra as la
 from ..kernel import Trace
-from ...algorithms.cholesky import PD_RTOL
 from ..runtime import Spec
+from ..thresholds import PD_RTOL
 from ..tracer import Graph
 from .cholesky import trace_cho_solve, trace_forward_dynamics, trace_inputs
 

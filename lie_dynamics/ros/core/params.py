@@ -14,7 +14,7 @@ import numpy as np
 
 # MODES: the torque laws (lie_dynamics.laws). Every mode but `gravity` needs the desired-state stream.
 from ...laws import COULOMB_VELOCITY_EPSILON, MODES
-from ...model.joint_names import broadcast_joints  # noqa: F401 - the expansion rule, used by per_joint_values and re-exported
+from ...model.joint_names import broadcast_joints
 from .diagnostics import clip
 
 STALE_ACTIONS = ('hold_gravity_at_last_state', 'zero')

@@ -7,7 +7,7 @@ those, how many had another CPU idle for at least half of the wait (the waiting 
 run at once: the kernel kept it behind the task on its own CPU). The longest waits are listed
 with what held the CPU and how long the other CPUs idled.
 
-    python -m bench.sched_trace [--raised] [--repeat R] [--quick] [--node-src DIR] [--out DIR]
+    python -m bench.probes.sched_trace [--raised] [--repeat R] [--quick] [--node-src DIR] [--out DIR]
 
 Needs root and tracefs (/sys/kernel/tracing; mounted here if it is not). Prints the kernel's tick
 rate and preemption model where /proc/config.gz says them, node_loads' table, then the waits;
@@ -34,7 +34,7 @@ TRACEFS = '/sys/kernel/tracing'
 EVENTS = ('sched/sched_switch', 'sched/sched_wakeup')
 BUFFER_KB = 200_000   # per CPU: a whole node_loads run at 500 Hz holds about 1.5 M events
 LONG_S = 1e-3         # a wait this long or longer is a long one
-ROLES = (('lie_dynamics.dynamics_node', 'node'), ('bench.node_trace', 'node'), ('--stream', 'streaming process'),
+ROLES = (('lie_dynamics.dynamics_node', 'node'), ('bench.probes.node_trace', 'node'), ('--stream', 'streaming process'),
          ('build_process', 'build process'), ('trajectory_process', 'trajectory process'),
          ('--send-trajectory', 'trajectory sender'))
 
@@ -246,14 +246,14 @@ def chart(rows, path):
     ax.set_yscale('log')
     ax.set_xlabel('wait from runnable to running (ms)')
     ax.set_ylabel('share of waits at least this long')
-    ax.set_title('bench.sched_trace: waits for a CPU during bench.node_loads')
+    ax.set_title('bench.probes.sched_trace: waits for a CPU during bench.node_loads')
     ax.legend()
     fig.tight_layout()
     savefig(fig, path)
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(prog='python -m bench.sched_trace', description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m bench.probes.sched_trace', description=__doc__.split('\n')[0])
     ap.add_argument('--raised', action='store_true', help='caps raised (node_loads --raised)')
     ap.add_argument('--repeat', type=int, default=1, help='runs of each event (node_loads --repeat)')
     ap.add_argument('--quick', action='store_true', help='no trajectory event')
@@ -264,7 +264,7 @@ def main(argv=None):
     try:
         rec = Recorder()
     except (RuntimeError, OSError) as exc:
-        print(f'bench.sched_trace: {exc}', file=sys.stderr)
+        print(f'bench.probes.sched_trace: {exc}', file=sys.stderr)
         return 2
     os.makedirs(a.out, exist_ok=True)
     found, stop = {}, threading.Event()

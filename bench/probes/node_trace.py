@@ -1,6 +1,6 @@
 """The dynamics node with its joint_states callback timed, for bench.node_loads --trace.
 
-    LIE_DYNAMICS_NODE_TRACE=FILE python -m bench.node_trace --ros-args ...
+    LIE_DYNAMICS_NODE_TRACE=FILE python -m bench.probes.node_trace --ros-args ...
 
 Runs `lie_dynamics.dynamics_node` unchanged but for a wrapper around each joint_states callback
 that records, per call, its start (time.monotonic), its wall time, its thread's CPU time and the

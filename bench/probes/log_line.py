@@ -2,7 +2,7 @@
 node's own path (Outputs.log_line: rclpy's C logging call), timed in the same process in
 interleaved rounds; both write the same console line and /rosout record.
 
-    python -m bench.log_line [--rounds R] [--lines N]
+    python -m bench.probes.log_line [--rounds R] [--lines N]
 
 Console output goes to /dev/null while timing (a terminal would add its own cost to both).
 Prints medians and p90 per line and their ratio. A benchmark, not a test.
@@ -65,7 +65,7 @@ def markdown(rows):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(prog='python -m bench.log_line', description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m bench.probes.log_line', description=__doc__.split('\n')[0])
     ap.add_argument('--rounds', type=int, default=5)
     ap.add_argument('--lines', type=int, default=200, help='lines per path per round')
     a = ap.parse_args(argv)

@@ -1,6 +1,6 @@
 """In-process before/after benchmark: the old and the new lie_dynamics timed in the same rounds.
 
-    python -m bench.ab BEFORE_SRC [--rounds R] [--quick] [--out DIR] [--threshold 5]
+    python -m bench.probes.ab BEFORE_SRC [--rounds R] [--quick] [--out DIR] [--threshold 5]
 
 Why. `python -m bench.compare` pairs two separate benchmark runs, one per checkout. On a
 shared 2-core machine the load changes between those runs, so even unchanged code moves by
@@ -14,7 +14,7 @@ compares calls made milliseconds apart.
 Typical use, comparing the working tree against a commit:
 
     git worktree add /tmp/before <commit>
-    python -m bench.ab /tmp/before [--quick]
+    python -m bench.probes.ab /tmp/before [--quick]
     git worktree remove /tmp/before
 
 Rows: on the bundled arm every public call that exists in both versions (inverse dynamics,
@@ -56,9 +56,7 @@ import numpy as np  # noqa: E402
 
 import lie_dynamics as after_pkg  # noqa: E402
 from bench import common  # noqa: E402
-
-HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
+from bench.common import HERE, ROOT  # noqa: E402  (bench/ and the repository root)
 BEFORE_NAME = 'lie_dynamics_before'
 VERSIONS = ('before', 'after', 'pinocchio')
 TARGET = 0.0025          # seconds per sample: calibrate doubles the repeat count up to 2.5-5 ms
@@ -360,7 +358,7 @@ def write(result, out):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(prog='python -m bench.ab', description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m bench.probes.ab', description=__doc__.split('\n')[0])
     ap.add_argument('before', metavar='BEFORE_SRC', help='root of the other checkout (holds lie_dynamics/)')
     ap.add_argument('--rounds', type=int, help=f'interleaved rounds per row (default {ROUNDS}, quick {ROUNDS_QUICK})')
     ap.add_argument('--quick', action='store_true', help='few rounds and rows (a smoke test)')

@@ -2,7 +2,7 @@
 thread, before) or in the build process (after: it compiles them into the disk cache and the
 node only loads them).
 
-    python -m bench.kernel_warm_up [--joints 7,14] [--rounds 3]
+    python -m bench.probes.kernel_warm_up [--joints 7,14] [--rounds 3]
 
 For each round and size, two random chains no cache has seen (a temporary cache folder,
 removed at the end): "in the node" runs models.warm_up (the gravity and inverse-dynamics
@@ -69,7 +69,7 @@ def markdown(rows):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(prog='python -m bench.kernel_warm_up', description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m bench.probes.kernel_warm_up', description=__doc__.split('\n')[0])
     ap.add_argument('--joints', default='7,14', help='chain sizes, comma-separated')
     ap.add_argument('--rounds', type=int, default=3)
     a = ap.parse_args(argv)
