@@ -17,6 +17,7 @@ from lie_dynamics.ros.features.contact import (MAX_GAP_S, ContactMonitor, Deboun
                                       thresholds)
 from lie_dynamics.ros.core.diagnostics import OK, WARN
 from lie_dynamics.ros.core.params import check_value, defaults
+from lie_dynamics.ros.core.sample import SampleResult
 from oracle import Oracle
 
 XML = open(default_urdf_path()).read()
@@ -61,8 +62,17 @@ def feed(mon, oracle, k, ext=None, effort=None, velocity=None, stamp=None):
     q, qd, qdd = motion(k * DT)
     if effort is None:
         effort = oracle.rnea(q, qd, qdd) - (0.0 if ext is None else ext)
-    return mon.on_state(np.arange(7), q, qd if velocity is None else velocity, effort,
-                        k * MS + 5 * 10 ** 18 if stamp is None else stamp)
+    return mon.on_sample(accepted(mon, q, qd if velocity is None else velocity, effort,
+                                  k * MS + 5 * 10 ** 18 if stamp is None else stamp))
+
+
+def accepted(mon, q, velocity, effort, stamp, columns=None):
+    """The core's SampleResult of a joint_states message with these arrays (message order:
+    `columns` maps them to model order; default the same order), as ContactTopics hands it on."""
+    q = np.array(q, dtype=float)
+    columns = np.arange(len(q)) if columns is None else columns
+    return SampleResult.accept(stamp, q, mon.model, mon.layout, columns, np.asarray(velocity, dtype=float),
+                               np.asarray(effort, dtype=float))
 
 
 def test_motor_torque_conventions(model, oracle):
@@ -298,14 +308,14 @@ def test_monitor_equals_the_reference_observer_step_by_step(name, monkeypatch):
         effort[idx], velocity[idx] = tau, qd     # message order: column idx[j] holds joint j
         if k == 120:
             effort[idx[2]] = math.nan
-            assert mon.on_state(idx, q, velocity, effort, stamp) is None
+            assert mon.on_sample(accepted(mon, q, velocity, effort, stamp, idx)) is None
             assert mon.state == f"paused: non-finite effort for ['{joints[2]}']"
             ref.reset()
             flags.reset()
             continue
         if k == 200:
             ref.reset()                          # the gap: the monitor restarts with this sample
-        r, flag = mon.on_state(idx, q, velocity, effort, stamp)
+        r, flag = mon.on_sample(accepted(mon, q, velocity, effort, stamp, idx))
         expect = ref.advance(t, *ref.momentum_terms(q, qd, tau))
         scale = max(1.0, np.abs(expect).max())
         assert np.abs(r - expect).max() <= 1e-9 * scale, k

@@ -207,8 +207,8 @@ def test_trajectory_fill_with_the_shipped_feedforward_config(ros):
         'velocities given for some points only': bad(p=lambda m: setattr(m.points[2], 'velocities', [])),
         'times must increase strictly': bad(p=lambda m: setattr(m.points[4], 'time_from_start',
                                                                 m.points[3].time_from_start)),
-        'duplicates': bad(joint_names=joints[:6] + ['joint1']),
-        "lacks controlled joints ['joint7']": bad(joint_names=joints[:6] + ['finger']),
+        'trajectory rejected: duplicate joint names': bad(joint_names=joints[:6] + ['joint1']),
+        "trajectory rejected: missing controlled joints ['joint7']": bad(joint_names=joints[:6] + ['finger']),
         'non-finite value at point 1': bad(p=lambda m: setattr(m.points[1], 'positions', [math.nan] * 7)),
     }
     for why, m in cases.items():

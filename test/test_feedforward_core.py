@@ -294,8 +294,8 @@ def test_bad_trajectories_are_rejected_with_a_reason(arm):
         'velocities given for some points only': (joints, pts()[:3] + [point(q[3], t=t[3])] + pts()[4:]),
         'point 1 has 3 accelerations': (joints, [pts()[0], point(q[1], qd[1], [0.0] * 3, t=t[1])] + pts()[2:]),
         'times must increase strictly': (joints, pts()[:2] + [point(q[2], qd[2], t=t[1])] + pts()[3:]),
-        'duplicates': (joints[:6] + [joints[0]], pts()),
-        "lacks controlled joints ['joint7']": (joints[:6] + ['finger'], pts()),
+        'trajectory rejected: duplicate joint names': (joints[:6] + [joints[0]], pts()),
+        "trajectory rejected: missing controlled joints ['joint7']": (joints[:6] + ['finger'], pts()),
         'non-finite value at point 4': (joints, pts()[:4] + [point(list(q[4][:6]) + [math.inf], qd[4], t=t[4])]),
     }
     for k, (why, (names, points)) in enumerate(cases.items()):

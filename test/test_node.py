@@ -121,7 +121,7 @@ class Harness:
     def diag_level(self):
         return None if self.diag is None else self.diag.level[0]
 
-    def start(self, wait_model=True, params_file=None, **params):
+    def start(self, wait_model=True, params_file=None, features=None, **params):
         params.setdefault('stale_timeout', 60.0)
         if params_file is None:  # out of the way unless a test is about them (random URDF limits are narrow)
             params.setdefault('friction.viscous', [0.0])
@@ -130,7 +130,8 @@ class Harness:
             params.setdefault('position_margin', 1000.0)
         overrides = [Parameter(k, value=v) for k, v in params.items()]
         cli = ['--ros-args', '--params-file', str(params_file)] if params_file else None
-        self.node = DynamicsNode(context=self.ctx, parameter_overrides=overrides, cli_args=cli)
+        extra = {} if features is None else {'features': features}   # default: the node's FEATURES
+        self.node = DynamicsNode(context=self.ctx, parameter_overrides=overrides, cli_args=cli, **extra)
         self.ex.add_node(self.node)
         wait_until(lambda: self.js_pub.get_subscription_count() >= 1 and self.t.count_publishers(CMD) >= 1,
                    what='discovery')

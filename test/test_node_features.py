@@ -4,6 +4,7 @@ once, in order, after its command, and no rejected one, across a model version c
 model swap from a new robot_description; and the plain-Python pieces the node's shell uses
 (core/sample.py, core/log.py, loading/parameter_change.py) without ROS."""
 import os
+import pickle
 import re
 import threading
 import time
@@ -267,14 +268,99 @@ def test_a_feature_turned_on_at_run_time_gets_its_kernels_built_off_the_control_
 
 def test_features_name_the_kernels_they_call(node_in_context):
     """Feature.kernels: what loading/models.warm_up runs for every new model, per the settings."""
+    from lie_dynamics.ros.features.contact import warm_observer
+    from lie_dynamics.ros.features.payload_service import warm_fit
+    from lie_dynamics.ros.loading.models import at_rest, jacobian_at_rest
     node = node_in_context[0]
     s = dict(node.core.settings)
-    assert node.features.kernels(s) == (('observer',),)   # the defaults: the observer only
+    assert node.features.kernels(s) == ((warm_observer,),)   # the defaults: the observer only
     s.update({'observer.enabled': False, 'dynamics.publish': ['mass_matrix', 'jacobian'], 'identify.link': 'tool0'})
-    assert set(node.features.kernels(s)) == {('mass_matrix',), ('jacobian', None, s['dynamics.jacobian_frame']),
-                                             ('identification',)}
+    calls = node.features.kernels(s)
+    assert set(calls) == {(at_rest, 'mass_matrix'), (jacobian_at_rest, '', s['dynamics.jacobian_frame']), (warm_fit,)}
+    assert pickle.loads(pickle.dumps(calls)) == calls   # as they travel to the build process
     s.update({'identify.link': '', 'measured_effort': 'none', 'observer.enabled': True, 'dynamics.publish': []})
     assert node.features.kernels(s) == ()
+
+
+WARMED = []   # models the test feature's own warm-up call ran on (in the node's process)
+
+
+def _count_warm(model):
+    """A feature's own warm-up call. This test module is not on the build process's path: there
+    the call is skipped (models.portable), and the build goes on."""
+    WARMED.append(model)
+
+
+def test_a_new_feature_is_one_class_and_one_registration_line():
+    """A per-sample feature written here, registered with one line (the node's `features`: its
+    FEATURES and this class), runs on a real node over DDS: refuses a setting on set, warms its
+    kernels with each new model (also one built in the build process), gets each accepted state
+    in model order, says a line through the one queue and adds its part to the diagnostics.
+    Nothing else in the node changes."""
+    pytest.importorskip('rclpy')
+    from lie_dynamics import load_urdf
+    from lie_dynamics.ros.features.base import Feature
+    from lie_dynamics.ros.loading.models import at_rest
+    from lie_dynamics.ros.node import FEATURES
+    from std_msgs.msg import String
+    from test_node import MODEL_TIMEOUT, Harness, wait_until
+
+    class PeakEffort(Feature):
+        """The largest |effort| measured so far, with its joint."""
+        name = 'peak_effort'
+
+        def __init__(self, node):
+            super().__init__()
+            self.peak, self.joint, self.samples = 0.0, '', 0
+
+        def check(self, settings, model):
+            if settings['dynamics.link'] == 'link3':   # a link the node itself takes
+                raise ValueError('peak_effort refuses this link')
+
+        def kernels(self, settings):
+            return ((at_rest, 'mass_matrix'), (_count_warm,))
+
+        def configure(self, settings, model, derived):
+            self.active = model is not None
+
+        def on_sample(self, s):
+            self.samples += 1
+            e = np.abs(s.effort)
+            k = int(np.argmax(e))
+            if e[k] > self.peak:
+                self.peak, self.joint = float(e[k]), s.names[k]
+                self.events.append(('info', 'peak_effort', f'new peak effort {self.peak:g} N m at {self.joint}'))
+
+        def report(self, level, message):
+            return level, message, [('peak_effort', f'{self.peak:g}'), ('peak_effort_joint', self.joint)]
+
+    ros = Harness()
+    try:
+        WARMED.clear()
+        with open(default_urdf_path()) as fh:
+            xml = fh.read()
+        node = ros.start(robot_description=xml, diagnostics_period=0.2,
+                         features=FEATURES + (PeakEffort,))   # the one registration line
+        feature = node.features.get('peak_effort')
+        assert WARMED and WARMED[-1] is node.core.model      # warmed with the model it was built for
+        result = ros.set_params(**{'dynamics.link': 'link3'})[0]
+        assert not result.successful and 'peak_effort refuses this link' in result.reason
+        efforts = np.array([0.5, -3.0, 1.0, 2.5, 0.0, -0.1, 0.2])
+        order = JOINTS[::-1]   # message order: the feature sees model order
+        ros.publish_processed(order, Q[::-1], np.zeros(7), efforts[::-1])
+        wait_until(lambda: feature.samples >= 1, what='a sample')
+        assert feature.peak == 3.0 and feature.joint == 'joint2'
+        wait_until(lambda: any('new peak effort 3 N m at joint2' in line for line in ros.logs), what='its log line')
+        wait_until(lambda: ros.diag_values().get('peak_effort') == '3', what='its diagnostics')
+        assert ros.diag_values()['peak_effort_joint'] == 'joint2'
+        # a new description, built in the build process (which cannot import this module)
+        first, warmed = node.core.model, len(WARMED)
+        ros.desc_pub.publish(String(data=heavier(xml, 2.0)))
+        wait_until(lambda: node.core.model is not first, timeout=MODEL_TIMEOUT, what='the new model')
+        assert len(WARMED) > warmed and WARMED[-1] is node.core.model
+        assert np.allclose(node.core.model.mass_matrix(Q), load_urdf(heavier(xml, 2.0)).mass_matrix(Q))
+    finally:
+        ros.close()
 
 
 # ---------------------------------------------------------------------- the core pieces, without ROS

@@ -255,3 +255,56 @@ def test_identify_static_poses_gives_a_point_mass(ros, xml):
     assert node.get_parameter('payload.mass').value == pytest.approx(MASS, rel=1e-6)
     assert np.allclose(node.get_parameter('payload.com').value, COM, atol=1e-6)
     assert len(node.get_parameter('payload.inertia').value) == 0
+
+
+def test_one_payload_rule_three_ways(ros, xml):
+    """The same payloads through ~/set_payload, a parameter set of payload.* over DDS (the
+    node's parameter services, as `ros2 param set` uses them) and Model.set_payload: the same
+    answer each way (Model.check_payload is the one rule). A link that no controlled joint
+    moves was refused by the service and taken by the parameters before."""
+    from rclpy.parameter_client import AsyncParameterClient
+    ros.start(robot_description=xml)
+    params = AsyncParameterClient(ros.t, '/dynamics_node')
+    assert params.wait_for_services(timeout_sec=TIMEOUT)
+    bad_inertia = [1e-3, 0.0, 0.0, 1e-3, 0.0, 1e-2]   # triangle inequality
+    cases = [('hand', MASS, COM, INERTIA, True),
+             ('base_link', MASS, COM, INERTIA, False),     # fixed to the world: changes no torque
+             ('no_link', MASS, COM, INERTIA, False),
+             ('hand', MASS, COM, bad_inertia, False),
+             ('hand', -1.0, COM, INERTIA, False),
+             ('link3', 0.4, [0.0, 0.0, 0.1], INERTIA, True)]
+
+    def by_service(link, mass, com, inertia):
+        fut = call_async(ros, SetParametersAtomically, '/dynamics_node/set_payload',
+                         _request(payload__link=link, payload__mass=mass, payload__com=com, payload__inertia=inertia))
+        wait_until(fut.done, what='set_payload')
+        return fut.result().result.successful
+
+    def by_parameters(link, mass, com, inertia):
+        fut = params.set_parameters_atomically([
+            Parameter('payload.link', value=link), Parameter('payload.mass', value=float(mass)),
+            Parameter('payload.com', value=[float(v) for v in com]),
+            Parameter('payload.inertia', value=[float(v) for v in inertia])])
+        wait_until(fut.done, what='set_parameters_atomically')
+        return fut.result().result.successful
+
+    def by_model(link, mass, com, inertia):
+        try:
+            load_urdf(xml).set_payload(link, mass, com, inertia)
+        except ValueError:
+            return False
+        return True
+
+    for link, mass, com, inertia, expected in cases:
+        answers = [way(link, mass, com, inertia) for way in (by_service, by_parameters, by_model)]
+        assert answers == [expected] * 3, (link, mass, inertia, answers)
+    # `ros2 param set payload.link <link>` alone, on the payload set last: the same rule
+    for link, expected in (('base_link', False), ('hand', True)):
+        fut = params.set_parameters([Parameter('payload.link', value=link)])
+        wait_until(fut.done, what='set_parameters')
+        assert fut.result().results[0].successful == expected == by_model(link, 0.4, [0.0, 0.0, 0.1], INERTIA), link
+    node = ros.node
+    assert node.get_parameter('payload.link').value == 'hand' and node.get_parameter('payload.mass').value == 0.4
+    q = np.linspace(0.2, -0.4, 7)
+    ref = Oracle(with_payload(xml, 'hand', 0.4, [0.0, 0.0, 0.1], INERTIA), joints=JOINTS).gravity(q)
+    np.testing.assert_allclose(ros.send(JOINTS, q), ref, atol=TOL, rtol=0)

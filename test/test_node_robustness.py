@@ -2,6 +2,7 @@
 test_node.py): model swaps without a gap in the replies, loads that do not pile up, large
 trajectories off the control path, bounded logs and diagnostics under spam, the service queue,
 shutdown during a load."""
+import math
 import os
 import re
 import threading
@@ -186,6 +187,70 @@ def test_logs_and_diagnostics_stay_bounded_under_spam(ros):
     assert node.core.count.rejected > 0 and len(node.core.last_error) <= DIAG_TEXT_MAX
     wait_until(lambda: ros.diag is not None and len(ros.diag_values().get('last_error', '')) > 0, what='diagnostics')
     assert all(len(kv.value) <= DIAG_TEXT_MAX for kv in ros.diag.values) and len(ros.diag.message) <= DIAG_TEXT_MAX
+    assert ros.call(SetBool, '/dynamics_node/set_enabled', SetBool.Request(data=True)).success
+    np.testing.assert_allclose(ros.send(JOINTS, Q), load_urdf(ARM).gravity(Q), atol=1e-9)
+
+
+def _busiest_second(records):
+    """The most node lines whose /rosout stamps fall within any 0.99 s (stamps are taken just
+    after the node's own clock decides a line may go: a hair of slack)."""
+    t = sorted(r.stamp.sec + 1e-9 * r.stamp.nanosec for r in records)
+    return max((sum(1 for u in t[k:] if u - s < 0.99) for k, s in enumerate(t)), default=0)
+
+
+def test_each_bad_input_class_logs_at_most_five_lines_a_second(ros):
+    """A flood of each kind of bad input, one after the other, each longer than a throttle
+    period and touching several problem classes at once: the node's /rosout never carries more
+    than LOG_LINES_PER_S (5) lines in a second (a malformed desired-state campaign logged 7), and
+    each flood is still said."""
+    from lie_dynamics.ros.core.log import LOG_LINES_PER_S
+    assert LOG_LINES_PER_S == 5
+    node = ros.start(robot_description=ARM)
+    desired = ros.t.create_publisher(JointTrajectory, '/dynamics_node/desired', 10)
+    traj = ros.t.create_publisher(JointTrajectory, '/dynamics_node/trajectory_in', 10)
+    cli = ros.t.create_client(SetBool, '/dynamics_node/set_enabled', qos_profile=DEEP)
+    assert cli.wait_for_service(timeout_sec=TIMEOUT)
+    wait_until(lambda: desired.get_subscription_count() >= 1 and traj.get_subscription_count() >= 1, what='discovery')
+    ros.send(JOINTS, Q)
+    time.sleep(LOG_THROTTLE_S)   # start-up lines are out of the way
+    wait_until(lambda: node.event_log.waiting == 0, what='start-up lines written')
+    n0 = len(ros.records)
+
+    def point(n=7, value=0.1):
+        return JointTrajectoryPoint(positions=[value] * n)
+
+    good = bytes(serialize_message(JointTrajectory(joint_names=JOINTS, points=[point()])))
+    bad_desired = [JointTrajectory(joint_names=JOINTS, points=[]),                       # 0 points
+                   JointTrajectory(joint_names=JOINTS, points=[point(), point()]),      # 2 points
+                   JointTrajectory(joint_names=JOINTS, points=[point(value=math.nan)]),
+                   JointTrajectory(joint_names=JOINTS, points=[point(6)]),               # wrong lengths
+                   JointTrajectory(joint_names=JOINTS[:6], points=[point(6)]),           # a joint missing
+                   JointTrajectory(joint_names=JOINTS + [JOINTS[0]], points=[point(8)]),
+                   good[:len(good) - 30]]                                                # fields missing
+    bad_states = [(JOINTS, [0.0] * 6), (JOINTS + [JOINTS[0]], [0.0] * 8), (JOINTS[:6], [0.0] * 6),
+                  (JOINTS, [math.nan] * 7), (JOINTS, [1e308] * 7)]
+    bad_traj = [JointTrajectory(joint_names=JOINTS, points=[]),
+                JointTrajectory(joint_names=JOINTS, points=[point(6)]),
+                JointTrajectory(joint_names=JOINTS[:6] + ['x'], points=[point()])]
+    floods = {
+        'desired state rejected': lambda k: desired.publish(bad_desired[k % len(bad_desired)]),
+        'joint_states rejected': lambda k: ros.publish(*bad_states[k % len(bad_states)]),
+        'trajectory rejected': lambda k: traj.publish(bad_traj[k % len(bad_traj)]),
+        'robot description rejected': lambda k: ros.desc_pub.publish(String(data=f'<robot name="x{k}"><link')),
+        'abled': lambda k: cli.call_async(SetBool.Request(data=bool(k % 2))),   # enabled / disabled lines
+    }
+    for said, flood in floods.items():
+        t0, k = time.monotonic(), 0
+        while time.monotonic() - t0 < 1.2 * LOG_THROTTLE_S:
+            flood(k)
+            k += 1
+            time.sleep(0.01)
+        wait_until(lambda said=said: any(said in r.msg for r in ros.records[n0:]), what=said)
+    wait_until(lambda: node.event_log.waiting == 0, timeout=60.0, what='every waiting line written')
+    time.sleep(0.5)
+    lines = ros.records[n0:]
+    assert len(lines) >= 3 * len(floods), [r.msg for r in lines]   # more than a second's worth
+    assert _busiest_second(lines) <= LOG_LINES_PER_S, [(r.stamp.sec, r.stamp.nanosec, r.msg) for r in lines]
     assert ros.call(SetBool, '/dynamics_node/set_enabled', SetBool.Request(data=True)).success
     np.testing.assert_allclose(ros.send(JOINTS, Q), load_urdf(ARM).gravity(Q), atol=1e-9)
 

@@ -119,7 +119,7 @@ def check_joint_state(decoder, buf, capfd):
 def check_trajectory(buf, capfd):
     ref = rclpy_or_none(buf, JointTrajectory, capfd)
     try:
-        names, points = cdr.read_desired(buf)
+        names, points = cdr.read_joint_trajectory(buf)
     except ValueError:
         assert ref is None, f'refused a message rclpy reads: {buf.hex()}'
         return False
@@ -128,7 +128,7 @@ def check_trajectory(buf, capfd):
     for p, r in zip(points, ref.points, strict=True):
         for f in ('positions', 'velocities', 'accelerations'):
             assert bits(getattr(p, f)) == bits(getattr(r, f)), buf.hex()
-    one = cdr.read_desired(buf, one=True)   # the node's reading: the same, or only the count
+    one = cdr.read_joint_trajectory(buf, one=True)   # the node's reading: the same, or only the count
     assert one[0] == names and (one[1] == range(len(points)) if len(points) != 1 else
                                 all(bits(a) == bits(b) for a, b in zip(one[1][0], points[0], strict=True)))
     return True

@@ -144,14 +144,16 @@ def test_set_payload_request(arm):
            ({'payload.link': 'hand', 'payload.mass': 2.0, 'payload.com': COM,
              'payload.inertia': [1e-3, 0, 0, 1e-3, 0, 1e-2]}, 'triangle inequality'),
            ({'payload.link': 'hand', 'payload.mass': -1.0, 'payload.com': COM, 'payload.inertia': INERTIA},
-            r'payload.mass must be in \(0, 1000\]'),
+            r'payload.mass must be in \[0.0, 1000.0\], got -1.0'),
            ({'payload.link': 'hand', 'payload.mass': 1.0, 'payload.com': [0.0, np.nan, 0.0],
-             'payload.inertia': INERTIA}, 'payload.com must be 3 finite doubles'),
+             'payload.inertia': INERTIA}, 'payload.com must contain finite values'),
            ({'payload.link': 'nope', 'payload.mass': 1.0, 'payload.com': COM, 'payload.inertia': INERTIA},
-            "payload.link 'nope' is not a link"),
+            "unknown link 'nope' for payload: not a link of robot"),
+           ({'payload.link': 'base_link', 'payload.mass': 1.0, 'payload.com': COM, 'payload.inertia': INERTIA},
+            "payload link 'base_link' is not a link that moves a controlled joint"),
            ({'payload.mass': 1.0}, 'payload.link .* is required'),
            ({'payload.link': 'hand', 'mass': 1.0}, 'unknown names'),
-           ({'payload.link': 'hand', 'payload.mass': True}, 'payload.mass must be a number')]
+           ({'payload.link': 'hand', 'payload.mass': True}, 'payload.mass must be a double')]
     for request, why in bad:
         with pytest.raises(ValueError, match=why):
             check_payload_request(request, arm)

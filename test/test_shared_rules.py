@@ -1,6 +1,7 @@
 """Rules the node applies in several places, each implemented once: the parameter table's checks
-(as data of the specs), the per-joint expansion, the payload check, the description-update
-policy, the joint-name mapping and the freshness of inputs. Each test checks the rule and that
+(as data of the specs), the per-joint expansion, the payload rule, the description-update
+policy, the joint-name mapping and its refusals, the freshness of inputs, a sample's time, the
+bounds of diagnostics and log lines, and the kernel warm-up. Each test checks the rule and that
 its users follow it (no ROS)."""
 import math
 
@@ -11,13 +12,18 @@ from lie_dynamics import default_urdf_path, load_urdf
 from lie_dynamics.model.joint_names import broadcast_joints, joint_columns
 from lie_dynamics.ros.core import settings as settings_module
 from lie_dynamics.ros.core.compensator import Compensator
+from lie_dynamics.ros.core.diagnostics import DIAG_TEXT_MAX
+from lie_dynamics.ros.core.log import EventLog
 from lie_dynamics.ros.core.messages import NameMap, Rejected, read_desired
 from lie_dynamics.ros.core.params import PARAMS, PAYLOAD_KEYS, SPECS, ParamSpec, check_value, per_joint_values
 from lie_dynamics.ros.core.settings import Settings
+from lie_dynamics.ros.core.timebase import TimeBase
 from lie_dynamics.ros.core.watchdog import Freshness, Watchdog, fresh
 from lie_dynamics.ros.features import contact, payload_service
+from lie_dynamics.ros.features.base import Feature, Features
 from lie_dynamics.ros.features.gravity_source import GravitySource
 from lie_dynamics.ros.core.descriptions import update_refusal
+from lie_dynamics.ros.loading.models import at_rest, portable, warm_up
 from lie_dynamics.ros.trajectories.fill import TrajectoryFill
 from lie_dynamics.laws import effort_limits
 from lie_dynamics.sim.trajectory_source import per_joint as sim_per_joint
@@ -138,6 +144,33 @@ def test_set_payload_service_uses_the_model_check(arm, monkeypatch):
     assert calls and calls[-1][0] == 'hand'
 
 
+def test_the_payload_rule_is_the_same_for_every_way_in(arm):
+    """A link no controlled joint moves, a mass out of the parameter's range: each way a payload
+    comes in (Model.set_payload, the payload.* parameters, ~/set_payload's check, identify.link)
+    answers by the one rule, in its words."""
+    fixed = 'base_link'   # the root: fixed to the world
+    assert arm.link_frames[fixed][0] < 0 and arm.link_frames['hand'][0] >= 0
+    why = f"payload link '{fixed}' is not a link that moves a controlled joint"
+    version = arm.version
+    for call in (lambda: arm.check_payload(fixed, 2.0, COM, INERTIA),
+                 lambda: arm.set_payload(fixed, 2.0, COM, INERTIA)):
+        with pytest.raises(ValueError, match=why):
+            call()
+    assert arm.version == version
+    request = {'payload.link': fixed, 'payload.mass': 2.0, 'payload.com': COM, 'payload.inertia': INERTIA}
+    core = Compensator()
+    core.set_model(load_urdf(default_urdf_path()))
+    for call in (lambda: payload_service.check_payload_request(request, arm), lambda: core.update(request),
+                 lambda: payload_service.check_identify_link({'identify.link': fixed}, arm)):
+        with pytest.raises(ValueError, match=why):
+            call()
+    assert core.settings['payload.link'] == ''   # refused: nothing changed
+    heavy = dict(request, **{'payload.link': 'hand', 'payload.mass': 2000.0})
+    for call in (lambda: payload_service.check_payload_request(heavy, arm), lambda: core.update(heavy)):
+        with pytest.raises(ValueError, match=r'payload.mass must be in \[0.0, 1000.0\], got 2000.0'):
+            call()
+
+
 def test_payload_keys_are_one_list():
     assert PAYLOAD_KEYS == ('payload.link', 'payload.mass', 'payload.com', 'payload.inertia')
     assert payload_service.PAYLOAD_PARAMS is PAYLOAD_KEYS and settings_module.PAYLOAD_KEYS is PAYLOAD_KEYS
@@ -187,12 +220,20 @@ def test_every_name_mapping_follows_it(arm):
     efforts, _ = fill.fill(names, traj)
     np.testing.assert_allclose(efforts[:, cols], ref, rtol=0, atol=1e-12)
     assert np.all(efforts[:, 0] == 0)   # not a controlled joint
-    # the same refusals, each in its own words
+    # the same refusals in the same words (messages.columns_refusal) for messages and trajectories;
+    # the library's own trajectory check (fill_trajectory_efforts) words its ValueError itself
     dup = names + [joints[0]]
     nm.build(dup, joints)
     assert isinstance(nm.error, Rejected) and nm.error.kind == 'duplicate' and joints[0] in nm.error.text
-    with pytest.raises(ValueError, match='joint_names has duplicates'):
+    with pytest.raises(ValueError) as refused:
         fill.fill(dup, dict(traj, joint_names=dup, positions=np.zeros((2, len(dup)))))
+    assert str(refused.value) == nm.error.text == f"duplicate joint names ['{joints[0]}']"
+    short = names[:-1]
+    nm.build(short, joints)
+    with pytest.raises(ValueError) as refused:
+        fill.fill(short, dict(traj, joint_names=short, positions=msg_q[None, :-1].repeat(2, axis=0)))
+    assert str(refused.value) == nm.error.text and nm.error.kind == 'missing'
+    assert nm.error.text.startswith(f"missing controlled joints ['{joints[0]}'] (it names ['finger']")
     with pytest.raises(ValueError, match=f"lacks controlled joints \\['{joints[0]}'\\]"):
         fill_trajectory_efforts(arm, dict(traj, joint_names=names[:-1], positions=msg_q[None, :-1]))
 
@@ -316,6 +357,83 @@ def test_a_name_without_an_attribute_form_is_refused():
     for bad in ('a.b.c', 'get', 'replace', 'kp.x', 'x-y'):
         with pytest.raises(ValueError, match='attribute form|also a group'):
             _layout(('kp', bad))
+
+
+# ---------------------------------------------------------------- a sample's time
+def test_time_base_and_its_users(arm):
+    clock = [100.0]
+    tb = TimeBase(lambda: clock[0])
+    assert tb.seconds(5 * 10**9) == 0.0 and tb.switched and tb.stamped
+    assert tb.seconds(5 * 10**9 + 2_500_000) == pytest.approx(0.0025, abs=1e-15) and not tb.switched
+    assert tb.seconds(0) == 0.0 and tb.switched and not tb.stamped   # the clock, from its first reading
+    clock[0] = 100.5
+    assert tb.seconds(0) == 0.5 and not tb.switched
+    assert tb.seconds(5 * 10**9 + 10**9) == 1.0 and tb.switched        # each base keeps its origin
+    tb.reset()
+    assert tb.seconds(7 * 10**9) == 0.0 and tb.switched
+    # its users: the observer, the payload recording (and the dynamics topics' rate gate)
+    assert isinstance(contact.ContactMonitor().time, TimeBase)
+    core = Compensator({'identify.link': 'hand', 'stale_timeout': 60.0})
+    core.set_model(load_urdf(default_urdf_path()))
+    ident = payload_service.Identification()
+    ident.begin(core)
+    names = list(core.model.joint_names)
+    for stamp in (10**10, 10**10 + 5_000_000):
+        core.on_joint_state(names, np.zeros(7), np.zeros(7), np.ones(7), stamp=stamp)
+        ident.add(core.result)
+    assert isinstance(ident.time, TimeBase)
+    np.testing.assert_array_equal(ident.recording.arrays()[0], [0.0, 0.005])
+    ident.stop('test')
+
+
+# ---------------------------------------------------------------- diagnostics and log bounds
+def test_features_report_bounds_every_text_once():
+    class Loud(Feature):
+        def report(self, level, message):
+            return level, message + 'm' * 5000, [('loud', 'v' * 5000)]
+
+    level, message, values = Features([Loud()]).report(0, 'core', [('core_value', 'c' * 3000)])
+    assert len(message) == DIAG_TEXT_MAX and message.startswith('core') and message.endswith('...')
+    assert [len(v) for _, v in values] == [DIAG_TEXT_MAX] * 2
+    mon = contact.ContactMonitor()   # a feature's own report is not cut: Features.report does it
+    mon.error = 'e' * 3000
+    assert dict(mon.report(0, '', [])[2])['observer_error'] == 'e' * 3000
+
+
+def test_one_paced_log_at_most_its_rate_a_second():
+    t, lines = [0.0], []
+    log = EventLog(lambda severity, text: lines.append(text), clock=lambda: t[0], pace=1, rate=5)
+    log.events([('warn', f'class{k}', f'line {k}') for k in range(12)])   # twelve problem classes at once
+    for _ in range(10):
+        log.flush(1)
+    assert lines == [f'line {k}' for k in range(5)] and log.waiting == 7
+    t[0] = 0.999
+    log.flush()
+    assert len(lines) == 5
+    t[0] = 1.0
+    log.flush()
+    assert len(lines) == 10
+    log.close()   # shutdown: everything, the rate aside
+    assert lines == [f'line {k}' for k in range(12)]
+
+
+# ---------------------------------------------------------------- kernel warm-up
+WARMED = []
+
+
+def _warmed(model):
+    WARMED.append(model.n)
+
+
+def test_warm_up_runs_the_features_calls(arm):
+    WARMED.clear()
+    calls = ((_warmed,), (at_rest, 'mass_matrix'))   # hashable: each runs once however often named
+    warm_up(arm, calls + calls)
+    assert WARMED == [arm.n]
+    sent = portable(calls + ((lambda m: None,),))   # a lambda does not pickle: left to the loading thread
+    assert len(sent) == 2 and all(isinstance(c, bytes) for c in sent)
+    warm_up(arm, sent + (b'not a pickle',))   # one the build process cannot read is skipped
+    assert WARMED == [arm.n] * 2
 
 
 def test_the_observer_gain_follows_the_per_joint_rule():

@@ -29,6 +29,12 @@ def joint_columns(names, joints):
     return JointColumns(index, columns, sorted(dup), missing)
 
 
+def in_joint_order(values, columns):
+    """A message's or a trajectory's array read in the joints' order: values[..., columns] as
+    float64 (columns: JointColumns.columns)."""
+    return np.asarray(values, dtype=float)[..., columns]
+
+
 def broadcast_joints(values, n):
     """The one rule of per-joint values: one value for every joint, or one per joint. values as
     n floats (a new array), or None when there are neither 1 nor n of them."""

@@ -265,10 +265,16 @@ class Model:
     def check_payload(self, link, mass, com, inertia=None):
         """The one payload check (set_payload's, and a caller's that validates first): (mass, CoM (3,),
         symmetric inertia about the CoM (3, 3)) of a payload `set_payload` would accept, or
-        ValueError naming the problem. The inertia passes the one consistency rule
-        (inertia.violations) at the model's own scale. Changes nothing."""
-        if link not in self.link_frames:
-            raise ValueError(f"unknown link '{link}' for payload")
+        ValueError naming the problem. The link must move a controlled joint (a payload fixed to
+        the world or to a dropped body changes no torque: taking one would hide a wrong link name);
+        the inertia passes the one consistency rule (inertia.violations) at the model's own scale.
+        Changes nothing."""
+        place = self.link_frames.get(link)
+        if place is None:
+            raise ValueError(f"unknown link '{link}' for payload: not a link of robot '{self.name}'")
+        if place[0] < 0:
+            raise ValueError(f"payload link '{link}' is not a link that moves a controlled joint (fixed to the "
+                             'world or to a dropped body: a payload there changes no torque)')
         m = float(mass)
         if not np.isfinite(m) or m < 0:
             raise ValueError(f'payload mass must be finite and >= 0, got {mass}')

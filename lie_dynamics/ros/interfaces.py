@@ -68,7 +68,7 @@ INTERFACES = {
     'joint_states': Interface('sub', JointState, JOINT_STATES_QOS, 'node', raw=True),
     '<desired_topic>': Interface('sub', JointTrajectory, DESIRED_QOS, 'node', raw=True),
     '~/trajectory_in': Interface('sub', JointTrajectory, TRAJECTORY_QOS, 'trajectory_process (a child)', True),
-    '<gravity_topic>': Interface('sub', Vector3Stamped, GRAVITY_QOS, 'features.gravity_payload'),
+    '<gravity_topic>': Interface('sub', Vector3Stamped, GRAVITY_QOS, 'features.gravity_topic'),
     '<command_topic>': Interface('pub', Float64MultiArray, OUT_QOS, 'node'),
     '~/commanded_efforts': Interface('pub', JointState, OUT_QOS, 'node'),
     '/diagnostics': Interface('pub', DiagnosticArray, OUT_QOS, 'node'),
@@ -81,8 +81,8 @@ INTERFACES = {
     '~/dynamics/jacobian': Interface('pub', Float64MultiArray, OUT_QOS, 'features.dynamics_topics'),
     '~/set_enabled': Interface('srv', SetBool, SERVICE_QOS, 'control'),
     '~/reload_model': Interface('srv', Trigger, SERVICE_QOS, 'control'),
-    '~/set_payload': Interface('srv', SetParametersAtomically, SERVICE_QOS, 'features.gravity_payload'),
-    '~/identify_payload': Interface('srv', Trigger, SERVICE_QOS, 'features.gravity_payload (its helper node)'),
+    '~/set_payload': Interface('srv', SetParametersAtomically, SERVICE_QOS, 'features.payload_services'),
+    '~/identify_payload': Interface('srv', Trigger, SERVICE_QOS, 'features.payload_services (its helper node)'),
 }
 
 

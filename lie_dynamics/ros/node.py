@@ -19,16 +19,16 @@ from rclpy.node import Node
 
 from . import interfaces
 from .control import Control
-from .core.cdr import JointStateDecoder, read_desired, sample_of
+from .core.cdr import JointStateDecoder, read_joint_trajectory, sample_of
 from .core.compensator import Compensator
-from .core.log import LOG_LINES_PER_CALLBACK, LOG_THROTTLE_S, EventLog, guarded
+from .core.log import LOG_LINES_PER_CALLBACK, LOG_LINES_PER_S, LOG_THROTTLE_S, EventLog, guarded
 from .core.params import HELP_DESCRIPTION, HELP_EXAMPLE, PARAMS, help_rows
 from .core.watchdog import Every, tick_period
 from .features.base import Features
-from .features.contact import check_settings
 from .features.contact_topics import ContactTopics
 from .features.dynamics_topics import DynamicsTopics
-from .features.gravity_payload import GravityTopic, PayloadServices
+from .features.gravity_topic import GravityTopic
+from .features.payload_services import PayloadServices
 from .interfaces import (DESCRIPTION_QOS, JOINT_STATES_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SERVICE_QOS,
                          SERVICE_QUEUE, TRAJECTORY_QOS)
 from .loading.background import Background
@@ -58,7 +58,7 @@ class DynamicsNode(Node):
     def __init__(self, node_name='dynamics_node', features=FEATURES, **kwargs):
         super().__init__(node_name, **kwargs)
         self.background = None
-        self.features = Features()
+        self.features = None
         try:
             self._construct(features)
         except BaseException:
@@ -72,11 +72,13 @@ class DynamicsNode(Node):
         values = interfaces.declare_parameters(self, PARAMS)
         self.core = Compensator(values)  # ValueError on an invalid configuration
         self.events = self.core.events   # the one event queue: the core's and every feature's
+        self.features = Features(events=self.events)   # registered in _start, once worker threads exist
         self.lock = threading.RLock()  # services/parameters vs. callbacks when spun by several threads
         self.sources = Sources()      # the running model's source, the last topic message
         self._decoder = JointStateDecoder()   # keeps the last name list: decoded once per stream
         self.outputs = Outputs(self, values['command_topic'])
-        self.event_log = EventLog(self.outputs.log_line, pace=LOG_LINES_PER_CALLBACK)   # lines per callback
+        self.event_log = EventLog(self.outputs.log_line, pace=LOG_LINES_PER_CALLBACK,   # lines per callback
+                                  rate=LOG_LINES_PER_S)                               # and per second
         self._samples = 0   # joint_states callbacks (the timer writes every waiting line when none came)
         # ~/trajectory_in and ~/trajectory_out: served by a process of their own (trajectories/process.py)
         self.background = Background(self.core, self.sources, trajectories=child_config(self),
@@ -88,12 +90,11 @@ class DynamicsNode(Node):
         interfaces.subscription(self, 'robot_description', self._on_description)
         interfaces.subscription(self, 'joint_states', self.on_joint_state)   # raw: read by core/cdr.py
         desired = interfaces.subscription(self, '<desired_topic>', self._on_desired, values['desired_topic'])
-        self.core.desired_topic = desired.topic_name
+        self.core.note_context(desired_topic=desired.topic_name)
         self._diag = Every(values['diagnostics_period'])
         self._timer = self.create_timer(tick_period(values['stale_timeout'], self._diag.period), self._on_timer,
                                         clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.outputs.joint_state(values['publish_joint_state'])
-        self.features = Features(events=self.events)
         for make in features:
             self.features.add(make(self))
         self.control = Control(self, self._check)   # parameters, ~/set_enabled, ~/reload_model
@@ -113,8 +114,7 @@ class DynamicsNode(Node):
         self.drain_events(None)
 
     def _check(self, settings):
-        """The checks of settings that need the layout or the model (ValueError)."""
-        check_settings(settings, len(self.core.layout) if self.core.layout else None)
+        """The checks of settings that need the layout or the model (ValueError): the features'."""
         self.features.check(settings, self.core.model)
 
     def set_tick_period(self):
@@ -124,12 +124,13 @@ class DynamicsNode(Node):
 
     def note_executor(self, kind):
         """The executor that spins the node (run.py), shown in the diagnostics."""
-        self.core.executor = kind
+        self.core.note_context(executor=kind)
 
     def destroy_node(self):
         if self.background is not None:   # it leaves the ROS graph while the node's teardown runs
             self.background.stop_trajectories()
-        self.features.stop()
+        if self.features is not None:
+            self.features.stop()
         if self.background is not None:   # lines still held back are said before the node goes
             self.event_log.close()
         done = super().destroy_node()
@@ -179,7 +180,7 @@ class DynamicsNode(Node):
     def _on_desired(self, data):
         with self.lock:
             try:
-                names, points = read_desired(data, one=True)
+                names, points = read_joint_trajectory(data, one=True)
             except ValueError as exc:
                 self.core.refuse_malformed('desired', str(exc))
             else:
@@ -189,14 +190,18 @@ class DynamicsNode(Node):
 
     # ------------------------------------------------------------------ log
     def log_event(self, severity, key, text):
-        """One log line, at most one per `key` (the problem class) every LOG_THROTTLE_S s."""
-        self.event_log.event(severity, key, text)
+        """One log line of the node itself, through the one event queue: at most one per `key`
+        (the problem class) every LOG_THROTTLE_S s, paced like every other."""
+        with self.lock:
+            self.events.append((severity, key, text))
+            self.drain_events()
 
     def drain_events(self, limit=LOG_LINES_PER_CALLBACK):
         """The one event queue (core and features) into the log, and up to `limit` of its
-        waiting lines written (None: all)."""
-        self.event_log.events(self.features.drain())
-        self.event_log.flush(limit)
+        waiting lines written within LOG_LINES_PER_S a second (None: all of them, at once: start-up)."""
+        with self.lock:
+            self.event_log.events(self.features.drain())
+            self.event_log.flush(limit, rated=limit is not None)
 
     # ------------------------------------------------------------------ timer
     @guarded
@@ -209,11 +214,13 @@ class DynamicsNode(Node):
                 self.outputs.command(cmd, self.core.layout)   # stamped now
             if self.events:
                 self.drain_events()
-        self.event_log.tick(self._samples)   # held-back lines; every waiting one if no joint_states came
+        with self.lock:   # (helper threads drain the queue too)
+            self.event_log.tick(self._samples)   # held-back lines; the waiting ones if no joint_states came
         if self._diag.due():
             self._publish_diagnostics()
             if self.sources.topic_xml is None:
-                self.outputs.check_description_publishers()
+                for who, text in self.outputs.description_publisher_problems():
+                    self.log_event('warn', f'description:qos:{who}', text)
 
     def _publish_diagnostics(self):
         with self.lock:
@@ -224,8 +231,9 @@ class DynamicsNode(Node):
     def shutdown_command(self):
         """Publish the stale_action command once (the effort controller holds the last command)."""
         with self.lock:
+            self.event_log.events(self.features.drain())   # what was said before: logged at close
             cmd = self.core.final_command()
-            self.core.events.clear()
+            self.features.drain()   # its stale line: the node is not stale, it is going (said below)
             if cmd is None:
                 return False
             self.outputs.command(cmd, self.core.layout)
@@ -236,7 +244,7 @@ class DynamicsNode(Node):
 def _on_stop(node):
     node.background.stop_trajectories()   # first: it leaves the ROS graph while the node stops
     if node.shutdown_command():
-        node.get_logger().info('shutting down: published the stale_action command once')
+        node.log_event('info', None, 'shutting down: published the stale_action command once')
 
 
 def main(args=None):

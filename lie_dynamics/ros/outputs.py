@@ -1,5 +1,6 @@
 """The dynamics node's own outputs (rclpy): the command, ~/commanded_efforts, /diagnostics
-(interfaces.py has their types and QoS) and its log lines. Messages are reused for every command (measured: -5 us
+(interfaces.py has their types and QoS) and the writing of its log lines (which ones and when:
+core/log.py, through the node's one event queue). Messages are reused for every command (measured: -5 us
 per message, -12 us with publish_joint_state)."""
 import array
 
@@ -87,19 +88,21 @@ class Outputs:
         arr.header.stamp = self.node.get_clock().now().to_msg()
         self._diag_pub.publish(arr)
 
-    def check_description_publishers(self):
-        """Warn once per publisher of robot_description whose QoS this node cannot receive (at most
-        100 named)."""
-        node, warned = self.node, self._warned_publishers
+    def description_publisher_problems(self):
+        """[(publisher, log line)] for each publisher of robot_description whose QoS this node
+        cannot receive, once per publisher (at most 100 named); the node logs them (its one
+        event queue)."""
+        node, warned, out = self.node, self._warned_publishers, []
         topic = node.resolve_topic_name('robot_description')
         for info in node.get_publishers_info_by_topic(topic):
             bad = interfaces.description_qos_problems(info.qos_profile)
             who = f'{info.node_namespace.rstrip("/")}/{info.node_name}'
             if bad and who not in warned and len(warned) < 100:
                 warned.add(who)
-                node.get_logger().warning(
-                    f"'{topic}' publisher {who} offers {' and '.join(bad)}: this node (like robot_state_publisher's "
-                    'subscribers) needs reliable + transient local, so it will not receive that description')
+                out.append((who, f"'{topic}' publisher {who} offers {' and '.join(bad)}: this node (like "
+                                 "robot_state_publisher's subscribers) needs reliable + transient local, so it will "
+                                 'not receive that description'))
+        return out
 
 
 _LOG_LINE = Outputs.log_line.__code__.co_firstlineno   # the call site /rosout names

@@ -1,8 +1,8 @@
 """CDR, the serialized form of ROS messages (what a raw subscription delivers), read with the
 standard library and numpy; plain Python, no rclpy import. The one implementation of the
 primitives (encapsulation, alignment, counts, strings, array views) that the node's readers
-use: joint_states and the desired state here, whole trajectories in trajectory_cdr.py; and
-`Template`, the writer of fixed-shape messages (the dynamics topics).
+use: joint_states and the desired state (`read_joint_trajectory`) here, whole trajectories in
+trajectory_cdr.py; and `Template`, the writer of fixed-shape messages (the dynamics topics).
 
 Plain CDR (XCDR1, little or big endian: what rmw_fastrtps and rmw_cyclonedds send) is read;
 any other encapsulation raises Unsupported. Offsets are relative to the payload (after the
@@ -178,12 +178,12 @@ class Point(NamedTuple):
     accelerations: np.ndarray
 
 
-def read_desired(buf, one=False):
+def read_joint_trajectory(buf, one=False):
     """(joint_names, points) of a serialized trajectory_msgs/JointTrajectory, every point read.
-    one=True (a desired state, which has exactly one): a message with another number of points
-    is not read beyond its count, and `points` is then range(count) (the core refuses it by its
-    length). Raises ValueError for a malformed or truncated message (Unsupported: another
-    encoding).
+    one=True (a desired state, which has exactly one; the core checks it: messages.read_desired):
+    a message with another number of points is not read beyond its count, and `points` is then
+    range(count) (the core refuses it by its length). Raises ValueError for a malformed or
+    truncated message (Unsupported: another encoding).
 
     Layout: header {int32 sec, uint32 nanosec, string frame_id}, string[] joint_names, then the
     points: float64[] positions, velocities, accelerations, effort, time_from_start {int32, uint32}."""

@@ -58,7 +58,7 @@ class Compensator(Configuration):
     def __init__(self, settings=None, clock=time.monotonic, builder=None):
         super().__init__(settings, clock, builder)
         s = self.settings
-        self.executor = ''            # which executor spins the node (the node sets it)
+        self.executor = ''            # which executor spins the node (note_context)
         self.window = Window(self.count, clock())
         self.watchdog = Watchdog(s.stale_timeout, clock)
         self.last_q = None            # positions of the last valid joint_states (the stale action holds them)
@@ -72,12 +72,23 @@ class Compensator(Configuration):
         self.last_cmd = None          # the last command returned for publishing
         self.held = None              # while disabling without input: the command being ramped down
         # desired state (controlled order) and its fallback state
-        self.desired_topic = s.desired_topic   # the node sets the resolved name
+        self.desired_topic = s.desired_topic   # the resolved name: note_context
         self.desired_map = NameMap()
         self.desired = None           # (q_d, qd_d, qdd_d)
         self.desired_time = None
         self.desired_state = Freshness('desired state', 'desired_timeout', 'desired')
         self.law = None                # torque law of the last command ('gravity (fallback)' if it fell back)
+
+    def note_context(self, loading=None, executor=None, desired_topic=None):
+        """What the node around the core says for the diagnostics and log lines (None: unchanged):
+        the description being loaded in the background ('' none), the executor that spins the
+        node, the resolved name of the desired-state topic."""
+        if loading is not None:
+            self.loading = loading
+        if executor is not None:
+            self.executor = executor
+        if desired_topic is not None:
+            self.desired_topic = desired_topic
 
     @property
     def desired_fallback(self):

@@ -40,7 +40,7 @@ class Configuration:
             gains(s.kd, len(self.layout), 'kd')
         self.model = None
         self.model_info = ''          # where the current model came from
-        self.loading = ''             # what is being loaded in the background (the node sets it)
+        self.loading = ''             # what is being loaded in the background (note_context)
         self.inertia_report = []      # physical_consistency() of the current model
         self.inertia_repaired = 0     # entries of it with repaired=True
         self.events = []
@@ -59,11 +59,15 @@ class Configuration:
         """Queue a log line (severity 'info'/'warn'/'error', throttle key = its problem class)."""
         self.events.append((severity, key, text))
 
+    def note_error(self, text):
+        """Keep `text` as the last error (diagnostics); returns it as kept (bounded)."""
+        self.last_error = clip(text, DIAG_TEXT_MAX)
+        return self.last_error
+
     def note_problem(self, key, text, said=''):
         """A refused input: `text` becomes the last error (bounded) and a warn line (with `said`
         after it)."""
-        self.last_error = clip(text, DIAG_TEXT_MAX)
-        self.events.append(('warn', key, self.last_error + said))
+        self.events.append(('warn', key, self.note_error(text) + said))
         return self.last_error
 
     # ------------------------------------------------------------------ plan and apply

@@ -8,7 +8,7 @@ counts or logs; the compensator does.
 """
 import numpy as np
 
-from ...model.joint_names import joint_columns
+from ...model.joint_names import in_joint_order, joint_columns
 from .diagnostics import names_text
 
 
@@ -19,6 +19,20 @@ class Rejected(ValueError):
         super().__init__(text)
         self.kind = kind
         self.text = text
+
+
+def columns_refusal(mapped, names, controlled):
+    """Why a name list does not map to the controlled joints (model.joint_names.joint_columns'
+    JointColumns `mapped` of `names`), as a Rejected, or None when it maps: the one wording of
+    the refusal for joint_states, the desired state and trajectories (names quoted bounded)."""
+    if mapped.duplicates:
+        return Rejected('duplicate', f'duplicate joint names {names_text(mapped.duplicates)}')
+    if mapped.missing:
+        known = set(controlled)
+        other = [j for j in names if j not in known]
+        hint = f' (it names {names_text(other)}, which are not controlled joints)' if other else ''
+        return Rejected('missing', f'missing controlled joints {names_text(mapped.missing)}{hint}')
+    return None
 
 
 class NameMap:
@@ -34,16 +48,9 @@ class NameMap:
         # kept as given (a decoded sample's tuple, a message's list): the next message's list
         # compares equal to it only in the same type
         self.names = names if isinstance(names, tuple) else list(names)
-        self.error = None
         mapped = joint_columns(names, controlled)
-        if mapped.duplicates:
-            self.error = Rejected('duplicate', f'duplicate joint names {names_text(mapped.duplicates)}')
-        elif mapped.missing:
-            known = set(controlled)
-            other = [j for j in names if j not in known]
-            hint = f' (it names {names_text(other)}, which are not controlled joints)' if other else ''
-            self.error = Rejected('missing', f'missing controlled joints {names_text(mapped.missing)}{hint}')
-        else:
+        self.error = columns_refusal(mapped, names, controlled)
+        if self.error is None:
             self.idx = mapped.columns
         return mapped.index
 
@@ -90,7 +97,7 @@ class JointStateReader:
         if m.error is not None:
             raise m.error
         pos = np.asarray(position, dtype=float)
-        q = pos[m.idx]
+        q = in_joint_order(pos, m.idx)
         b = self.bounds
         # one range check also fails NaN (hot path: count_nonzero is cheaper than .all())
         if b is None:
@@ -129,7 +136,7 @@ class JointStateReader:
         an absent array or a NaN/inf entry is unavailable and used as 0 (complete = False)."""
         if not len(velocity):
             return np.zeros(self.model.n), False
-        qd = np.asarray(velocity, dtype=float)[self.map.idx]
+        qd = in_joint_order(velocity, self.map.idx)
         ok = np.isfinite(qd)
         if np.count_nonzero(ok) != qd.size:
             return np.where(ok, qd, 0.0), False
@@ -163,7 +170,7 @@ def read_desired(names, points, layout, name_map, topic=''):
         if not len(values):
             out.append(np.zeros(n))
             continue
-        a = np.asarray(values, dtype=float)[name_map.idx]
+        a = in_joint_order(values, name_map.idx)
         if not np.isfinite(a).all():
             bad = [layout[k] for k in np.flatnonzero(~np.isfinite(a))]
             raise Rejected('nonfinite', f'non-finite {field} for {names_text(bad)}')

@@ -10,6 +10,8 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
+from ...model.joint_names import in_joint_order
+
 _EMPTY = np.empty(0)
 _EMPTY.flags.writeable = False
 _new = tuple.__new__   # the generated NamedTuple __new__ costs a Python call per message
@@ -58,8 +60,7 @@ class SampleResult(NamedTuple):
         out = m.get(key)
         if out is None:
             n = len(self.q)
-            out = m[key] = _frozen(np.asarray(values, dtype=float)[self.columns] if len(values)
-                                   else np.full(n, np.nan))
+            out = m[key] = _frozen(in_joint_order(values, self.columns) if len(values) else np.full(n, np.nan))
         return out
 
     @property

@@ -9,7 +9,6 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from ...laws import effort_limits, make_friction
-from .diagnostics import clip
 from .params import PARAMS, PAYLOAD_KEYS, check_value, defaults, per_joint_values
 
 
@@ -185,9 +184,8 @@ def place_payload(model, s, prev_link):
     Raises ValueError, leaving the model's payload and gravity unchanged."""
     link, mass = s.payload.link, s.payload.mass
     if link and mass > 0:
-        if link not in model.link_frames:
-            raise ValueError(f"payload.link '{clip(link, 80)}' is not a link of robot '{model.name}'")
-        model.set_payload(link, mass, s.payload.com, s.payload.inertia or None)  # validates first
+        # the one payload rule (Model.check_payload), checked before anything changes
+        model.set_payload(link, mass, s.payload.com, s.payload.inertia or None)
         if prev_link and prev_link != link:
             model.clear_payload(prev_link)
     elif prev_link:

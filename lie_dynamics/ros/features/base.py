@@ -9,9 +9,14 @@ from the one table, interfaces.py) and then calls, through `Features`:
 
   * `check(settings, model)` on every parameter change (on-set) and at start-up: ValueError with
     the reason refuses the change (the old values stay) or the start-up (exit 2);
-  * `kernels(settings)`: the keys of the generated kernels its on_sample calls under these
-    settings (loading/models.py: warm_up), run once for a new model where it is built and in the
-    loading thread, so that their code is never generated on the control path;
+  * `kernels(settings)`: the warm-up calls of the generated kernels its on_sample calls under
+    these settings, each a tuple (function, *args) run as function(model, *args)
+    (loading/models.py: warm_up; `at_rest(model, method, states)` calls a Model method at rest),
+    once for a new model where it is built and in the loading thread, so that their code is
+    never generated on the control path. They travel to the build process pickled one by one
+    (loading/models.py: portable): a module-level function of a module it imports (best one
+    without rclpy: the feature's plain part, or at_rest) compiles there too, any other call only
+    in the loading thread;
   * `configure(settings, model, derived)` when the settings or the model object changed (before
     the next sample; derived: core.settings.Derived, None without a model). The model's own
     setters (gravity, locked values) bump `model.version` instead, which the sample carries;
@@ -20,11 +25,13 @@ from the one table, interfaces.py) and then calls, through `Features`:
   * `on_sample(sample)` with each accepted core.sample.SampleResult, once, in order, after the
     command went out, while `active` (nothing is called per sample for an inactive feature);
   * `report(level, message)` -> (level, message, [(key, value string)]): its part of the
-    node's one diagnostics status (registration order);
+    node's one diagnostics status (registration order; `Features.report` bounds every text);
   * `events`: (severity, throttle key, text) log lines, appended to the node's one event queue
-    (the same list for the core and every feature) that the node drains through its throttled log;
+    (the same list for the core and every feature, given at registration: `use_events`) that the
+    node drains through its throttled, paced log; a feature never writes a log line itself;
   * `stop()` when the node goes (worker threads, helper nodes).
 """
+from ..core.diagnostics import DIAG_TEXT_MAX, clip
 
 
 class Feature:
@@ -36,11 +43,17 @@ class Feature:
     def __init__(self):
         self.events = []
 
+    def use_events(self, queue):
+        """Append log lines to `queue` from now on (Features.add: the node's one queue). A feature
+        whose plain part queues lines itself hands the queue on here."""
+        self.events = queue
+
     def check(self, settings, model):
         """Validation of a planned change that needs the model (None: not loaded yet)."""
 
     def kernels(self, settings):
-        """Keys of the kernels on_sample calls under `settings` (loading/models.py: warm_up)."""
+        """Warm-up calls (function, *args) of the kernels on_sample calls under `settings`
+        (loading/models.py: warm_up)."""
         return ()
 
     def configure(self, settings, model, derived):
@@ -70,7 +83,7 @@ class Features:
 
     def add(self, feature):
         """Register `feature` (after those already registered); its events go to the one queue."""
-        feature.events = self.events
+        feature.use_events(self.events)
         self.all.append(feature)
         if callable(getattr(feature, 'before_command', None)):
             self.steering.append(feature)
@@ -88,7 +101,7 @@ class Features:
             f.check(settings, model)
 
     def kernels(self, settings):
-        """The kernel keys every feature calls under `settings`, each once, in order."""
+        """The warm-up calls of every feature under `settings`, each once, in order."""
         return tuple(dict.fromkeys(k for f in self.all for k in f.kernels(settings)))
 
     def sync(self, core):
@@ -122,12 +135,13 @@ class Features:
         return out
 
     def report(self, level, message, values):
-        """The core's diagnostics (level, message, values) with each feature's part added."""
+        """The core's diagnostics (level, message, values) with each feature's part added; the
+        message and every value bounded here, once, to DIAG_TEXT_MAX characters."""
         values = list(values)
         for f in self.all:
             level, message, more = f.report(level, message)
             values += more
-        return level, message, values
+        return level, clip(message, DIAG_TEXT_MAX), [(k, clip(v, DIAG_TEXT_MAX)) for k, v in values]
 
     def stop(self):
         for f in self.all:

@@ -13,7 +13,7 @@ from std_msgs.msg import Bool
 
 from .. import interfaces
 from .base import Feature
-from .contact import ContactMonitor, observer_on
+from .contact import ContactMonitor, check_settings, observer_on, warm_observer
 from .dynamics_topics import joint_state_template
 
 # ~/collision's two possible messages, serialized
@@ -21,27 +21,29 @@ _FLAG = {v: serialize_message(Bool(data=v)) for v in (False, True)}
 
 
 class ContactTopics(Feature):
-    """ContactMonitor fed each accepted sample, its estimate and flag published."""
+    """ContactMonitor fed each accepted sample, its estimate and flag published. Attached to a
+    DynamicsNode `node` (its public core: the command layout before a model is loaded)."""
 
     name = 'contact'
 
     def __init__(self, node):
-        self.monitor = ContactMonitor()
         super().__init__()
+        self.monitor = ContactMonitor()
+        self._core = node.core
         self._ext_pub = interfaces.publisher(node, '~/external_torques')
         self._flag_pub = interfaces.publisher(node, '~/collision')
         self._names = self._ext = None   # the layout of ~/external_torques, its cdr.Writer's message
 
-    @property
-    def events(self):   # the monitor's queue is the feature's
-        return self.monitor.events
+    def use_events(self, queue):
+        super().use_events(queue)
+        self.monitor.events = queue   # the monitor's lines go to the one queue too
 
-    @events.setter
-    def events(self, queue):
-        self.monitor.events = queue
+    def check(self, settings, model):
+        layout = self._core.layout   # known before the model when `joints` is set
+        check_settings(settings, model.n if model is not None else len(layout) if layout else None)
 
     def kernels(self, settings):
-        return (('observer',),) if observer_on(settings) else ()
+        return ((warm_observer,),) if observer_on(settings) else ()
 
     def configure(self, settings, model, derived):
         m = self.monitor
@@ -50,7 +52,7 @@ class ContactTopics(Feature):
         self.active = m.active
 
     def on_sample(self, s):
-        out = self.monitor.on_state(s.columns, s.q, s.message_velocity, s.message_effort, s.stamp)
+        out = self.monitor.on_sample(s)
         if out is None:
             return
         names = s.names

@@ -29,8 +29,9 @@ import numpy as np
 from .. import interfaces
 from ...algorithms import jacobian
 from ..core.cdr import Template
+from ..core.timebase import TimeBase
 from ..core.diagnostics import clip
-from ..loading.models import tip_link
+from ..loading.models import at_rest, jacobian_at_rest, tip_link
 from .base import Feature
 
 TOPICS = {term: f'~/dynamics/{term}' for term in ('gravity', 'coriolis', 'mass_matrix', 'jacobian')}
@@ -103,16 +104,15 @@ class DynamicsTopics(Feature):
 
     name = 'dynamics'
 
-    def __init__(self, node, clock=time.monotonic_ns):
+    def __init__(self, node, clock=time.monotonic):
         super().__init__()
         self._node = node
-        self._clock = clock
+        self.time = TimeBase(clock)   # the rate gate's time: header stamps, else the steady clock
         self._pubs = {}
         self.terms = ()
         self.link = self.frame = ''
         self.rate = None
         self.gate = RateGate()
-        self._stamped = None
         self.published = {t: 0 for t in TOPICS}
         self.skipped = 0
         self._names = None
@@ -122,8 +122,11 @@ class DynamicsTopics(Feature):
         check_link(settings, model)
 
     def kernels(self, settings):
-        return tuple(('jacobian', settings['dynamics.link'] or None, settings['dynamics.jacobian_frame'])
-                     if t == 'jacobian' else (t,) for t in published_terms(settings))
+        # each term's Model call (on_sample), at rest
+        calls = {'gravity': (at_rest, 'gravity'), 'coriolis': (at_rest, 'coriolis_term', 2),
+                 'mass_matrix': (at_rest, 'mass_matrix'),
+                 'jacobian': (jacobian_at_rest, settings['dynamics.link'], settings['dynamics.jacobian_frame'])}
+        return tuple(calls[t] for t in published_terms(settings))
 
     def configure(self, settings, model, derived):
         terms = published_terms(settings)
@@ -159,11 +162,10 @@ class DynamicsTopics(Feature):
                                         f'cols: {joined}', 6, n)}
 
     def on_sample(self, s):
-        t = s.stamp if s.stamp else self._clock()
-        if bool(s.stamp) != self._stamped:  # another time base: a new stream
-            self._stamped = bool(s.stamp)
+        t = self.time.seconds(s.stamp)
+        if self.time.switched:  # another time base: a new stream
             self.gate.next = None
-        if not self.gate.passes(t):
+        if not self.gate.passes(round(t * 1e9)):
             return
         if s.names is not self._names:
             self._label(s.names)

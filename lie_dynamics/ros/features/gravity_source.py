@@ -79,7 +79,7 @@ class GravitySource:
             g = check_vector(vector, frame_id, model)
         except ValueError as exc:
             self.rejected += 1
-            self.last_error = clip(f'gravity on {self.topic} rejected: {exc}', 300)
+            self.last_error = f'gravity on {self.topic} rejected: {exc}'   # bounded where it is shown
             self.events.append(('warn', 'gravity:rejected', self.last_error))
             return False
         self.vector = g

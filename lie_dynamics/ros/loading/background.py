@@ -37,7 +37,7 @@ from .build_process import BuildProcess
 from ..core.descriptions import build, read_description, update_refusal
 from ..core.diagnostics import clip
 from ..core.messages import Rejected
-from .models import warm_up
+from .models import portable, warm_up
 from .sources import open_source, resolve_path, source_label
 from ..trajectories.fill import TrajectoryInput
 from ..trajectories.process import TrajectoryProcess
@@ -135,7 +135,7 @@ class Background:
         caps = (kind == 'file', s.max_description_bytes, s.max_description_links)
         xml = read_description(source, caps) if kind == 'file' else text   # what a repeat is compared with
         keys = self.kernels(s)
-        builder = (functools.partial(self.process.build, caps=caps, warm=keys) if remote
+        builder = (functools.partial(self.process.build, caps=caps, warm=portable(keys)) if remote
                    else functools.partial(build, caps=caps))
         try:
             with short_switch_interval():
@@ -165,7 +165,7 @@ class Background:
         if err:
             return self.core.note_description_error(f'{label}: {err}')
         self.worker.submit('model', (kind, text, label), lambda: self._build(kind, text, inertia))
-        self.core.loading = label
+        self.core.note_context(loading=label)
         return None
 
     def load_now(self, kind, text, inertia=None):
@@ -270,7 +270,7 @@ class Background:
                 elif out.value is not None:   # refused: counted here
                     self.trajectory_input.done(out.value[0], kind=out.value[1])
         busy = worker.busy('model')
-        core.loading = busy[2] if busy is not None else ''
+        core.note_context(loading=busy[2] if busy is not None else '')
         tp = self.trajectories
         if tp is None:
             return

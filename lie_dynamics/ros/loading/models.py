@@ -2,9 +2,9 @@
 generation off it, and the default Jacobian link. (Which new model may replace the running one
 and what changed between them: core/descriptions.py.)
 """
-import numpy as np
+import pickle
 
-from ...algorithms.observer import MomentumObserver
+import numpy as np
 
 
 def tip_link(model):
@@ -15,32 +15,45 @@ def tip_link(model):
     return links[-1]
 
 
-# What the control path calls per kernel key (Feature.kernels): run once, each generates its
-# kernel's code (or loads it from the disk cache). 'jacobian' keys carry (link or None: tip_link, frame).
-_WARM = {
-    'gravity': lambda m, z: m.gravity(z),
-    'inverse_dynamics': lambda m, z: m.inverse_dynamics(z, z, z),
-    'coriolis': lambda m, z: m.coriolis_term(z, z),
-    'mass_matrix': lambda m, z: m.mass_matrix(z),
-    'observer': lambda m, z: MomentumObserver(m, 1.0).update(0.0, z, z, z),
-    'jacobian': lambda m, z, link, frame: m.jacobian(z, link or tip_link(m), frame),
-    # a recording's batch (payload identification): the regressor and inverse dynamics on rows
-    'identification': lambda m, z: (m.regressor(*(np.zeros((IDENTIFY_BATCH, m.n)),) * 3),
-                                    m.inverse_dynamics(*(np.zeros((IDENTIFY_BATCH, m.n)),) * 3)),
-}
-IDENTIFY_BATCH = 200   # states: above every size's rows threshold (codegen/thresholds.py)
+def at_rest(model, method, states=1):
+    """model.<method> at `states` zero states (q; q, q̇; q, q̇, q̈): a warm-up call (Feature.kernels)
+    that generates the kernel of a Model method the control path calls."""
+    z = np.zeros(model.n)
+    getattr(model, method)(*(z,) * states)
+
+
+def jacobian_at_rest(model, link, frame):
+    """model.jacobian at rest of `link` ('': tip_link) in `frame`: a warm-up call."""
+    model.jacobian(np.zeros(model.n), link or tip_link(model), frame)
+
+
 # Every model's: the command's laws.
-BASE_KERNELS = (('gravity',), ('inverse_dynamics',))
+BASE_KERNELS = ((at_rest, 'gravity'), (at_rest, 'inverse_dynamics', 3))
 
 
 def warm_up(model, kernels=BASE_KERNELS):
-    """Run once the kernels the control path will call (keys as Feature.kernels gives them;
-    BASE_KERNELS always), so that their code is generated here (the loading thread, or the
-    build process, which compiles them into the disk cache) and not at the first joint_states
-    after the swap (a new structure's observer kernel was compiled there)."""
-    z = np.zeros(model.n)
-    for key in dict.fromkeys(BASE_KERNELS + tuple(kernels)):
+    """Run once the kernels the control path will call: the warm-up calls (function, *args) of
+    the features (Feature.kernels), run as function(model, *args), and BASE_KERNELS always, so
+    that their code is generated here (the loading thread, or the build process, which compiles
+    them into the disk cache) and not at the first joint_states after the swap (a new
+    structure's observer kernel was compiled there). A call may come pickled (`portable`)."""
+    for call in dict.fromkeys(BASE_KERNELS + tuple(kernels)):
         try:
-            _WARM[key[0]](model, z, *key[1:])
+            if isinstance(call, bytes):   # (the build process) one whose module it cannot import is skipped
+                call = pickle.loads(call)
+            call[0](model, *call[1:])
         except Exception:  # noqa: BLE001 - the control path reports a model that cannot compute
             pass
+
+
+def portable(kernels):
+    """Warm-up calls as the build process takes them: each pickled on its own, so that one it
+    cannot import (a feature's module outside its path) or one that does not pickle (a lambda)
+    leaves the others; the loading thread runs them all again (warm_up) in any case."""
+    out = []
+    for call in kernels:
+        try:
+            out.append(pickle.dumps(call))
+        except Exception:  # noqa: BLE001 - not picklable: warmed in the loading thread only
+            pass
+    return tuple(out)

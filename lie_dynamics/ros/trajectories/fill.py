@@ -18,7 +18,7 @@ from ...laws import add_friction, clamp
 from ...model.joint_names import joint_columns
 from ...trajectory import fill_trajectory_efforts
 from ..core.diagnostics import names_text, problem_key
-from ..core.messages import Rejected
+from ..core.messages import Rejected, columns_refusal
 
 
 class TrajectoryFill(NamedTuple):
@@ -34,10 +34,9 @@ class TrajectoryFill(NamedTuple):
         names = list(names)
         model = self.model
         mapped = joint_columns(names, model.joint_names)
-        if mapped.duplicates:
-            raise ValueError(f'trajectory joint_names has duplicates: {names_text(mapped.duplicates)}')
-        if mapped.missing:
-            raise ValueError(f'trajectory lacks controlled joints {names_text(mapped.missing)}')
+        refusal = columns_refusal(mapped, names, model.joint_names)   # the joint_states wording
+        if refusal is not None:
+            raise refusal
         res = fill_trajectory_efforts(model, arrays, with_gravity=not self.gravity_free)
         tau, over = clamp(add_friction(res['efforts'], res['velocities'], self.friction), self.limits)
         note = None
