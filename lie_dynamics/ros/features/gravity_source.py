@@ -99,7 +99,7 @@ class GravitySource:
             return
         s = core.settings
         now = self.clock() if now is None else now
-        fresh, line = self.freshness.check(self.time, s['gravity_timeout'], now, self.topic, never=False)
+        fresh, line = self.freshness.check(self.time, s.gravity_timeout, now, self.topic, never=False)
         if line is not None:   # (never came: the parameter is the gravity, nothing fell back)
             self._say(line, s)
         switched = fresh != self.following
@@ -109,14 +109,14 @@ class GravitySource:
         k = self._key
         if k is not None and k[0] is model and k[2] is s and k[1] == model.version and k[3] == seq:
             return
-        core.use_gravity((self.vector if fresh else np.asarray(s['gravity'], dtype=float)) * s['gravity_scale'],
+        core.use_gravity((self.vector if fresh else np.asarray(s.gravity, dtype=float)) * s.gravity_scale,
                          blend=switched)
         self._key = (model, model.version, s, seq)
 
     def _say(self, line, s):
         severity, key, text = line
         self.events.append((severity, key, f'{text}: following it' if severity == 'info' else
-                            f"{text}: using the gravity parameter {s['gravity']}"))
+                            f"{text}: using the gravity parameter {s.gravity}"))
 
     def report(self, level, message, now=None):
         """(level, message, values) additions for the node's diagnostics."""
