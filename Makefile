@@ -12,7 +12,8 @@ $(STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --disable-pip-version-check -r requirements-dev.txt
 	# The package itself, editable: `python -m lie_dynamics...` from any folder, and the console
-	# scripts (dynamics_node, sim_node, trajectory_source, demo, fill_trajectory) in .venv/bin.
+	# scripts (dynamics_node, sim_node, trajectory_source, demo, fill_trajectory, excitation_trajectory,
+	# identify_dynamics) in .venv/bin.
 	# --use-pep517: the legacy `setup.py develop` route would follow setup.cfg's [develop]
 	# script_dir, which puts them where colcon installs them for `ros2 run` (lib/lie_dynamics).
 	$(PY) -m pip install -q --disable-pip-version-check --no-deps --use-pep517 -e .

@@ -15,7 +15,7 @@ setup(
         ('share/' + package_name + '/launch', glob('launch/*.py')),
     ],
     package_data={package_name: ['data/*.urdf', 'codegen/*.c']},
-    install_requires=['setuptools', 'numpy', 'yourdfpy'],
+    install_requires=['setuptools', 'numpy', 'yourdfpy', 'scipy', 'rosbags', 'PyYAML'],
     zip_safe=True,
     maintainer='lie_dynamics developers',
     maintainer_email='lie-dynamics@example.org',
@@ -29,6 +29,8 @@ setup(
             'trajectory_source = lie_dynamics.sim.trajectory_source:main',
             'demo = lie_dynamics.sim.demo:main',
             'fill_trajectory = lie_dynamics.trajectory:main',
+            'excitation_trajectory = lie_dynamics.calibration.excitation:main',
+            'identify_dynamics = lie_dynamics.calibration.identify:main',
         ],
     },
 )

@@ -1,7 +1,7 @@
 """All benchmarks in one command: tables (Markdown + CSV/JSON) and PNG charts in one folder.
 
     python -m bench [--quick] [--out DIR] [--only core,lagrangian,accuracy,scaling,stability,robots,node,payload,
-                     observer,jacobian,compile] [--docs-img DIR]
+                     observer,jacobian,compile,signals] [--docs-img DIR]
     make bench ARGS="--quick"
 
 Sections (each writes its own files into DIR, default bench/out/):
@@ -25,6 +25,8 @@ Sections (each writes its own files into DIR, default bench/out/):
               getFrameClassicalAcceleration, one state and batches (bench/jacobian.py)
   compile     native kernels: compile time of each family at first use, load time from the
               cache, call time cut into parts against one function (bench/compile.py)
+  signals     calibration signals: q̇, q̈ and effort error against the low-pass cutoff, a
+              dropout's length and the distance from a segment's end (bench/signals.py)
 --quick shortens everything (a smoke test runs it); the full run takes a few minutes.
 --docs-img copies the PNG charts, palette-compressed, to DIR (docs/img: the copies docs/benchmarks.md shows).
 A failing section is reported and the others still run; the exit status is then 1.
@@ -39,7 +41,7 @@ import traceback
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 SECTIONS = ('core', 'lagrangian', 'accuracy', 'scaling', 'stability', 'robots', 'node', 'payload', 'observer',
-            'jacobian', 'compile')
+            'jacobian', 'compile', 'signals')
 
 
 def _core(quick, out):
@@ -100,6 +102,11 @@ def _compile(quick, out):
     compile_bench.run(quick=quick, out=out)
 
 
+def _signals(quick, out):
+    from bench import signals
+    signals.run(quick=quick, out=out)
+
+
 def _small_copy(src, dst):
     """Copy a chart for committing: a 128-colour palette PNG is ~3x smaller and looks the same."""
     try:
@@ -115,7 +122,7 @@ def _small_copy(src, dst):
 RUNNERS = {'core': _core, 'lagrangian': _lagrangian, 'accuracy': _accuracy, 'scaling': _scaling,
            'stability': _stability, 'robots': _robots, 'node': _node, 'payload': _payload,
            'observer': _observer, 'jacobian': _jacobian,
-           'compile': _compile}
+           'compile': _compile, 'signals': _signals}
 
 
 def main(argv=None):

@@ -1,5 +1,6 @@
 """lie_dynamics: rigid-body robot dynamics with the Lie-group formulation of
-Park, Bobrow & Ploen (1995). The math core imports only numpy and yourdfpy."""
+Park, Bobrow & Ploen (1995). The math core imports only numpy and yourdfpy (calibration/ also
+scipy and rosbags)."""
 import os
 
 from .model.inertia import InertiaWarning

@@ -24,7 +24,9 @@ from .laws import COULOMB_VELOCITY_EPSILON, friction_torque
 from .model.joint_names import joint_columns
 
 
-def _derivative(y, t):
+def derivative(y, t):
+    """dy/dt along axis 0 at the (possibly non-uniform) times t: the missing-derivative rule of
+    this module's docstring (zeros for one point)."""
     if len(t) == 1:
         return np.zeros_like(y)
     return np.gradient(y, t, axis=0, edge_order=2 if len(t) > 2 else 1)
@@ -94,9 +96,9 @@ def fill_trajectory_efforts(model, traj, friction=False, eps=COULOMB_VELOCITY_EP
     if (qd is None or qdd is None) and t is None and N > 1:
         raise ValueError('trajectory needs time_from_start to derive missing velocities/accelerations')
     if qd is None:
-        qd = _derivative(q, t) if N > 1 else np.zeros_like(q)
+        qd = derivative(q, t) if N > 1 else np.zeros_like(q)
     if qdd is None:
-        qdd = _derivative(qd, t) if N > 1 else np.zeros_like(q)
+        qdd = derivative(qd, t) if N > 1 else np.zeros_like(q)
     tau = model.inverse_dynamics(q, qd, qdd, with_gravity=with_gravity)
     if friction:
         tau = tau + friction_torque(qd, model.damping, model.friction, eps)
@@ -109,8 +111,10 @@ KINDS = {'pos.': 'positions', 'vel.': 'velocities', 'acc.': 'accelerations'}
 def read_csv(path):
     """Trajectory arrays from a CSV with columns time, pos.<j>, [vel.<j>], [acc.<j>].
 
-    eff.<j> columns (what `write_csv` adds) are accepted and ignored, so an output can be
-    read back. Raises ValueError naming the file, line and column of the first problem.
+    eff.<j> columns (what `write_csv` adds) are accepted, so an output can be read back; when
+    every joint has one they come back as 'efforts' (measured efforts for calibration;
+    fill_trajectory_efforts does not use them). Raises ValueError naming the file, line and
+    column of the first problem.
     """
     try:
         with open(path, newline='', encoding='utf-8-sig') as fh:  # -sig: spreadsheets write a BOM
@@ -159,6 +163,8 @@ def read_csv(path):
             raise ValueError(f'{path}: {prefix}<joint> columns must cover every joint or none; missing {missing}')
         if idx:
             out[key] = data[:, idx]
+    if all('eff.' + j in header for j in joints):
+        out['efforts'] = data[:, [header.index('eff.' + j) for j in joints]]
     return out
 
 

@@ -19,7 +19,13 @@ import zlib
 
 import pytest
 
-from lie_dynamics.sim.domains import reserve_domains
+# One BLAS thread per test process, set before numpy loads: two xdist workers on two cores, each
+# with a threaded OpenBLAS, oversubscribe the machine, and the calibration fit's small SVDs and QRs
+# lose more to thread hand-offs than they gain (test_noise_free_recovery: 18.7 s -> 5.3 s on a
+# loaded machine). Results do not depend on it; a value set by the caller is kept.
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
+
+from lie_dynamics.sim.domains import reserve_domains  # noqa: E402  (after the BLAS setting)
 
 
 def _interrupt(*_):

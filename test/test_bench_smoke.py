@@ -241,3 +241,17 @@ def test_log_line_bench_times_both_paths():
     rows = [ln for ln in done.stdout.splitlines() if ln.startswith("| rclpy's Python logger |")
             or ln.startswith('| Outputs.log_line (C call) |')]
     assert len(rows) == 2 and rows[0].endswith('| 1.000× |')
+
+
+def test_record_gaps_probe_runs():
+    """bench.probes.record_gaps runs (its own process: it starts rclpy) and reports the three phases,
+    the recording written."""
+    import subprocess
+    import sys
+    done = subprocess.run([sys.executable, '-m', 'bench.probes.record_gaps', '--seconds', '0.2', '--rate', '200',
+                           '--rounds', '2'],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    rows = [line for line in done.stdout.splitlines() if line.startswith('| ')]
+    assert [r.split('|')[1].strip() for r in rows[1:]] == ['idle', 'recording', 'writing'], done.stdout
+    assert 'written: rosbag2_' in done.stdout and int(rows[2].split('|')[2]) == 40   # 2 rounds of 20

@@ -105,7 +105,8 @@ def test_serialized_templates_read_back_as_the_messages(names):
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray
-    from lie_dynamics.ros.features.dynamics_topics import joint_state_template, matrix_template
+    from lie_dynamics.ros.core.cdr import joint_state_template
+    from lie_dynamics.ros.features.dynamics_topics import matrix_template
     n = len(names)
     rng = np.random.default_rng(1)
     q, qd, e = rng.normal(size=(3, n))

@@ -315,7 +315,7 @@ def test_writer_messages_equal_the_template_and_read_back(names):
     """cdr.Writer (the ~/external_torques path: a JointState with effort only) gives the bytes of
     Template.fill, message after message with new stamps and values, that rclpy reads back; an
     array of another length is refused rather than making a malformed message."""
-    from lie_dynamics.ros.features.dynamics_topics import joint_state_template
+    from lie_dynamics.ros.core.cdr import joint_state_template
     n = len(names)
     rng = np.random.default_rng(3)
     for sizes in ((0, 0, n), None):

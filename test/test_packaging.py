@@ -101,7 +101,8 @@ def test_colcon_build_and_ros2_run_resolution(tmp_path):
     assert os.path.isfile(exe) and os.access(exe, os.X_OK)
     usage = subprocess.run([exe, '--help'], env=env, capture_output=True, text=True, timeout=120)
     assert usage.returncode == 0 and usage.stdout.startswith('usage: dynamics_node'), usage.stdout + usage.stderr
-    for other in ('sim_node', 'trajectory_source', 'demo', 'fill_trajectory'):
+    for other in ('sim_node', 'trajectory_source', 'demo', 'fill_trajectory', 'excitation_trajectory',
+                  'identify_dynamics'):
         path = os.path.join(prefix, 'lib', 'lie_dynamics', other)
         assert os.path.isfile(path) and os.access(path, os.X_OK), other
     assert os.path.isfile(site / 'lie_dynamics' / 'data' / 'arm7.urdf')  # the embedded default model
@@ -166,11 +167,12 @@ def _console_scripts():
 
 
 def test_the_console_scripts_are_the_documented_executables():
-    assert sorted(_console_scripts()) == ['demo', 'dynamics_node', 'fill_trajectory', 'sim_node',
-                                          'trajectory_source']
+    assert sorted(_console_scripts()) == ['demo', 'dynamics_node', 'excitation_trajectory', 'fill_trajectory',
+                                          'identify_dynamics', 'sim_node', 'trajectory_source']
 
 
-@pytest.mark.parametrize('name', ['dynamics_node', 'sim_node', 'trajectory_source', 'demo', 'fill_trajectory'])
+@pytest.mark.parametrize('name', ['dynamics_node', 'sim_node', 'trajectory_source', 'demo', 'fill_trajectory',
+                                  'excitation_trajectory', 'identify_dynamics'])
 def test_console_script_in_the_venv_answers_help(name):
     """`make venv` installs the package (pip install -e .): each console script sits next to the
     interpreter and prints its usage under its own name."""

@@ -402,6 +402,9 @@ def test_time_base_and_its_users(arm):
     assert isinstance(ident.time, TimeBase)
     np.testing.assert_array_equal(ident.recording.arrays()[0], [0.0, 0.005])
     ident.stop('test')
+    from lie_dynamics.ros.features.recording import SampleLog   # ~/record's recording_max_s
+    log = SampleLog(names, 0.005)
+    assert isinstance(log.time, TimeBase) and not log.add(core.result) and log.span == 0.0
 
 
 # ---------------------------------------------------------------- diagnostics and log bounds

@@ -4,6 +4,7 @@ benchmarks `python -m bench` runs: `python -m bench.probes.<name>`.
   ab              this tree against another checkout, call by call, in one process
   kernel_warm_up  what warming a new model's kernels costs where it is built
   log_line        the node's log line against rclpy's Python logger
+  record_gaps     the node's joint_states callback while ~/record records and writes
   node_trace      the dynamics node with its joint_states callbacks and log lines timed (bench.node_loads --trace)
   sched_trace     the kernel's scheduler record of the node's waits for a CPU during bench.node_loads
 """

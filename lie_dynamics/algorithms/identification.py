@@ -137,8 +137,9 @@ def least_squares(Y, y, prior, rcond=1e-8):
     """The least-squares engine of `identify` (steps 1-4 of the module docstring) on a stacked
     regressor Y (rows, p) and measurements y (rows,): a dict with rank, base_columns,
     base_matrix, base_parameters, base_std, condition_number, parameters (closest to `prior`
-    along the unidentifiable directions), residual and determined (p,) booleans (a parameter the
-    data fix on its own: no null-space direction moves it)."""
+    along the unidentifiable directions), residual, determined (p,) booleans (a parameter the
+    data fix on its own: no null-space direction moves it), scale (p,) the column scaling and
+    null_space (p - rank, p) the directions the data do not see, in scaled units."""
     p = Y.shape[1]
     scale = np.sqrt(np.sum(Y * Y, axis=0))
     seen = scale > 1e-12 * max(scale.max(), 1e-300)
@@ -174,18 +175,30 @@ def least_squares(Y, y, prior, rcond=1e-8):
     return dict(rank=r, base_columns=B, base_matrix=base_matrix, base_parameters=zB / scale[B],
                 base_std=np.sqrt(np.clip(np.diag(cov_z), 0, None)) / scale[B],
                 condition_number=float(sB[0] / sB[-1]) if sB[-1] > 0 else np.inf, parameters=pi,
-                residual=resid, determined=determined)
+                residual=resid, determined=determined, scale=scale, null_space=null)
 
 
 def excitation_trajectory(model, duration=10.0, rate=100.0, harmonics=5, base_frequency=0.1, seed=0,
-                          margin=0.1):
+                          margin=0.1, optimize=False, **options):
     """A finite Fourier series per joint (periodic, smooth), kept inside the joint limits.
 
     q_j(t) = q0_j + sum_l a_jl sin(w_l t) + b_jl (1 - cos(w_l t)), w_l = 2 pi l base_frequency,
     with random coefficients decaying as 1/l, scaled into the position limits (shrunk by
     `margin` of their range; +-pi for unlimited joints) and under the velocity limits.
     Returns (t, q, qd, qdd) with q, qd, qdd of shape (samples, n).
+
+    optimize=True: the series optimised for the condition number of the base calibration
+    regressor, at rest at a home pose at both ends, within position, velocity, acceleration and
+    effort limits (calibration.excitation.optimized_excitation, which takes the `options`:
+    home, joints, velocity_fraction, acceleration, effort_fraction, ...; its period is the
+    duration, so base_frequency is not used).
     """
+    if optimize:
+        from ..calibration.excitation import optimized_excitation
+        return optimized_excitation(model, duration=duration, rate=rate, harmonics=harmonics, seed=seed,
+                                    margin=margin, **options)
+    if options:
+        raise ValueError(f'options {sorted(options)} need optimize=True')
     if duration <= 0 or rate <= 0 or harmonics < 1 or base_frequency <= 0:
         raise ValueError('duration, rate, base_frequency must be > 0 and harmonics >= 1')
     rng = np.random.default_rng(seed)

@@ -562,3 +562,9 @@ class Model:
     def with_inertial_parameters(self, pi, check=True):
         """Copy of this model with the given inertial parameters (payloads folded in)."""
         return regressor.with_inertial_parameters(self, pi, check)
+
+    def with_calibration(self, calibration):
+        """Copy with a calibration (a CalibrationResult or a calibration.yaml path) applied:
+        lie_dynamics.calibration.result.with_calibration."""
+        from ..calibration.result import with_calibration
+        return with_calibration(self, calibration)

@@ -324,7 +324,7 @@ def _apply_policy(policy, link_inertias, scale):
 
 
 # ---------------------------------------------------------------------- build
-def load_urdf(source, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn'):
+def load_urdf(source, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn', calibration=None):
     """Build a `Model` from a URDF file path or XML string.
 
     joints: the controlled joints, in the order of q (default: every movable non-mimic
@@ -334,6 +334,8 @@ def load_urdf(source, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn'):
     that ends up in the model: 'warn' (compute with it as written; one InertiaWarning per
     link), 'strict' (ValueError) or 'repair' (nearest consistent tensor; InertiaWarning with
     the before and after values). `Model.physical_consistency()` returns the report.
+    calibration: a calibration.yaml path (or CalibrationResult) applied to the loaded model
+    (`Model.with_calibration`: identified inertias, friction as damping and friction).
     Raises ValueError naming the culprit for any malformed or unsupported input.
     """
     policy = check_policy(inertia)
@@ -468,4 +470,4 @@ def load_urdf(source, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn'):
                          'fixes it): ' + '; '.join(e['message'] for e in report))
     for entry in report:
         warnings.warn(entry['message'], InertiaWarning, stacklevel=2)
-    return model
+    return model if calibration is None else model.with_calibration(calibration)

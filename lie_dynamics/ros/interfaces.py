@@ -83,6 +83,7 @@ INTERFACES = {
     '~/reload_model': Interface('srv', Trigger, SERVICE_QOS, 'control'),
     '~/set_payload': Interface('srv', SetParametersAtomically, SERVICE_QOS, 'features.payload_services'),
     '~/identify_payload': Interface('srv', Trigger, SERVICE_QOS, 'features.payload_services (its helper node)'),
+    '~/record': Interface('srv', SetBool, SERVICE_QOS, 'features.recording (its helper node)'),
 }
 
 

@@ -29,6 +29,7 @@ from .features.contact_topics import ContactTopics
 from .features.dynamics_topics import DynamicsTopics
 from .features.gravity_topic import GravityTopic
 from .features.payload_services import PayloadServices
+from .features.recording import RecordService
 from .interfaces import (DESCRIPTION_QOS, JOINT_STATES_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SERVICE_QOS,
                          SERVICE_QUEUE, TRAJECTORY_QOS)
 from .loading.background import Background
@@ -48,6 +49,7 @@ FEATURES = (
     GravityTopic,      # <gravity_topic>: the gravity in force before each command
     PayloadServices,   # ~/set_payload, ~/identify_payload (records accepted samples)
     DynamicsTopics,    # ~/dynamics/*
+    RecordService,     # ~/record (records accepted samples for calibration)
 )
 
 

@@ -265,6 +265,19 @@ class Template:
         return Writer(self.buf, slots, stamp_at)
 
 
+def joint_state_template(names, sizes=None):
+    """(Template, stamp offset, slots of position, velocity, effort) of a sensor_msgs/JointState
+    with these names and an empty frame_id; sizes: the three arrays' lengths (default: one
+    value per name each). The one writer of a JointState's layout (the dynamics and contact
+    topics, the recordings of ~/record)."""
+    t = Template()
+    stamp_at = t.int32()
+    t.uint32()
+    t.string('')
+    t.strings(names)
+    return t, stamp_at, [t.doubles(len(names) if sizes is None else k) for k in (sizes or range(3))]
+
+
 class Writer:
     """Template.fill with the slots and stamp offset fixed, for a message published at every
     sample: the template cut into its constant pieces once, each message the pieces joined with

@@ -184,6 +184,13 @@ PARAMS = (
     ParamSpec('identify.max_residual_ratio', 'double', 0.3,
               'An identification whose residual RMS exceeds this fraction of the payload torque RMS is refused.',
               True, (0.0, 1.0)),
+    # recording for calibration (features/recording.py)
+    ParamSpec('recording_dir', 'string', '',
+              'Folder ~/record writes its rosbag2 folders into (created if missing). Empty: '
+              '$ROS_HOME/lie_dynamics/recordings ($ROS_HOME defaults to ~/.ros).', True),
+    ParamSpec('recording_max_s', 'double', 300.0,
+              'Longest ~/record recording, s of joint_states (stamp time): then it stops by itself, is written, '
+              'and says so in the log.', True, (0.1, 3600.0)),
     ParamSpec('diagnostics_period', 'double', 1.0, 'Period of /diagnostics, s.', False, (0.05, 60.0)),
     # external joint torques and collision detection (contact.py)
     ParamSpec('observer.enabled', 'bool', True,

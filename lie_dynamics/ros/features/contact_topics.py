@@ -12,9 +12,9 @@ from rclpy.serialization import serialize_message
 from std_msgs.msg import Bool
 
 from .. import interfaces
+from ..core.cdr import joint_state_template
 from .base import Feature
 from .contact import ContactMonitor, check_settings, observer_on, warm_observer
-from .dynamics_topics import joint_state_template
 
 # ~/collision's two possible messages, serialized
 _FLAG = {v: serialize_message(Bool(data=v)) for v in (False, True)}

@@ -28,7 +28,7 @@ import numpy as np
 
 from .. import interfaces
 from ...algorithms import jacobian
-from ..core.cdr import Template
+from ..core.cdr import Template, joint_state_template
 from ..core.timebase import TimeBase
 from ..core.diagnostics import clip
 from ..loading.models import at_rest, jacobian_at_rest, tip_link
@@ -53,18 +53,6 @@ def check_link(settings, model):
     except ValueError as exc:
         raise ValueError(f"dynamics.link '{clip(link, 80)}' cannot be used with robot '{model.name}': "
                          f'{exc}') from None
-
-
-def joint_state_template(names, sizes=None):
-    """(Template, stamp offset, slots of position, velocity, effort) of a sensor_msgs/JointState
-    with these names and an empty frame_id; sizes: the three arrays' lengths (default: one
-    value per name each)."""
-    t = Template()
-    stamp_at = t.int32()
-    t.uint32()
-    t.string('')
-    t.strings(names)
-    return t, stamp_at, [t.doubles(len(names) if sizes is None else k) for k in (sizes or range(3))]
 
 
 def matrix_template(rows_label, cols_label, rows, cols):

@@ -1,0 +1,338 @@
+"""Excitation design: a finite Fourier series per joint, optimised for the condition number of
+the base calibration regressor, at rest at a home pose at its start and end, within limits.
+
+Per joint j, with w_l = 2 pi l f0 (f0 = 1 / duration: one period),
+
+    q_j(t) = home_j + sum_l a_jl sin(w_l t) + b_jl (cos(w_l t) - 1),
+
+so q_j(0) = q_j(T) = home_j; the coefficients are restricted to sum_l a_jl w_l = 0 and
+sum_l b_jl w_l^2 = 0 (a basis of that subspace), so qd and qdd are 0 at both ends too. The
+objective is log cond of the column-scaled base calibration regressor (the structural base
+columns, regressor.structural_base) along the trajectory, plus a penalty on the limits
+(positions within a margin, a fraction of the velocity limits, an acceleration bound, a fraction
+of the effort limits predicted by the model's inverse dynamics); scipy's L-BFGS-B minimises it.
+The result is then checked on the sampled trajectory and, where a limit is still exceeded,
+shrunk towards home until none is.
+"""
+import numpy as np
+
+from ..laws import COULOMB_VELOCITY_EPSILON
+from . import regressor as creg
+
+
+def condition_number(model, q, qd, qdd, eps=COULOMB_VELOCITY_EPSILON, columns=None, scaled=True):
+    """Condition number of the column-scaled calibration regressor along (q, qd, qdd), on the
+    given columns (default: the robot's structural base columns); scaled=False: unscaled. inf when
+    a column is zero."""
+    if columns is None:
+        columns = creg.structural_base(model, eps).base_columns
+    Y = creg.stack(model, q, qd, qdd)[:, columns] if eps == COULOMB_VELOCITY_EPSILON else \
+        creg.calibration_regressor(model, q, qd, qdd, eps).reshape(-1, creg.n_parameters(model))[:, columns]
+    if scaled:
+        norms = np.linalg.norm(Y, axis=0)
+        if np.any(norms == 0):
+            return np.inf
+        Y = Y / norms
+    s = np.linalg.svd(Y, compute_uv=False)
+    return float(s[0] / s[-1]) if s[-1] > 0 else np.inf
+
+
+def _basis(w, power):
+    """Orthonormal basis (H, H - 1) of the coefficient vectors c with sum c_l w_l^power = 0."""
+    v = (w ** power)[:, None]
+    return np.linalg.svd(v.T)[2][1:].T
+
+
+class _Series:
+    """Positions, velocities, accelerations of the constrained series on a time grid."""
+
+    def __init__(self, t, w):
+        self.S, self.C = np.sin(np.outer(t, w)), np.cos(np.outer(t, w))
+        self.w = w
+        self.Ba, self.Bb = _basis(w, 1), _basis(w, 2)
+
+    def coefficients(self, x, n):
+        x = x.reshape(n, 2, -1)
+        return x[:, 0] @ self.Ba.T, x[:, 1] @ self.Bb.T        # (n, H) each
+
+    def __call__(self, x, n):
+        a, b = self.coefficients(x, n)
+        S, C, w = self.S, self.C, self.w
+        p = S @ a.T + (C - 1) @ b.T
+        v = (C * w) @ a.T - (S * w) @ b.T
+        acc = -(S * w ** 2) @ a.T - (C * w ** 2) @ b.T
+        return p, v, acc
+
+
+def _limits(model, home, margin, velocity_fraction, acceleration, effort_fraction, joints):
+    n = model.n
+    lo = np.where(np.isfinite(model.position_lower), model.position_lower, -np.pi)
+    hi = np.where(np.isfinite(model.position_upper), model.position_upper, np.pi)
+    span = hi - lo
+    lo, hi = lo + margin * span, hi - margin * span
+    vmax = np.where(np.isfinite(model.velocity_limits) & (model.velocity_limits > 0),
+                    model.velocity_limits, np.inf) * velocity_fraction
+    amax = np.broadcast_to(np.asarray(acceleration, dtype=float), (n,)).copy()
+    emax = np.where(np.isfinite(model.effort_limits) & (model.effort_limits > 0),
+                    model.effort_limits, np.inf) * effort_fraction
+    for j in range(n):
+        name = model.joint_names[j]
+        if not lo[j] < hi[j]:
+            raise ValueError(f"position limit of joint '{name}': no room inside [{lo[j]:.6g}, {hi[j]:.6g}] "
+                             f'with the margin {margin:g}')
+        if not (lo[j] <= home[j] <= hi[j]):
+            raise ValueError(f"position limit of joint '{name}': home {home[j]:.6g} is outside "
+                             f'[{lo[j]:.6g}, {hi[j]:.6g}] (the limits less the margin {margin:g} of the range)')
+    g = model.gravity(home)
+    for j in range(n):
+        if abs(g[j]) >= emax[j]:
+            raise ValueError(f"effort limit of joint '{model.joint_names[j]}': gravity alone at home needs "
+                             f'{abs(g[j]):.6g}, above {effort_fraction:g} of the limit ({emax[j]:.6g})')
+    moving = np.zeros(n, dtype=bool)
+    moving[joints] = True
+    return lo, hi, vmax, amax, emax, moving
+
+
+def _violation(model, home, lo, hi, vmax, amax, emax, p, v, a):
+    """Per-sample excess over each limit, relative to the limit: four (N, n) arrays."""
+    q = home + p
+    span = hi - lo
+    ep = np.maximum(np.maximum(q - hi, lo - q), 0.0) / span
+    ev = np.maximum(np.abs(v) - vmax, 0.0) / vmax
+    ea = np.maximum(np.abs(a) - amax, 0.0) / amax
+    tau = model.inverse_dynamics(q, v, a)
+    ee = np.maximum(np.abs(tau) - emax, 0.0) / np.where(np.isfinite(emax), emax, 1.0)
+    return ep, ev, ea, ee
+
+
+LIMIT_NAMES = ('position limit', 'velocity limit', 'acceleration bound', 'effort limit')
+
+
+def optimized_excitation(model, duration=10.0, rate=100.0, harmonics=5, home=None, joints=None, margin=0.1,
+                         velocity_fraction=0.8, acceleration=5.0, effort_fraction=0.8, seed=0,
+                         eps=COULOMB_VELOCITY_EPSILON, iterations=100, samples=None):
+    """(t, q, qd, qdd) of the optimised excitation (module docstring): q, qd, qdd (N, n).
+
+    home: the pose it starts and ends at, at rest ((n,), default the middle of the position
+    limits). joints: names of the joints that move (default all; the others stay at home).
+    margin: fraction of each joint's range kept free at both ends. velocity_fraction,
+    effort_fraction: of the URDF's limits; acceleration: rad/s^2 (m/s^2), one or per joint.
+    iterations: of L-BFGS-B; samples: grid of the optimisation (default 6 per period of the
+    highest harmonic, at least 60). The limits hold on the returned samples (checked);
+    ValueError names the binding limit where they cannot (home outside the limits, gravity at
+    home above the effort fraction, a bound that leaves no motion).
+    """
+    from scipy.optimize import minimize   # scipy: imported where it is used
+
+    n = model.n
+    if not (duration > 0 and rate > 0 and harmonics >= 2 and 0 <= margin < 0.5):
+        raise ValueError('duration and rate must be > 0, harmonics >= 2, margin in [0, 0.5)')
+    for name, value in (('velocity_fraction', velocity_fraction), ('effort_fraction', effort_fraction)):
+        if not (0 < value <= 1):
+            raise ValueError(f'{name} must be in (0, 1], got {value}: no motion is possible')
+    if not np.all(np.asarray(acceleration, dtype=float) > 0):
+        raise ValueError(f'acceleration bound must be > 0, got {acceleration}: no motion is possible')
+    if joints is None:
+        cols = np.arange(n)
+    else:
+        unknown = [j for j in joints if j not in model.joint_names]
+        if unknown:
+            raise ValueError(f'unknown joints {unknown}; the model has {model.joint_names}')
+        cols = np.array([model.joint_names.index(j) for j in joints], dtype=int)
+    lo0 = np.where(np.isfinite(model.position_lower), model.position_lower, -np.pi)
+    hi0 = np.where(np.isfinite(model.position_upper), model.position_upper, np.pi)
+    home = 0.5 * (lo0 + hi0) if home is None else np.asarray(model.check_batch('home', home)[0])
+    lo, hi, vmax, amax, emax, moving = _limits(model, home, margin, velocity_fraction, acceleration,
+                                               effort_fraction, cols)
+
+    w = 2 * np.pi / duration * np.arange(1, harmonics + 1)
+    m = samples or max(60, int(np.ceil(6 * harmonics)))
+    t_opt = np.arange(m) * (duration / m)
+    t = np.arange(0.0, duration + 0.5 / rate, 1.0 / rate)
+    t = t[t <= duration + 1e-12]
+    opt, fine = _Series(t_opt, w), _Series(t, w)
+    columns = creg.structural_base(model, eps).base_columns
+    mask = np.repeat(moving, 2 * (harmonics - 1))
+
+    def trajectory(series, x, s=1.0):
+        p, v, a = series(x * mask, n)
+        return s * p, s * v, s * a
+
+    bases = _derivative_bases(opt, n)
+    penalty_weight = 1e3
+
+    def cost(x, gradient=True):
+        p, v, a = trajectory(opt, x)
+        return _objective(model, home, p, v, a, columns, eps, (lo, hi, vmax, amax, emax), penalty_weight,
+                          bases if gradient else None, mask)
+
+    rng = np.random.default_rng(seed)
+    x0 = rng.normal(size=(n, 2, harmonics - 1)).reshape(-1)
+    x0 *= _shrink(model, home, lo, hi, vmax, amax, emax, lambda s: trajectory(opt, x0, s), 1.0)
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+        res = minimize(cost, x0, jac=True, method='L-BFGS-B', options={'maxiter': iterations})
+    x = res.x if np.isfinite(res.fun) and res.fun <= cost(x0, False)[0] else x0
+    s = _shrink(model, home, lo, hi, vmax, amax, emax, lambda s: trajectory(fine, x, s), 1.0)
+    p, v, a = trajectory(fine, x, s)
+    worst = [float(e.max()) for e in _violation(model, home, lo, hi, vmax, amax, emax, p, v, a)]
+    if max(worst) > 0 or s < 1e-3:
+        k = int(np.argmax(worst)) if max(worst) > 0 else 3
+        raise ValueError(f'the limits leave no exciting motion: the {LIMIT_NAMES[k]} binds')
+    q = np.where(moving, home + p, home)
+    return t, q, np.where(moving, v, 0.0), np.where(moving, a, 0.0)
+
+
+def _derivative_bases(series, n):
+    """d(p, v, a)/dx for one joint's coefficients x = (x_a, x_b): three (m, 2 (H - 1)) matrices."""
+    S, C, w, Ba, Bb = series.S, series.C, series.w, series.Ba, series.Bb
+    return (np.hstack([S @ Ba, (C - 1) @ Bb]), np.hstack([(C * w) @ Ba, -(S * w) @ Bb]),
+            np.hstack([-(S * w ** 2) @ Ba, -(C * w ** 2) @ Bb]))
+
+
+def _objective(model, home, p, v, a, columns, eps, limits, weight, bases, mask, h=1e-6):
+    """log cond of the column-scaled base regressor + weight * the squared relative excess over
+    the limits, and (bases given) its gradient in the coefficients: the singular values'
+    derivatives (d s = u^T dZ v, with the column scaling differentiated too) chained with the
+    regressor's and the inverse dynamics' central differences in q, qd, qdd of every sample."""
+    lo, hi, vmax, amax, emax = limits
+    m, n = p.shape
+    q = home + p
+    states = [q, v, a]
+    if bases is not None:   # the samples, then each state kind and joint moved by +-h
+        batch = [np.stack(states)]
+        for kind in range(3):
+            for j in range(n):
+                for sign in (1, -1):
+                    st = [x.copy() for x in states]
+                    st[kind][:, j] += sign * h
+                    batch.append(np.stack(st))
+        allst = np.concatenate(batch, axis=1)        # (3, m * (1 + 6 n), n)
+    else:
+        allst = np.stack(states)
+    Yall = creg.calibration_regressor(model, *allst, eps)[..., columns]
+    tau_all = model.inverse_dynamics(*allst)
+    Y = Yall[:m].reshape(m * n, -1)
+    D = np.linalg.norm(Y, axis=0)
+    if np.any(D == 0):
+        return (50.0, np.zeros(n * len(bases[0][0]))) if bases is not None else (50.0, None)
+    U, sv, Vt = np.linalg.svd(Y / D, full_matrices=False)
+    value = float(np.log(sv[0] / sv[-1]))
+    tau = tau_all[:m]
+    span = hi - lo
+    ep = np.maximum(q - hi, 0.0) / span - np.maximum(lo - q, 0.0) / span        # signed excess
+    ev = np.sign(v) * np.maximum(np.abs(v) - vmax, 0.0) / vmax
+    ea = np.sign(a) * np.maximum(np.abs(a) - amax, 0.0) / amax
+    escale = np.where(np.isfinite(emax), emax, 1.0)
+    ee = np.sign(tau) * np.maximum(np.abs(tau) - emax, 0.0) / escale
+    value += weight * float(np.sum(ep ** 2) + np.sum(ev ** 2) + np.sum(ea ** 2) + np.sum(ee ** 2))
+    if bases is None:
+        return value, None
+    # d log cond / dY
+    G = np.zeros_like(Y)
+    for i, sign in ((0, 1.0), (-1, -1.0)):
+        G += sign * (np.outer(U[:, i], Vt[i] / D) - sv[i] * Y * (Vt[i] ** 2 / D ** 2)) / sv[i]
+    G = G.reshape(m, n, -1)
+    dY = (Yall[m:].reshape(3, n, 2, m, n, -1))
+    dY = (dY[:, :, 0] - dY[:, :, 1]) / (2 * h)                   # (kind, j, m, rows, cols)
+    dtau = tau_all[m:].reshape(3, n, 2, m, n)
+    dtau = (dtau[:, :, 0] - dtau[:, :, 1]) / (2 * h)              # (kind, j, m, n)
+    gs = np.einsum('sic,kjsic->kjs', G, dY)                        # d value / d state (kind, j, sample)
+    gs += 2 * weight * np.einsum('si,kjsi->kjs', ee / escale, dtau)
+    gs[0] += 2 * weight * (ep / span).T
+    gs[1] += 2 * weight * (ev / vmax).T
+    gs[2] += 2 * weight * (ea / amax).T
+    grad = sum(gs[k] @ bases[k] for k in range(3))                 # (n, 2 (H - 1))
+    return value, grad.reshape(-1) * mask
+
+
+def _shrink(model, home, lo, hi, vmax, amax, emax, traj, s):
+    """Largest scale in (0, s] of the motion about home with no limit exceeded (bisection; the
+    effort is not linear in the scale)."""
+    def ok(k):
+        return all(float(e.max()) <= 0 for e in _violation(model, home, lo, hi, vmax, amax, emax, *traj(k)))
+    if ok(s):
+        return s
+    good, bad = 0.0, s
+    for _ in range(40):
+        mid = 0.5 * (good + bad)
+        good, bad = (mid, bad) if ok(mid) else (good, mid)
+    return good
+
+
+def write_csv(path, t, q, qd, qdd, joint_names):
+    """The trajectory CSV that fill_trajectory and trajectory_source read:
+    time, pos.<joint>..., vel.<joint>..., acc.<joint>... (full precision)."""
+    import csv
+
+    header = ['time'] + [f'{k}.{j}' for k in ('pos', 'vel', 'acc') for j in joint_names]
+    with open(path, 'w', newline='') as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        for row in np.column_stack([t, q, qd, qdd]):
+            w.writerow([repr(float(x)) for x in row])
+
+
+EXAMPLES = """\
+The trajectory starts and ends at rest at --home (default: the middle of the position limits),
+keeps --margin of each range free, and stays under the fractions of the URDF's velocity and
+effort limits (the effort predicted by the model's inverse dynamics) and under --acceleration.
+It is a finite Fourier series per joint optimised for the condition number of the base
+calibration regressor; joints not in --joints stay at home.
+examples:
+  excitation_trajectory config/arm7.urdf -o excitation.csv
+  excitation_trajectory robot.urdf -o exc.csv --joints joint1,joint2 --duration 30 --home 0,0.5
+"""
+
+
+def main(argv=None):
+    """excitation_trajectory: write an optimised excitation trajectory CSV."""
+    from ..cli import CliParser, number, run_cli
+
+    ap = CliParser('lie_dynamics.calibration.excitation', description='write an optimised excitation '
+                   'trajectory (time, pos.<joint>, vel.<joint>, acc.<joint>) for calibration', epilog=EXAMPLES)
+    ap.add_argument('urdf', help='the robot description (URDF file)')
+    ap.add_argument('-o', '--output', required=True, help='the CSV to write')
+    ap.add_argument('--joints', help='comma-separated joints that move (default: all controlled joints)')
+    ap.add_argument('--duration', type=number(low=0, strict=True), default=20.0, help='seconds, > 0 (default 20)')
+    ap.add_argument('--home', help='comma-separated start and end pose, one value per controlled joint')
+    ap.add_argument('--rate', type=number(low=0, strict=True), default=100.0, help='samples per second (default 100)')
+    ap.add_argument('--harmonics', type=number(int, low=2), default=5, help='Fourier harmonics, >= 2 (default 5)')
+    ap.add_argument('--margin', type=number(low=0), default=0.1, help='fraction of each range kept free (default 0.1)')
+    ap.add_argument('--velocity-fraction', type=number(low=0, strict=True), default=0.8,
+                    help='fraction of the velocity limits (default 0.8)')
+    ap.add_argument('--effort-fraction', type=number(low=0, strict=True), default=0.8,
+                    help='fraction of the effort limits (default 0.8)')
+    ap.add_argument('--acceleration', type=number(low=0, strict=True), default=5.0,
+                    help='acceleration bound, rad/s^2 (default 5)')
+    ap.add_argument('--seed', type=number(int, low=0), default=0, help='random start, >= 0 (default 0)')
+    return run_cli(ap, _write, argv)
+
+
+def _values(text, what):
+    try:
+        return [float(v) for v in text.split(',')]
+    except ValueError:
+        raise ValueError(f'{what} must be comma-separated numbers, got {text!r}') from None
+
+
+def _write(args):
+    from .. import load_urdf
+
+    model = load_urdf(args.urdf)
+    joints = [j.strip() for j in args.joints.split(',')] if args.joints else None
+    home = None
+    if args.home is not None:
+        home = _values(args.home, '--home')
+        if len(home) != model.n:
+            raise ValueError(f'--home has {len(home)} values for the {model.n} joints {model.joint_names}')
+    t, q, qd, qdd = optimized_excitation(model, duration=args.duration, rate=args.rate, harmonics=args.harmonics,
+                                         home=home, joints=joints, margin=args.margin,
+                                         velocity_fraction=args.velocity_fraction, acceleration=args.acceleration,
+                                         effort_fraction=args.effort_fraction, seed=args.seed)
+    write_csv(args.output, t, q, qd, qdd, model.joint_names)
+    print(f'{args.output}: {len(t)} samples over {t[-1]:.3g} s, condition number '
+          f'{condition_number(model, q, qd, qdd):.4g}')
+
+
+if __name__ == '__main__':
+    main()
