@@ -55,7 +55,8 @@ def fill_bench(quick=False):
 
     from lie_dynamics import load_urdf
     from lie_dynamics.ros.core.compensator import Compensator
-    from lie_dynamics.ros.trajectories.trajectory_msgs import set_point_efforts, trajectory_message
+    from lie_dynamics.ros.trajectories.fill import TrajectoryInput
+    from lie_dynamics.ros.trajectories.trajectory_msgs import set_point_efforts, trajectory_arrays, trajectory_message
     from lie_dynamics.trajectory import fill_trajectory_efforts
 
     xml = open(ARM).read()
@@ -66,6 +67,7 @@ def fill_bench(quick=False):
     assert pin_names == model.joint_names and pmodel.nq == pmodel.nv == model.n, 'joint orders differ'
     comp = Compensator({'friction.viscous': [0.0], 'friction.coulomb': [0.0]})
     comp.set_model(load_urdf(xml))
+    side = TrajectoryInput(comp)   # the node's checks and counts of a fill
     rounds = 5 if quick else 15
     result = {'rounds': rounds, 'sizes': {}}
     for N in SIZES:
@@ -83,8 +85,9 @@ def fill_bench(quick=False):
                 out[k] = pin.rnea(pmodel, pdata, a, b, c)
             return out
 
-        def message_path():
-            eff = comp.on_trajectory(msg.joint_names, msg.points)
+        def message_path():   # what the trajectory process does with a message the node lets it fill
+            eff, note = side.job(len(msg.points)).fill(msg.joint_names, trajectory_arrays(msg.joint_names, msg.points))
+            side.done(None, note)
             set_point_efforts(msg.points, eff)
             return eff
 

@@ -3,6 +3,9 @@ import re
 
 from lie_dynamics import load_urdf
 from lie_dynamics.ros.core.compensator import Compensator
+from lie_dynamics.ros.core.messages import Rejected
+from lie_dynamics.ros.trajectories.fill import TrajectoryInput
+from lie_dynamics.ros.trajectories.trajectory_msgs import trajectory_arrays
 
 
 class Clock:
@@ -30,3 +33,20 @@ def make(xml, ctrl, clock=None, **settings):
     c = Compensator(dict(joints=ctrl, **settings), clock=clock or Clock())
     c.set_model(load_urdf(xml, joints=ctrl))
     return c
+
+
+def fill_trajectory(core, names, points):
+    """A planner's trajectory (JointTrajectory joint_names and points) filled the node's way,
+    without ROS or its trajectory process: TrajectoryInput.job (a refusal is counted), the
+    process's fill of the message (trajectory_arrays, TrajectoryFill.fill), TrajectoryInput.done.
+    Efforts (N, len(names)) in the message's joint order, or None (rejected)."""
+    side = TrajectoryInput(core)
+    job = side.job(len(points))
+    if isinstance(job, Rejected):
+        return side.done(job.text, kind=job.kind)
+    try:
+        efforts, note = job.fill(names, trajectory_arrays(names, points))
+    except ValueError as exc:
+        return side.done(str(exc))
+    side.done(None, note)
+    return efforts

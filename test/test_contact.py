@@ -16,7 +16,8 @@ from lie_dynamics.laws import friction_torque, make_friction
 from lie_dynamics.ros.features.contact import (MAX_GAP_S, ContactMonitor, Debounce, check_settings, motor_torque,
                                       thresholds)
 from lie_dynamics.ros.core.diagnostics import OK, WARN
-from lie_dynamics.ros.core.params import check_value, defaults
+from lie_dynamics.ros.core.params import check_value
+from lie_dynamics.ros.core.settings import Settings
 from lie_dynamics.ros.core.sample import SampleResult
 from oracle import Oracle
 
@@ -37,10 +38,7 @@ def model():
 
 
 def settings(**changes):
-    s = defaults()
-    for k, v in changes.items():
-        s[k.replace('__', '.')] = check_value(k.replace('__', '.'), v)
-    return s
+    return Settings({k.replace('__', '.'): v for k, v in changes.items()})
 
 
 def motion(t):
@@ -214,23 +212,23 @@ def test_settings_changes_and_model_swaps(model, oracle):
     for k in range(50):
         feed(mon, oracle, k, ext=np.ones(7))
     obs = mon.observer
-    mon.sync(dict(s, **{'collision.threshold': [1.0], 'collision.hold_time': 0.5}), model, None, JOINTS)
+    mon.sync(s.replace({'collision.threshold': [1.0], 'collision.hold_time': 0.5}), model, None, JOINTS)
     assert mon.observer is obs and mon.last_stamp is not None          # no restart for thresholds
     assert mon.debounce.hold == 0.5 and np.all(mon.threshold == 1.0)
-    mon.sync(dict(mon.settings, **{'observer.gain': 10.0}), model, None, JOINTS)
+    mon.sync(mon.settings.replace({'observer.gain': 10.0}), model, None, JOINTS)
     assert mon.observer is not obs and mon.last_stamp is None and mon.observer.gain[0] == 10.0
-    mon.sync(dict(mon.settings, **{'observer.enabled': False}), model, None, JOINTS)
+    mon.sync(mon.settings.replace({'observer.enabled': False}), model, None, JOINTS)
     assert not mon.active and mon.state == 'off' and feed(mon, oracle, 60) is None
-    mon.sync(dict(mon.settings, **{'observer.enabled': True, 'measured_effort': 'none'}), model, None, JOINTS)
+    mon.sync(mon.settings.replace({'observer.enabled': True, 'measured_effort': 'none'}), model, None, JOINTS)
     assert not mon.active
-    mon.sync(dict(mon.settings, measured_effort='total'), model, None, JOINTS)
+    mon.sync(mon.settings.replace({'measured_effort': 'total'}), model, None, JOINTS)
     assert mon.active
     other = load_urdf(XML)
     feed(mon, oracle, 61)
     mon.sync(mon.settings, other, None, JOINTS)                       # a new model: a new integral
     assert mon.observer.model is other and mon.last_stamp is None
     few = load_urdf(XML, joints=JOINTS[:3])                           # thresholds that do not fit: off, said
-    mon.sync(dict(mon.settings, **{'collision.threshold': [1.0] * 7}), few, None, JOINTS[:3])
+    mon.sync(mon.settings.replace({'collision.threshold': [1.0] * 7}), few, None, JOINTS[:3])
     assert not mon.active and 'collision.threshold' in mon.error
     assert any(e[0] == 'error' for e in mon.events)
 

@@ -78,7 +78,7 @@ def test_features_get_each_accepted_sample_once_in_model_order():
     feats.feed(core)
     assert len(rec.samples) == 1
     with pytest.raises(ValueError, match='refused link'):
-        feats.check(dict(core.settings, **{'dynamics.link': 'refused'}), core.model)
+        feats.check(core.settings.replace({'dynamics.link': 'refused'}), core.model)
 
 
 def test_rate_gate_keeps_the_average_rate_and_restarts_on_a_new_stream():

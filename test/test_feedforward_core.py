@@ -9,9 +9,10 @@ import pytest
 from lie_dynamics import load_urdf
 from lie_dynamics.ros.core.compensator import OK, WARN, Compensator
 from lie_dynamics.ros.core.params import check_value
+from lie_dynamics.ros.trajectories.fill import TrajectoryInput
 from lie_dynamics.ros.trajectories.trajectory_msgs import set_point_efforts, trajectory_arrays, trajectory_message
 from oracle import Oracle
-from core_cases import Clock, big_limits, make
+from core_cases import Clock, big_limits, fill_trajectory, make
 from robots import random_urdf
 
 TOL = 1e-9
@@ -133,7 +134,7 @@ def test_mode_switch_stale_desired_fallback_and_recovery(chain):
     c.events.clear()
     c.on_desired(ctrl, [point(q_d, qd_d, qdd_d)])
     np.testing.assert_allclose(c.on_joint_state(ctrl, q, qd), o.rnea(q_d, qd_d, qdd_d), atol=TOL, rtol=0)
-    assert [e[1] for e in c.events] == ['desired:recovered']
+    assert [e[1] for e in c.events] == ['desired:resumed']
     assert c.diagnostics()[:2] == (OK, 'feedforward')
     c.events.clear()
     clock.t += 0.04
@@ -257,7 +258,7 @@ def test_trajectory_efforts_match_pinocchio_in_message_order(arm):
     pad = np.full((len(t), 1), 0.01)
     msg = trajectory_message(names, t, np.hstack([q[:, perm], pad]), np.hstack([qd[:, perm], pad]),
                              np.hstack([qdd[:, perm], pad]))
-    eff = c.on_trajectory(msg.joint_names, msg.points)
+    eff = fill_trajectory(c, msg.joint_names, msg.points)
     ref = np.array([o.rnea(*s) for s in zip(q, qd, qdd, strict=True)])
     np.testing.assert_allclose(eff[:, :7], ref[:, perm], atol=TOL, rtol=0)
     np.testing.assert_array_equal(eff[:, 7], 0.0)   # not a controlled joint
@@ -265,14 +266,14 @@ def test_trajectory_efforts_match_pinocchio_in_message_order(arm):
     assert list(msg.points[5].effort) == eff[5].tolist()
     # no accelerations: derived from the velocities (trajectory.py), efforts at the derived values
     msg = trajectory_message(joints, t, q, qd)
-    eff = c.on_trajectory(msg.joint_names, msg.points)
+    eff = fill_trajectory(c, msg.joint_names, msg.points)
     arrays = trajectory_arrays(joints, msg.points)
     assert arrays['accelerations'] is None
     qdd_fd = np.gradient(qd, arrays['time_from_start'], axis=0, edge_order=2)   # times as sent (ns)
     np.testing.assert_allclose(eff, [o.rnea(*s) for s in zip(q, qd, qdd_fd, strict=True)], atol=TOL, rtol=0)
     # friction at the point velocity; clamp to the limits
     c.update({'friction.viscous': [0.4], 'effort_limit_scale': 0.05})
-    eff = c.on_trajectory(msg.joint_names, msg.points)
+    eff = fill_trajectory(c, msg.joint_names, msg.points)
     lim = 0.05 * c.model.effort_limits
     ref = np.array([o.rnea(*s) for s in zip(q, qd, qdd_fd, strict=True)])
     np.testing.assert_allclose(eff, np.clip(ref + 0.4 * qd, -lim, lim), atol=TOL, rtol=0)
@@ -283,7 +284,7 @@ def test_trajectory_efforts_match_pinocchio_in_message_order(arm):
 def test_bad_trajectories_are_rejected_with_a_reason(arm):
     xml, joints, o = arm
     c = Compensator()
-    assert c.on_trajectory(joints, [point(np.zeros(7))]) is None and 'no robot model' in c.last_error
+    assert fill_trajectory(c, joints, [point(np.zeros(7))]) is None and 'no robot model' in c.last_error
     c.set_model(load_urdf(xml))
     t, q, qd, qdd = smooth(5)
     pts = lambda: [point(a, b, t=s) for s, a, b in zip(t, q, qd, strict=True)]   # noqa: E731
@@ -299,20 +300,21 @@ def test_bad_trajectories_are_rejected_with_a_reason(arm):
     }
     for k, (why, (names, points)) in enumerate(cases.items()):
         c.events.clear()
-        assert c.on_trajectory(names, points) is None, why
+        assert fill_trajectory(c, names, points) is None, why
         assert len(c.events) == 1 and why in c.events[0][2], (why, c.events)
         assert c.count.trajectories_rejected == k + 2
     c.update({'enabled': False})
-    assert c.on_trajectory(joints, pts()) is None and 'disabled' in c.last_error
+    assert fill_trajectory(c, joints, pts()) is None and 'disabled' in c.last_error
     c.update({'enabled': True})
-    assert c.on_trajectory(joints, pts()) is not None
+    assert fill_trajectory(c, joints, pts()) is not None
 
 
 def test_a_fill_lost_with_its_process_is_not_said_to_be_unpublished():
     c = Compensator()
-    c.trajectory_done('bad header')
+    side = TrajectoryInput(c)
+    side.done('bad header')
     assert c.events[-1][2].endswith('(nothing published)') and c.count.trajectories_rejected == 1
     # the trajectory process died between its fill and its report: the node cannot know which
-    c.trajectory_done('trajectory process exited with status -9 while filling', kind='process')
+    side.done('trajectory process exited with status -9 while filling', kind='process')
     assert 'may have published it' in c.events[-1][2] and 'nothing published' not in c.events[-1][2]
     assert c.events[-1][1] == 'trajectory:process' and c.count.trajectories_rejected == 2

@@ -6,6 +6,7 @@ import pytest
 from lie_dynamics import default_urdf_path, load_urdf
 from lie_dynamics.laws import LAWS
 from lie_dynamics.ros.core.compensator import Compensator
+from core_cases import fill_trajectory
 from lie_dynamics.ros.features.gravity_source import GRAVITY_NORM_MAX, GravitySource, check_vector
 
 
@@ -114,7 +115,7 @@ def test_trajectory_efforts_leave_gravity_out_too():
     rng = np.random.default_rng(5)
     q, qd, qdd = (rng.uniform(-1, 1, (20, 7)) for _ in range(3))
     msg = trajectory_message(core.layout, np.arange(20) * 0.1, q, qd, qdd)
-    np.testing.assert_allclose(core.on_trajectory(msg.joint_names, msg.points), flat.inverse_dynamics(q, qd, qdd),
+    np.testing.assert_allclose(fill_trajectory(core, msg.joint_names, msg.points), flat.inverse_dynamics(q, qd, qdd),
                                atol=1e-12)
 
 

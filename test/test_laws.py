@@ -15,7 +15,7 @@ from lie_dynamics.laws import (COULOMB_VELOCITY_EPSILON, LAWS, MODES, EffortLimi
 from lie_dynamics.ros.core.compensator import Compensator
 from lie_dynamics.ros.core.params import defaults
 from lie_dynamics.trajectory import fill_trajectory_efforts
-from core_cases import Clock, big_limits, make
+from core_cases import Clock, big_limits, fill_trajectory, make
 from test_feedforward_core import point
 
 TOL = 1e-9
@@ -200,7 +200,7 @@ def test_trajectory_fill_and_streaming_node_use_the_same_friction(arm):
         close(filled, ref)
         point = type('Point', (), dict(positions=list(q), velocities=list(v), accelerations=[0.0] * n, effort=[],
                                        time_from_start=type('T', (), dict(sec=0, nanosec=0))))
-        node_traj = c.on_trajectory(model.joint_names, [point])[0] - model.inverse_dynamics(q, v, np.zeros(n))
+        node_traj = fill_trajectory(c, model.joint_names, [point])[0] - model.inverse_dynamics(q, v, np.zeros(n))
         close(node_traj, ref)
     with pytest.raises(ValueError, match='eps'):
         fill_trajectory_efforts(model, traj, friction=True, eps=0.0)

@@ -318,6 +318,27 @@ def test_inertia_strict_refuses_and_keeps_previous_model():
     assert c.model is not good and len(c.inertia_report) == 1
 
 
+def test_the_builder_is_handed_to_the_core():
+    """The core builds models with the builder it is given (the node's: its build process), per
+    call or at construction; by default descriptions.build in this process."""
+    from lie_dynamics.ros.core.descriptions import build
+    calls = []
+
+    def builder(source, **options):
+        calls.append((source, options))
+        return build(source, **options)
+
+    c = Compensator({'joints': ['j1', 'j2'], 'gravity': [0.0, 0.0, -3.0]}, clock=Clock(), builder=builder)
+    c.load(inertia_chain(2), 'a')
+    assert calls == [(inertia_chain(2), dict(joints=['j1', 'j2'], gravity=[0.0, 0.0, -3.0], inertia='warn',
+                                              running=None))]
+    other = []
+    c.build_model(inertia_chain(2), builder=lambda source, **o: other.append(o) or build(source, **o))
+    assert len(calls) == 1 and other == [dict(joints=['j1', 'j2'], gravity=[0.0, 0.0, -3.0], inertia='warn',
+                                              running=('same_robot', c.model.name))]
+    assert Compensator(clock=Clock()).builder is build
+
+
 def test_inertia_repair_reports_repaired():
     c = Compensator({'inertia_policy': 'repair'}, clock=Clock())
     with warnings.catch_warnings():

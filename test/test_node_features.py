@@ -272,13 +272,14 @@ def test_features_name_the_kernels_they_call(node_in_context):
     from lie_dynamics.ros.features.payload_service import warm_fit
     from lie_dynamics.ros.loading.models import at_rest, jacobian_at_rest
     node = node_in_context[0]
-    s = dict(node.core.settings)
+    s = node.core.settings
     assert node.features.kernels(s) == ((warm_observer,),)   # the defaults: the observer only
-    s.update({'observer.enabled': False, 'dynamics.publish': ['mass_matrix', 'jacobian'], 'identify.link': 'tool0'})
+    s = s.replace({'observer.enabled': False, 'dynamics.publish': ['mass_matrix', 'jacobian'],
+                   'identify.link': 'tool0'})
     calls = node.features.kernels(s)
     assert set(calls) == {(at_rest, 'mass_matrix'), (jacobian_at_rest, '', s['dynamics.jacobian_frame']), (warm_fit,)}
     assert pickle.loads(pickle.dumps(calls)) == calls   # as they travel to the build process
-    s.update({'identify.link': '', 'measured_effort': 'none', 'observer.enabled': True, 'dynamics.publish': []})
+    s = s.replace({'identify.link': '', 'measured_effort': 'none', 'observer.enabled': True, 'dynamics.publish': []})
     assert node.features.kernels(s) == ()
 
 

@@ -22,7 +22,7 @@ from lie_dynamics import load_urdf  # noqa: E402
 from lie_dynamics.ros.loading.build_process import BuildLost, BuildProcess  # noqa: E402
 from lie_dynamics.ros.trajectories.process import (SILENT_S, STOP_S, TrajectoryProcess, dds_segments,  # noqa: E402
                                                    remove_dead_segments)
-from lie_dynamics.ros.trajectory_process import child_config  # noqa: E402
+from lie_dynamics.ros.trajectories.trajectory_process import child_config  # noqa: E402
 from lie_dynamics.ros.core.params import SPECS  # noqa: E402
 from lie_dynamics.ros.node import LOG_THROTTLE_S  # noqa: E402
 from test_node import MODEL_TIMEOUT, Harness, wait_until  # noqa: E402

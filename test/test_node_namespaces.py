@@ -29,7 +29,7 @@ UR5 = next(iter(glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-pack
 ROBOTS = {'/robot1': default_urdf_path(), '/robot2': UR5}
 TOL = 1e-9
 QUIET = 1.0  # s to wait for a message that must not come
-TRAJECTORY_PROCESS = 'lie_dynamics.ros.trajectory_process'
+TRAJECTORY_PROCESS = 'lie_dynamics.ros.trajectories.trajectory_process'
 
 
 def _start(ns, urdf):

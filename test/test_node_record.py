@@ -14,6 +14,7 @@ from std_srvs.srv import SetBool  # noqa: E402
 
 from lie_dynamics import default_urdf_path  # noqa: E402
 from lie_dynamics.calibration.recordings import read_recording  # noqa: E402
+from lie_dynamics.ros.core.settings import Settings  # noqa: E402
 from lie_dynamics.ros.core.timebase import TimeBase  # noqa: E402
 from lie_dynamics.ros.features.recording import Recorder  # noqa: E402
 from test_node import Harness, wait_until  # noqa: E402
@@ -116,7 +117,7 @@ def test_recording_max_s_stops_it(ros, xml, tmp_path):
 def test_recorder_refuses_without_a_model():
     r = Recorder()
     with pytest.raises(ValueError, match='no robot model loaded'):
-        r.begin(None, {'recording_dir': '', 'recording_max_s': 1.0})
+        r.begin(None, Settings({'recording_dir': '', 'recording_max_s': 1.0}))
     assert r.stop() is None
 
 
@@ -136,7 +137,7 @@ def test_sample_log_and_recorder_without_ros():
     for unstamped states), a change of the controlled joints ends a recording."""
     names = ['a', 'b']
     r = Recorder()
-    r.begin(names, {'recording_dir': '/nonexistent', 'recording_max_s': 1.0})
+    r.begin(names, Settings({'recording_dir': '/nonexistent', 'recording_max_s': 1.0}))
     assert r.add(_sample(5 * 10 ** 9, names)) is None
     assert r.add(_sample(5 * 10 ** 9 + 999_999_999, names, effort=())) is None   # no effort: kept as NaN
     assert r.add(_sample(6 * 10 ** 9, names)) == 'recording_max_s (1 s) reached'
@@ -145,7 +146,7 @@ def test_sample_log_and_recorder_without_ros():
     assert stamps.tolist() == [5 * 10 ** 9, 5 * 10 ** 9 + 999_999_999, 6 * 10 ** 9] and log.size == 3
     assert q[0].tolist() == [0.1, 0.2] and qd[0].tolist() == [4.0, 3.0] and e[0].tolist() == [2.0, 1.0]
     assert np.isnan(e[1]).all()
-    r.begin(names, {'recording_dir': '', 'recording_max_s': 0.5})
+    r.begin(names, Settings({'recording_dir': '', 'recording_max_s': 0.5}))
     assert r.add(_sample(7 * 10 ** 9, ['a', 'b'])) is None   # an equal list: the same joints
     assert r.add(_sample(7 * 10 ** 9 + 1, ['b', 'a'])) == 'the controlled joints changed'
     now = [0]

@@ -14,9 +14,10 @@ from lie_dynamics.ros.core.compensator import DIAG_TEXT_MAX, Compensator, Thrott
 from lie_dynamics.ros.core.diagnostics import names_text, problem_key
 from lie_dynamics.ros.core.params import check_value, defaults
 from lie_dynamics.ros.core.ramp import Ramp
+from lie_dynamics.ros.core.watchdog import Watchdog
 from lie_dynamics.ros.loading.worker import Worker
 from oracle import Oracle
-from core_cases import Clock, big_limits, make
+from core_cases import Clock, big_limits, fill_trajectory, make
 from robots import random_urdf
 
 TOL = 1e-9
@@ -326,7 +327,7 @@ def test_texts_quoting_input_are_bounded(arm):
     assert len(c.last_error) <= DIAG_TEXT_MAX
     from trajectory_msgs.msg import JointTrajectoryPoint
     pts = [JointTrajectoryPoint(positions=[0.0] * 10_000)]
-    assert c.on_trajectory(many + many[:3], pts * 2) is None and len(c.last_error) <= DIAG_TEXT_MAX
+    assert fill_trajectory(c, many + many[:3], pts * 2) is None and len(c.last_error) <= DIAG_TEXT_MAX
     assert c.note_description_error('x' * 1_000_000) and len(c.description_error) <= DIAG_TEXT_MAX
 
 
@@ -378,6 +379,26 @@ def test_ramp_offsets_never_carry_nonfinite_values():
     r.set_duration(0.0)
     r.set_target(0.0, 1.0)
     assert r.level == 0.0 and r.down
+
+
+def test_ramp_and_watchdog_change_state_through_their_methods():
+    """What the compensator asks of them: a ramp that stops (silent), starts on the timer, notes
+    an unshaped command; a watchdog expired at shutdown."""
+    r = Ramp(1.0)
+    r.note(np.array([1.0, 2.0]))
+    r.switch()
+    np.testing.assert_allclose(r.shape(np.zeros(2), 0.0), [1.0, 2.0])   # the blend starts from the noted one
+    r.set_target(0.0, 0.0)
+    r.stop()
+    assert r.down and r.offset is None and not r.idle
+    r.set_target(1.0, 1.0)
+    r.start(1.0)   # the level moves from now, not from the next command
+    assert r.advance(1.5) == pytest.approx(0.5)
+    w = Watchdog(0.1)
+    assert w.expire(0.0) is None   # nothing yet: nothing to expire
+    w.feed(1.0)
+    assert w.expire(1.05) == pytest.approx(0.05) and w.stale and w.stale_events == 1
+    assert w.expire(2.0) is None and w.expired(2.0) is None and w.feed(2.0)
 
 
 def test_worker_replaces_waiting_jobs_and_delivers_running_ones():

@@ -16,12 +16,14 @@ from lie_dynamics.ros.core.diagnostics import DIAG_TEXT_MAX
 from lie_dynamics.ros.core.log import EventLog
 from lie_dynamics.ros.core.messages import NameMap, Rejected, read_desired
 from lie_dynamics.ros.core.params import PARAMS, PAYLOAD_KEYS, SPECS, ParamSpec, check_value, per_joint_values
+from lie_dynamics.ros.core.settings import Settings
 from lie_dynamics.ros.core.timebase import TimeBase
-from lie_dynamics.ros.core.watchdog import Watchdog, fresh
+from lie_dynamics.ros.core.watchdog import Freshness, Watchdog, fresh
 from lie_dynamics.ros.features import contact, payload_service
 from lie_dynamics.ros.features.base import Feature, Features
 from lie_dynamics.ros.features.gravity_source import GravitySource
-from lie_dynamics.ros.loading.models import at_rest, portable, update_refusal, warm_up
+from lie_dynamics.ros.core.descriptions import update_refusal
+from lie_dynamics.ros.loading.models import at_rest, portable, warm_up
 from lie_dynamics.ros.trajectories.fill import TrajectoryFill
 from lie_dynamics.laws import effort_limits
 from lie_dynamics.sim.trajectory_source import per_joint as sim_per_joint
@@ -159,7 +161,7 @@ def test_the_payload_rule_is_the_same_for_every_way_in(arm):
     core = Compensator()
     core.set_model(load_urdf(default_urdf_path()))
     for call in (lambda: payload_service.check_payload_request(request, arm), lambda: core.update(request),
-                 lambda: payload_service.check_identify_link({'identify.link': fixed}, arm)):
+                 lambda: payload_service.check_identify_link(Settings({'identify.link': fixed}), arm)):
         with pytest.raises(ValueError, match=why):
             call()
     assert core.settings['payload.link'] == ''   # refused: nothing changed
@@ -248,6 +250,131 @@ def test_fresh_and_its_users():
     core = Compensator({'desired_timeout': 0.5}, clock=lambda: 0.0)
     core.desired_time = 10.0
     assert core.desired_is_fresh(10.5) and not core.desired_is_fresh(10.6)
+
+
+def test_stale_and_fresh_again_are_said_by_one_object(arm):
+    """The desired state (gravity fallback) and the gravity topic (parameter fallback) change
+    between fresh and stale through one Freshness each: one flag, one counter, the same lines."""
+    f = Freshness('thing', 'thing_timeout', 'thing')
+    assert f.check(None, 0.5, 0.0, '/t') == (False, ('warn', 'thing:none', 'no thing received yet on /t'))
+    assert f.check(None, 0.5, 1.0, '/t') == (False, None) and f.events == 1 and f.fallen   # said once
+    assert f.check(1.0, 0.5, 1.2, '/t') == (True, ('info', 'thing:resumed', 'thing on /t fresh again'))
+    assert f.check(1.0, 0.5, 1.5, '/t') == (True, None)
+    assert f.check(1.0, 0.5, 1.75, '/t') == (False, ('warn', 'thing:stale',
+                                                     'no valid thing on /t for 0.750 s (thing_timeout 0.5 s)'))
+    assert f.check(1.0, 0.5, 9.0, '/t') == (False, None) and f.events == 2
+    never = Freshness('thing', 'thing_timeout', 'thing')   # never=False: nothing followed, nothing fell back
+    assert never.check(None, 0.5, 5.0, '/t', never=False) == (False, None) and not never.fallen
+    # the users: each holds one, and its lines are the object's with the user's fallback after them
+    t = [0.0]
+    core = Compensator({'mode': 'feedforward', 'desired_timeout': 0.5, 'friction.viscous': [0.0],
+                        'friction.coulomb': [0.0]}, clock=lambda: t[0])
+    core.set_model(arm)
+    core.desired_topic = '/d'
+    core.on_desired(arm.joint_names, [type('P', (), dict(positions=[0.0] * arm.n, velocities=[],
+                                                         accelerations=[]))()], now=0.0)
+    core.events.clear()
+    core.on_joint_state(arm.joint_names, [0.0] * arm.n, now=0.75)
+    assert isinstance(core.desired_state, Freshness) and core.desired_fallback
+    assert core.events[-1] == ('warn', 'desired:stale', 'mode feedforward: no valid desired state on /d for 0.750 s '
+                                                        '(desired_timeout 0.5 s): gravity compensation at the measured '
+                                                        'state')
+    assert core.count.fallback_events == 1
+    src = GravitySource('/g', clock=lambda: t[0])
+    src.offer((0.0, 0.0, -9.81), '', arm, now=0.0)
+    src.sync(core, now=0.1)
+    src.sync(core, now=0.75)
+    assert isinstance(src.freshness, Freshness) and src.freshness.fallen
+    assert src.events[-1] == ('warn', 'gravity:stale', 'no valid gravity on /g for 0.750 s (gravity_timeout 0.5 s): '
+                                                       'using the gravity parameter [0.0, 0.0, -9.81]')
+    src.offer((0.0, 0.0, -9.81), '', arm, now=1.0)
+    src.sync(core, now=1.0)
+    assert src.events[-1] == ('info', 'gravity:resumed', 'gravity on /g fresh again: following it')
+
+
+# ---------------------------------------------------------------- typed settings
+def test_every_parameter_is_an_attribute_with_its_table_default():
+    """Settings is generated from the table: each PARAMS entry an attribute (a dotted name a
+    group: payload.link is settings.payload.link) holding the table's default, checked."""
+    s = Settings()
+    assert len(s) == len(PARAMS)
+    for p in PARAMS:
+        head, _, member = p.name.partition('.')
+        value = getattr(getattr(s, head), member) if member else getattr(s, head)
+        assert value == check_value(p.name, p.default) == s.value(p.name) == s[p.name], p.name
+    assert s.measured_effort == 'total' and s.collision.threshold == [10.0] and s.payload.link == ''
+    assert s.friction.coulomb_velocity_epsilon == SPECS['friction.coulomb_velocity_epsilon'].default
+    # read-only: a change is a new object, checked like every value
+    with pytest.raises(AttributeError, match='read-only'):
+        s.mode = 'pd'
+    with pytest.raises(AttributeError, match='read-only'):
+        s.payload.mass = 1.0
+    t = s.replace({'payload.mass': 2.0, 'mode': 'pd'})
+    assert (t.payload.mass, t.mode, s.payload.mass, s.mode) == (2.0, 'pd', 0.0, 'gravity')
+    assert t.differs(s, ('mode',)) and not t.differs(s, ('gravity', 'kp'))
+    with pytest.raises(ValueError, match='mode must be one of'):
+        s.replace({'mode': 'torque'})
+    with pytest.raises(ValueError, match='unknown parameter'):
+        Settings({'collision.treshold': [1.0]})
+    assert Compensator({'mode': 'pd'}).settings.mode == 'pd'
+
+
+def _string_key_reads(path):
+    """(function, line, text) of every read of a parameter by a string key in the file:
+    x['payload.link'], x.get('measured_effort', ...); function: the innermost def around it."""
+    import ast
+    with open(path) as fh:
+        tree = ast.parse(fh.read())
+    out = []
+
+    def visit(node, function):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            function = node.name
+        key = None
+        if isinstance(node, ast.Subscript) and isinstance(node.slice, ast.Constant):
+            key = node.slice.value
+        elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == 'get'
+              and node.args and isinstance(node.args[0], ast.Constant)):
+            key = node.args[0].value
+        if isinstance(key, str) and key in SPECS:
+            out.append((function, node.lineno, ast.unparse(node)))
+        for child in ast.iter_child_nodes(node):
+            visit(child, function)
+
+    visit(tree, None)
+    return out
+
+
+# Functions that handle a request by parameter name (not the settings): file -> {function: why}.
+BY_NAME = {'ros/features/payload_service.py': {'check_payload_request': 'a ~/set_payload request {name: value}'}}
+
+
+def test_parameters_are_read_as_attributes():
+    """No code reads a parameter by its string key (the default would be written again, a typo
+    found only when the line runs): settings.measured_effort, not settings.get('measured_effort', ...)."""
+    import os
+    root = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), 'lie_dynamics')
+    found = {}
+    for folder, dirs, files in os.walk(root):
+        dirs[:] = [d for d in dirs if d != '__pycache__']
+        for f in sorted(files):
+            if f.endswith('.py'):
+                rel = os.path.relpath(os.path.join(folder, f), root).replace(os.sep, '/')
+                reads = [r for r in _string_key_reads(os.path.join(folder, f)) if r[0] not in BY_NAME.get(rel, {})]
+                if reads:
+                    found[rel] = reads
+    assert not found, found
+    assert _string_key_reads(__file__)   # the check sees such reads (this file has some)
+    for rel, functions in BY_NAME.items():   # each exemption still names a function that reads by name
+        reads = {r[0] for r in _string_key_reads(os.path.join(root, *rel.split('/')))}
+        assert set(functions) <= reads, (rel, functions, reads)
+
+
+def test_a_name_without_an_attribute_form_is_refused():
+    from lie_dynamics.ros.core.settings import _layout
+    for bad in ('a.b.c', 'get', 'replace', 'kp.x', 'x-y'):
+        with pytest.raises(ValueError, match='attribute form|also a group'):
+            _layout(('kp', bad))
 
 
 # ---------------------------------------------------------------- a sample's time

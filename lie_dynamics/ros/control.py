@@ -65,7 +65,7 @@ class Control:
             if 'stale_timeout' in changes:
                 node.set_tick_period()
             if 'publish_joint_state' in changes:
-                node.outputs.joint_state(core.settings['publish_joint_state'])
+                node.outputs.joint_state(core.settings.publish_joint_state)
             node.features.sync(core)  # publishers made here, not on the control path
             node.drain_events()
 

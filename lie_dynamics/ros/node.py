@@ -37,7 +37,7 @@ from .loading.parameter_change import start_source
 from .loading.sources import Sources
 from .outputs import Outputs
 from .run import node_parser, run
-from .trajectory_process import child_config
+from .trajectories.trajectory_process import child_config
 
 __all__ = ['DESCRIPTION_QOS', 'FEATURES', 'JOINT_STATES_QOS', 'LOG_THROTTLE_S', 'NO_PUB_EVENTS', 'NO_SUB_EVENTS',
            'SERVICE_QOS', 'SERVICE_QUEUE', 'TRAJECTORY_QOS', 'DynamicsNode', 'main']
@@ -78,30 +78,30 @@ class DynamicsNode(Node):
         self.lock = threading.RLock()  # services/parameters vs. callbacks when spun by several threads
         self.sources = Sources()      # the running model's source, the last topic message
         self._decoder = JointStateDecoder()   # keeps the last name list: decoded once per stream
-        self.outputs = Outputs(self, values['command_topic'])
+        self.outputs = Outputs(self, self.core.settings.command_topic)
         self.event_log = EventLog(self.outputs.log_line, pace=LOG_LINES_PER_CALLBACK,   # lines per callback
                                   rate=LOG_LINES_PER_S)                               # and per second
         self._samples = 0   # joint_states callbacks (the timer writes every waiting line when none came)
         # ~/trajectory_in and ~/trajectory_out: served by a process of their own (trajectories/process.py)
         self.background = Background(self.core, self.sources, trajectories=child_config(self),
                                      kernels=lambda settings: self.features.kernels(settings))
-        self._start(values, features)
+        self._start(self.core.settings, features)
 
-    def _start(self, values, features):
+    def _start(self, settings, features):
         """The rest of the start-up, once worker threads exist (__init__ stops them if this raises)."""
         interfaces.subscription(self, 'robot_description', self._on_description)
         interfaces.subscription(self, 'joint_states', self.on_joint_state)   # raw: read by core/cdr.py
-        desired = interfaces.subscription(self, '<desired_topic>', self._on_desired, values['desired_topic'])
+        desired = interfaces.subscription(self, '<desired_topic>', self._on_desired, settings.desired_topic)
         self.core.note_context(desired_topic=desired.topic_name)
-        self._diag = Every(values['diagnostics_period'])
-        self._timer = self.create_timer(tick_period(values['stale_timeout'], self._diag.period), self._on_timer,
+        self._diag = Every(settings.diagnostics_period)
+        self._timer = self.create_timer(tick_period(settings.stale_timeout, self._diag.period), self._on_timer,
                                         clock=Clock(clock_type=ClockType.STEADY_TIME))
-        self.outputs.joint_state(values['publish_joint_state'])
+        self.outputs.joint_state(settings.publish_joint_state)
         for make in features:
             self.features.add(make(self))
         self.control = Control(self, self._check)   # parameters, ~/set_enabled, ~/reload_model
 
-        source = start_source(values)   # loaded in this thread: nothing to keep answering yet
+        source = start_source(settings)   # loaded in this thread: nothing to keep answering yet
         if source is not None:
             err = self.background.load_now(*source)   # one that cannot load (a typo in a launch file): exit 2
             if err is not None:
@@ -121,7 +121,7 @@ class DynamicsNode(Node):
 
     def set_tick_period(self):
         """The timer's period after a stale_timeout change (tick_period)."""
-        period = tick_period(self.core.settings['stale_timeout'], self._diag.period)
+        period = tick_period(self.core.settings.stale_timeout, self._diag.period)
         self._timer.timer_period_ns = int(period * 1e9)
 
     def note_executor(self, kind):

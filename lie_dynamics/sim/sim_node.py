@@ -41,6 +41,7 @@ from trajectory_msgs.msg import JointTrajectory
 from .. import default_urdf_path
 from ..ros.run import node_parser, run
 from ..ros.core.cdr import stamp_parts
+from ..ros.core.settings import Values
 from .arm import ArmSim
 from ..model.joint_names import broadcast_joints
 from ..model.urdf import load_urdf
@@ -87,19 +88,19 @@ python -m lie_dynamics.sim.sim_node --ros-args -p lockstep:=true -p max_steps:=5
 class SimNode(Node):
     def __init__(self, **kwargs):
         super().__init__('sim_node', **kwargs)
-        v = {name: self.declare_parameter(name, default).value for name, default, _ in PARAMETERS}
-        urdf_path = v['urdf_path'] or default_urdf_path()
-        joints = list(v['joints'] or [])  # an empty override ([]) comes as None
-        rate = float(v['rate'])
-        q0 = list(v['initial_positions'] or [])
-        damping = bool(v['damping'])
-        self.command_topic = v['command_topic']
-        self.lockstep = bool(v['lockstep'])
-        self.hold = bool(v['hold_until_command'])
-        self.lockstep_timeout = float(v['lockstep_timeout'])
-        self.resend_period = float(v['resend_period'])
-        self.max_steps = int(v['max_steps'])
-        self.min_subscribers = int(v['min_subscribers'])
+        v = Values({name: self.declare_parameter(name, default).value for name, default, _ in PARAMETERS})
+        urdf_path = v.urdf_path or default_urdf_path()
+        joints = list(v.joints or [])  # an empty override ([]) comes as None
+        rate = float(v.rate)
+        q0 = list(v.initial_positions or [])
+        damping = bool(v.damping)
+        self.command_topic = v.command_topic
+        self.lockstep = bool(v.lockstep)
+        self.hold = bool(v.hold_until_command)
+        self.lockstep_timeout = float(v.lockstep_timeout)
+        self.resend_period = float(v.resend_period)
+        self.max_steps = int(v.max_steps)
+        self.min_subscribers = int(v.min_subscribers)
         # refuse at start-up what would only fail (or misbehave silently) once running
         if not (math.isfinite(rate) and rate > 0):
             raise ValueError(f'rate must be positive, got {rate}')
@@ -123,14 +124,14 @@ class SimNode(Node):
         if q is None:
             raise ValueError(f'initial_positions needs {model.n} values, got {len(q0)} (or one for every joint)')
         q0 = q
-        if v['payload.link'] or v['payload.mass']:  # simulated, never published: the controller must find it
-            model.set_payload(v['payload.link'], v['payload.mass'], list(v['payload.com']), list(v['payload.inertia']))
+        if v.payload.link or v.payload.mass:  # simulated, never published: the controller must find it
+            model.set_payload(v.payload.link, v.payload.mass, list(v.payload.com), list(v.payload.inertia))
         self.sim = ArmSim(model, dt=1.0 / rate, q0=q0, damping=damping)
         self.names = model.joint_names
         self.truth_pub = None
-        if v['external.link'] and v['external.duration'] > 0:
-            self.sim.set_external(v['external.link'], list(v['external.wrench']), v['external.start'],
-                                  v['external.duration'])
+        if v.external.link and v.external.duration > 0:
+            self.sim.set_external(v.external.link, list(v.external.wrench), v.external.start,
+                                  v.external.duration)
             self.truth_pub = self.create_publisher(JointState, '~/external_torques_true', 1000)
         self.desc_pub = self.create_publisher(String, 'robot_description', DESCRIPTION_QOS)
         self.desc_pub.publish(String(data=self.xml))
@@ -139,7 +140,7 @@ class SimNode(Node):
         self.state_pub = self.create_publisher(JointState, 'joint_states', 1000)
         self.command_topic = self.create_subscription(Float64MultiArray, self.command_topic, self._on_command,
                                                       10).topic_name  # resolved: /<ns>/...
-        self.stamped_topic = v['lockstep_stamped_topic'].strip()
+        self.stamped_topic = v.lockstep_stamped_topic.strip()
         self.stamped = not (self.lockstep and self.stamped_topic)  # the stamped message of this state came
         if not self.stamped:
             self.create_subscription(JointTrajectory, self.stamped_topic, self._on_stamped, 10)

@@ -33,6 +33,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from ..ros.core.cdr import stamp_ns
 from ..model.joint_names import broadcast_joints
+from ..ros.core.settings import Values
 from ..ros.run import node_parser, run
 from ..trajectory import derivative, read_csv
 
@@ -132,11 +133,11 @@ def per_joint(values, n, name):
 class TrajectorySource(Node):
     def __init__(self, **kwargs):
         super().__init__('trajectory_source', **kwargs)
-        v = {name: self.declare_parameter(name, default).value for name, default, _ in PARAMETERS}
+        v = Values({name: self.declare_parameter(name, default).value for name, default, _ in PARAMETERS})
         self.home, self.amplitude, self.frequency = (np.array(v[k], dtype=float)
                                                      for k in ('home', 'amplitude', 'frequency'))
-        self.lead = float(v['lead'])
-        topic = v['desired_topic']
+        self.lead = float(v.lead)
+        topic = v.desired_topic
         # The joint count is only known from joint_states: refuse now what no count can fix.
         sizes = {}
         for k in ('home', 'amplitude', 'frequency'):
@@ -151,18 +152,18 @@ class TrajectorySource(Node):
             raise ValueError(f'lead must be finite, got {self.lead}')
         if not topic.strip():
             raise ValueError('desired_topic must not be empty')
-        self.min_subscribers = int(v['min_subscribers'])
+        self.min_subscribers = int(v.min_subscribers)
         if self.min_subscribers < 0:
             raise ValueError(f'min_subscribers must be >= 0, got {self.min_subscribers}')
-        self.start_after = float(v['start_after'])
+        self.start_after = float(v.start_after)
         if not (math.isfinite(self.start_after) and self.start_after >= 0):
             raise ValueError(f'start_after must be finite and >= 0, got {self.start_after}')
-        if v['file_output'] not in FILE_OUTPUTS:
-            raise ValueError(f"file_output must be one of {list(FILE_OUTPUTS)}, got {v['file_output']!r}")
-        self.file = FileTrajectory(v['file']) if v['file'] else None
+        if v.file_output not in FILE_OUTPUTS:
+            raise ValueError(f"file_output must be one of {list(FILE_OUTPUTS)}, got {v.file_output!r}")
+        self.file = FileTrajectory(v.file) if v.file else None
         self._t_start = None
-        if self.file is not None and v['file_output'] == 'controller':
-            self.pub = self.create_publisher(JointTrajectory, v['controller_topic'], 10)
+        if self.file is not None and v.file_output == 'controller':
+            self.pub = self.create_publisher(JointTrajectory, v.controller_topic, 10)
             self.min_subscribers = max(1, self.min_subscribers)   # sent once: to a reader that is there
             self._wait = self.create_timer(0.01, self._send_when_matched)
             return

@@ -158,10 +158,10 @@ def report(core, window, now):
             msgs.append('waiting for joint_states')
         elif wd.stale:
             level = WARN
-            msgs.append(f"joint_states stale: {s['stale_action']}")
-        elif s['mode'] != 'gravity' and not core.desired_is_fresh(now):
+            msgs.append(f"joint_states stale: {s.stale_action}")
+        elif s.mode != 'gravity' and not core.desired_is_fresh(now):
             level = WARN
-            msgs.append(f"mode {s['mode']}: " + ('no desired state yet' if core.desired_time is None else
+            msgs.append(f"mode {s.mode}: " + ('no desired state yet' if core.desired_time is None else
                                                 'desired state stale') + ': gravity fallback')
         if core.description_error:
             level = max(level, WARN)
@@ -178,25 +178,25 @@ def report(core, window, now):
             msgs.append(f'{clamped} commands clamped')
         if core.loading:
             msgs.append(f'loading {core.loading}')
-        if not s['enabled']:
+        if not s.enabled:
             msgs.append('disabled' if core.silent else 'disabling (ramping down)')
         if desired_rejected:
             level = max(level, WARN)
             msgs.append(f'{desired_rejected} desired states rejected')
         if not msgs:
-            msgs.append('compensating' if s['mode'] == 'gravity' else s['mode'])
+            msgs.append('compensating' if s.mode == 'gravity' else s.mode)
     values = [
         ('model_loaded', str(m is not None)),
         ('model_name', m.name if m is not None else ''),
         ('model_source', core.model_info),
         ('model_state', f'loading {core.loading}' if core.loading else ('ready' if m is not None else 'none')),
-        ('description_update', s['description_update']),
+        ('description_update', s.description_update),
         ('joint_count', str(m.n if m is not None else 0)),
         ('joints', ','.join(core.layout or [])),
         ('locked_joints', ','.join(m.locked_joint_names) if m is not None else ''),
-        ('enabled', str(s['enabled'])),
+        ('enabled', str(s.enabled)),
         ('ramp_level', f'{core.ramp.level:.3f}'),
-        ('mode', s['mode']),
+        ('mode', s.mode),
         ('control_law', core.law or ''),
         ('desired_age_ms', f'{1e3 * (now - core.desired_time):.1f}' if core.desired_time is not None else 'inf'),
         ('desired_received_total', str(c.desired_received)),
@@ -213,13 +213,13 @@ def report(core, window, now):
         ('accepted_total', str(c.accepted)),
         ('rejected_total', str(c.rejected)),
         ('stale', str(wd.waiting)),
-        ('stale_action', s['stale_action']),
+        ('stale_action', s.stale_action),
         ('stale_events', str(wd.stale_events)),
         ('clamp_count', str(c.clamp_count)),
         ('velocity_unavailable_count', str(c.velocity_unavailable)),
         ('last_error', core.last_error),
         ('description_error', core.description_error),
-        ('inertia_policy', s['inertia_policy']),
+        ('inertia_policy', s.inertia_policy),
         ('inertia_warnings', str(len(report_))),
         ('inertia_repaired', str(repaired)),
         ('inertia_report', clip(' | '.join(r['message'] for r in report_[:INERTIA_DIAG_MESSAGES]), DIAG_TEXT_MAX)),

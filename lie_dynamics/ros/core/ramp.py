@@ -63,6 +63,21 @@ class Ramp:
         self.switched = False
         self.switch()
 
+    def start(self, now):
+        """The level moves from `now` on (not from the next command: the timer drives a ramp
+        without input)."""
+        self.level_time = now
+
+    def stop(self):
+        """Ramped down and silent: level 0 at target 0, no blend under way."""
+        self.level = self.target = 0.0
+        self.offset = None
+        self._update()
+
+    def note(self, command):
+        """A command that went out unshaped (idle): a later blend starts from it."""
+        self.last = command
+
     def advance(self, now):
         """Move the level to time `now`; returns it."""
         if self.level_time is None or self.duration <= 0:

@@ -9,6 +9,40 @@ def fresh(since, timeout, now):
     return since is not None and now - since <= timeout
 
 
+class Freshness:
+    """An input used while fresh (`fresh`) with a fallback while stale (the desired state, the
+    gravity topic; joint_states has the Watchdog): the one flag, counter and pair of log lines of
+    the change between the two. `check` at each use says a change once each way."""
+
+    def __init__(self, what, timeout_name, key):
+        self.what, self.timeout_name, self.key = what, timeout_name, key
+        self.fallen = False   # stale at the last check (after a change said): the fallback is in use
+        self.events = 0       # changes to stale so far
+
+    def check(self, since, timeout, now, topic, never=True):
+        """(fresh, line): fresh as `fresh(since, timeout, now)`; line None, or (severity, key,
+        text) when the state just changed: fresh again ('<key>:resumed'), stale ('<key>:stale',
+        with the input's age and the timeout), or stale without any input yet ('<key>:none';
+        never=False: no change, nothing was followed). The user adds its fallback to the text."""
+        if fresh(since, timeout, now):
+            if self.fallen:
+                self.fallen = False
+                return True, ('info', f'{self.key}:resumed', f'{self.what} on {topic} fresh again')
+            return True, None
+        if self.fallen or (since is None and not never):
+            return False, None
+        self.fallen = True
+        self.events += 1
+        if since is None:
+            return False, ('warn', f'{self.key}:none', f'no {self.what} received yet on {topic}')
+        return False, ('warn', f'{self.key}:stale', f'no valid {self.what} on {topic} for {now - since:.3f} s '
+                                                    f'({self.timeout_name} {timeout} s)')
+
+    def reset(self):
+        """Forget a fallback: the next stale check is said again."""
+        self.fallen = False
+
+
 class Watchdog:
     """Is the input stream alive? `feed` at every valid input, `expired` periodically.
 
@@ -40,6 +74,17 @@ class Watchdog:
         now = self.clock() if now is None else now
         if fresh(self.last_valid_time, self.timeout, now):
             return None
+        self.stale = True
+        self.stale_events += 1
+        return now - self.last_valid_time
+
+    def expire(self, now=None):
+        """The input is taken for stopped (shutdown): stale from now on, counted as a stale
+        period. Returns the seconds since the last valid input, or None when there was none or
+        it is stale already."""
+        if self.stale or self.last_valid_time is None:
+            return None
+        now = self.clock() if now is None else now
         self.stale = True
         self.stale_events += 1
         return now - self.last_valid_time

@@ -47,12 +47,12 @@ def effort_convention(settings):
     change it: it says what the robot adds to the command, not what its sensors report (a drive
     that echoes the command while the robot adds gravity reports gravity_removed; a torque
     sensor, as Franka's tau_J or KUKA's measured torque, reports total)."""
-    return settings.get('measured_effort', 'total')
+    return settings.measured_effort
 
 
 def observer_on(settings):
     """Whether the settings run the observer (with a model): observer.enabled and a usable effort."""
-    return bool(settings['observer.enabled']) and effort_convention(settings) != 'none'
+    return bool(settings.observer.enabled) and effort_convention(settings) != 'none'
 
 
 def motor_torque(model, q, effort, convention):
@@ -77,7 +77,7 @@ def thresholds(values, n):
 def check_settings(settings, n):
     """Validation that needs the number of controlled joints (None: not known yet)."""
     if n is not None:
-        thresholds(settings['collision.threshold'], n)
+        thresholds(settings.collision.threshold, n)
 
 
 def warm_observer(model):
@@ -150,11 +150,11 @@ class ContactMonitor:
         if settings is self.settings and model is self.model:
             return
         old = self.settings  # friction follows from the settings and the model: compared through them
-        reinit = model is not self.model or old is None or any(settings[k] != old[k] for k in REINIT_KEYS)
+        reinit = model is not self.model or old is None or settings.differs(old, REINIT_KEYS)
         self.settings, self.model, self.friction, self.layout = settings, model, friction, list(layout or [])
-        self.debounce.hold = settings['collision.hold_time']
+        self.debounce.hold = settings.collision.hold_time
         if not reinit and self.observer is not None:
-            self._set_threshold(thresholds(settings['collision.threshold'], model.n))
+            self._set_threshold(thresholds(settings.collision.threshold, model.n))
             return
         self.observer, self.error = None, ''
         self.convention = effort_convention(settings)
@@ -162,8 +162,8 @@ class ContactMonitor:
             self._restart('off')
             return
         try:
-            self._set_threshold(thresholds(settings['collision.threshold'], model.n))
-            self.observer = MomentumObserver(model, settings['observer.gain'], friction)
+            self._set_threshold(thresholds(settings.collision.threshold, model.n))
+            self.observer = MomentumObserver(model, settings.observer.gain, friction)
         except ValueError as exc:  # validated on set; a model with another joint count lands here
             self.error = str(exc)   # bounded where it is shown (the log, Features.report)
             self._event('error', 'observer:config', f'external torque observer off: {self.error}')
@@ -278,7 +278,7 @@ class ContactMonitor:
                 big = np.flatnonzero(np.abs(r) > self.threshold)
                 over = [f'{self.layout[j]}: {r[j]:.3g} N m' for j in big]
                 self._event('warn', 'collision', f'collision: external torque beyond collision.threshold for '
-                                                 f"{self.settings['collision.hold_time']:g} s at {names_text(over, 4)}"
+                                                 f"{self.settings.collision.hold_time:g} s at {names_text(over, 4)}"
                                                  f' (total {self.collision_events})')
             else:
                 self._event('info', 'collision:clear', 'collision flag cleared: external torques below the thresholds')

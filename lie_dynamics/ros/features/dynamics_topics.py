@@ -40,16 +40,16 @@ ROWS = ('vx', 'vy', 'vz', 'wx', 'wy', 'wz')
 
 def published_terms(settings):
     """The terms dynamics.publish turns on, in TOPICS order."""
-    return tuple(t for t in TOPICS if t in settings['dynamics.publish'])
+    return tuple(t for t in TOPICS if t in settings.dynamics.publish)
 
 
 def check_link(settings, model):
     """dynamics.link against `model` (None: not loaded yet, nothing to check). Raises ValueError."""
-    link = settings['dynamics.link']
+    link = settings.dynamics.link
     if not link or model is None:
         return
     try:   # the link and frame checks of the Jacobian, without generating its kernel here
-        jacobian.target(model, link, settings['dynamics.jacobian_frame'], None)
+        jacobian.target(model, link, settings.dynamics.jacobian_frame, None)
     except ValueError as exc:
         raise ValueError(f"dynamics.link '{clip(link, 80)}' cannot be used with robot '{model.name}': "
                          f'{exc}') from None
@@ -113,25 +113,25 @@ class DynamicsTopics(Feature):
         # each term's Model call (on_sample), at rest
         calls = {'gravity': (at_rest, 'gravity'), 'coriolis': (at_rest, 'coriolis_term', 2),
                  'mass_matrix': (at_rest, 'mass_matrix'),
-                 'jacobian': (jacobian_at_rest, settings['dynamics.link'], settings['dynamics.jacobian_frame'])}
+                 'jacobian': (jacobian_at_rest, settings.dynamics.link, settings.dynamics.jacobian_frame)}
         return tuple(calls[t] for t in published_terms(settings))
 
     def configure(self, settings, model, derived):
         terms = published_terms(settings)
-        self.frame = settings['dynamics.jacobian_frame']
+        self.frame = settings.dynamics.jacobian_frame
         self.link = ''
         if model is not None and 'jacobian' in terms:
             try:
                 check_link(settings, model)
-                self.link = settings['dynamics.link'] or tip_link(model)
+                self.link = settings.dynamics.link or tip_link(model)
             except ValueError as exc:  # a new description without that link: the rest goes on
                 self.events.append(('error', 'dynamics:link', f'~/dynamics/jacobian off: {exc}'))
                 terms = tuple(t for t in terms if t != 'jacobian')
         for t in terms:
             if t not in self._pubs:
                 self._pubs[t] = interfaces.publisher(self._node, TOPICS[t])
-        if settings['dynamics.rate'] != self.rate:
-            self.rate = settings['dynamics.rate']
+        if settings.dynamics.rate != self.rate:
+            self.rate = settings.dynamics.rate
             self.gate = RateGate(self.rate)
         self.terms = terms
         self.active = bool(terms) and model is not None

@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from ..core.diagnostics import clip
-from ..core.watchdog import fresh
+from ..core.watchdog import Freshness, fresh
 
 # A gravity vector longer than this (m/s^2, 3 g) is a units or frame error, not a tilted base.
 GRAVITY_NORM_MAX = 30.0
@@ -66,8 +66,8 @@ class GravitySource:
         self.time = None         # when it arrived
         self.seq = 0             # bumped by each valid vector
         self.following = False   # the last sync used the topic's vector
-        self.fallback = False    # a vector came and went stale: the parameter is used
-        self.received = self.rejected = self.fallback_events = 0
+        self.freshness = Freshness('gravity', 'gravity_timeout', 'gravity')   # fallen: a vector came and went stale
+        self.received = self.rejected = 0
         self.last_error = ''
         self.events = []
         self._key = None         # what the model's gravity was last set from
@@ -99,32 +99,24 @@ class GravitySource:
             return
         s = core.settings
         now = self.clock() if now is None else now
-        fresh = self.fresh(s['gravity_timeout'], now)
+        fresh, line = self.freshness.check(self.time, s.gravity_timeout, now, self.topic, never=False)
+        if line is not None:   # (never came: the parameter is the gravity, nothing fell back)
+            self._say(line, s)
         switched = fresh != self.following
         if switched:
             self.following = fresh
-            self._transition(fresh, now, s)
         seq = self.seq if fresh else -1
         k = self._key
         if k is not None and k[0] is model and k[2] is s and k[1] == model.version and k[3] == seq:
             return
-        core.use_gravity((self.vector if fresh else np.asarray(s['gravity'], dtype=float)) * s['gravity_scale'],
+        core.use_gravity((self.vector if fresh else np.asarray(s.gravity, dtype=float)) * s.gravity_scale,
                          blend=switched)
         self._key = (model, model.version, s, seq)
 
-    def _transition(self, fresh, now, s):
-        if fresh:
-            if self.fallback:
-                self.events.append(('info', 'gravity:resumed', f'gravity on {self.topic} fresh again: following it'))
-            self.fallback = False
-            return
-        if self.time is None:
-            return  # never came: the parameter is the gravity, nothing fell back
-        self.fallback = True
-        self.fallback_events += 1
-        self.events.append(('warn', 'gravity:stale', f'no valid gravity on {self.topic} for {now - self.time:.3f} s '
-                                                     f"(gravity_timeout {s['gravity_timeout']} s): using the gravity "
-                                                     f"parameter {s['gravity']}"))
+    def _say(self, line, s):
+        severity, key, text = line
+        self.events.append((severity, key, f'{text}: following it' if severity == 'info' else
+                            f"{text}: using the gravity parameter {s.gravity}"))
 
     def report(self, level, message, now=None):
         """(level, message, values) additions for the node's diagnostics."""
@@ -134,14 +126,15 @@ class GravitySource:
         elif self.following:
             source = f'topic {self.topic}'
         else:
-            source = 'parameter (fallback: topic stale)' if self.fallback else f'parameter (none yet on {self.topic})'
-        if self.fallback and not self.following:
+            source = ('parameter (fallback: topic stale)' if self.freshness.fallen else
+                      f'parameter (none yet on {self.topic})')
+        if self.freshness.fallen and not self.following:
             level = max(level, 1)
             message = f'{message}; gravity topic stale: gravity parameter' if message else 'gravity topic stale'
         values = [('gravity_source', source),
                   ('gravity_topic_age_ms', f'{1e3 * (now - self.time):.1f}' if self.time is not None else 'inf'),
                   ('gravity_received_total', str(self.received)),
                   ('gravity_rejected_total', str(self.rejected)),
-                  ('gravity_fallback_events', str(self.fallback_events)),
+                  ('gravity_fallback_events', str(self.freshness.events)),
                   ('gravity_error', self.last_error)]
         return level, message, values

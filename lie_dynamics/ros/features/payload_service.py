@@ -176,7 +176,7 @@ def warm_fit(model):
 
 
 def identify_link(settings):
-    return settings.get('identify.link') or settings['payload.link']
+    return settings.identify.link or settings.payload.link
 
 
 def _payload_link(model, link, name):
@@ -191,8 +191,8 @@ def _payload_link(model, link, name):
 def check_identify_link(settings, model):
     """identify.link must name a link that may carry a payload of `model` (when set and a model
     is loaded): what it identifies becomes payload.link. Raises ValueError."""
-    if settings['identify.link'] and model is not None:
-        _payload_link(model, settings['identify.link'], 'identify.link')
+    if settings.identify.link and model is not None:
+        _payload_link(model, settings.identify.link, 'identify.link')
 
 
 class FitJob(NamedTuple):
@@ -243,10 +243,10 @@ class Identification:
             raise ValueError("measured_effort is 'none': joint_states efforts are not motor torques")
         self.busy, self._abort = True, ''
         self.done.clear()
-        self._rec = self.recording = Recording(core.model.n, s['identify.duration'])
+        self._rec = self.recording = Recording(core.model.n, s.identify.duration)
         self._model, self.time = core.model, TimeBase(self.clock)
         self.started = self.clock() if now is None else now
-        self.state = f"recording {s['identify.duration']:g} s"
+        self.state = f"recording {s.identify.duration:g} s"
         return link
 
     def add(self, sample, now=None):
@@ -289,8 +289,8 @@ class Identification:
             raise ValueError('the robot model changed while recording')
         s = core.settings
         self.state = 'fitting'
-        return FitJob(rec, copy.deepcopy(core.model), identify_link(s), s['identify.mode'], effort_convention(s),
-                      s['identify.max_residual_ratio'], core.friction)
+        return FitJob(rec, copy.deepcopy(core.model), identify_link(s), s.identify.mode, effort_convention(s),
+                      s.identify.max_residual_ratio, core.friction)
 
     def finish(self, ok, message):
         self.busy = False
@@ -327,7 +327,7 @@ class PayloadRecording(Feature):
 
     def kernels(self, settings):
         # the fit's batch kernels, generated before the first ~/identify_payload waits for them
-        return ((warm_fit,),) if settings['identify.link'] or settings['payload.link'] else ()
+        return ((warm_fit,),) if settings.identify.link or settings.payload.link else ()
 
     def on_sample(self, sample):
         self.ident.add(sample)

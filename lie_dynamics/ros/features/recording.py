@@ -15,7 +15,7 @@ Nothing of it delays the command: on the control path a sample costs a few row c
 preallocated chunks (`SampleLog`, after the command went out; no check: the writer leaves out
 samples without efforts). The messages are serialized and
 written by a child process (`python -m lie_dynamics.ros.features.recording`, started with exec as
-the model builder is: loading/build_process.py), to which a writer thread of the node hands the
+the model builder is: the pipe protocol of core/pipe.py), to which a writer thread of the node hands the
 chunks over a pipe (the interpreter lock is free while it writes or waits). The service is served
 by a hidden helper node with its own two-thread executor (as ~/identify_payload: its answer waits
 for the file, and a second call meanwhile is answered at once).
@@ -34,7 +34,7 @@ from rclpy.node import Node
 from .. import interfaces
 from ..core.diagnostics import DIAG_TEXT_MAX, clip
 from ..core.timebase import TimeBase
-from ..loading.build_process import child_setup, receive, send, start_child
+from ..core.pipe import child_setup, receive, send, start_child
 from .base import Feature
 
 TOPIC = '/joint_states'
@@ -126,9 +126,9 @@ class Recorder:
             raise ValueError(f'already recording ({self.log.size} samples so far, into {self.folder})')
         if not names:
             raise ValueError('no robot model loaded: nothing to record yet')
-        base = settings['recording_dir'] or default_dir()
+        base = settings.recording_dir or default_dir()
         self.folder = new_folder(os.path.expanduser(base))
-        self.log = SampleLog(names, settings['recording_max_s'])
+        self.log = SampleLog(names, settings.recording_max_s)
         self.pending = None
         return self.folder
 
@@ -295,7 +295,7 @@ class RecordService(Feature):
                     return response
                 node.log_event('info', None, f'~/record: recording into {folder}')   # one per call: never held back
                 response.success = True
-                response.message = (f"recording into {folder} (at most {settings['recording_max_s']:g} s; "
+                response.message = (f"recording into {folder} (at most {settings.recording_max_s:g} s; "
                                     'false stops it and writes the file)')
                 return response
             log = r.stop()

@@ -33,11 +33,13 @@ import sys
 import weakref
 
 from ...codegen import runtime
-from .build_process import BuildProcess, build, read_description
+from .build_process import BuildProcess
+from ..core.descriptions import build, read_description, update_refusal
 from ..core.diagnostics import clip
 from ..core.messages import Rejected
-from .models import portable, update_refusal, warm_up
+from .models import portable, warm_up
 from .sources import open_source, resolve_path, source_label
+from ..trajectories.fill import TrajectoryInput
 from ..trajectories.process import TrajectoryProcess
 from .worker import Worker
 
@@ -92,6 +94,7 @@ class Background:
         self.process = BuildProcess()   # its child starts with the first load (expect_description: at start-up)
         self.running_xml = None         # the description text of the running model
         self.trajectories = None
+        self.trajectory_input = TrajectoryInput(core)   # the checks and counts of the fills
         if trajectories is not None:
             self.trajectories = TrajectoryProcess(trajectories, self._on_ask)
             self.trajectories.start()
@@ -105,10 +108,10 @@ class Background:
     def precheck(self, kind, text, settings=None):
         """Why the description (kind, text) is refused before it is read, or None."""
         s = self.core.settings if settings is None else settings
-        refusal = update_refusal(s['description_update'], self.core.model)
+        refusal = update_refusal(s.description_update, self.core.model)
         if refusal:
             return refusal
-        cap = s['max_description_bytes']
+        cap = s.max_description_bytes
         if kind == 'file':
             path = resolve_path(text)
             if not os.path.isfile(path):
@@ -129,7 +132,7 @@ class Background:
         core = self.core
         s = core.settings
         source, label = open_source(kind, text)
-        caps = (kind == 'file', s['max_description_bytes'], s['max_description_links'])
+        caps = (kind == 'file', s.max_description_bytes, s.max_description_links)
         xml = read_description(source, caps) if kind == 'file' else text   # what a repeat is compared with
         keys = self.kernels(s)
         builder = (functools.partial(self.process.build, caps=caps, warm=portable(keys)) if remote
@@ -239,8 +242,8 @@ class Background:
     def _answer(self, child, seq, points):
         """(worker thread) Answer the trajectory process: the fill of the running model and
         settings, or a refusal, returned as (text, kind) for the control path to count."""
-        cap = self.core.settings['max_trajectory_points']
-        job = self.core.trajectory_fill(points)
+        cap = self.core.settings.max_trajectory_points
+        job = self.trajectory_input.job(points)
         refused = isinstance(job, Rejected)
         try:
             with short_switch_interval():   # pickling a large model: milliseconds, in Python in part
@@ -260,12 +263,12 @@ class Background:
                     self._install(out.tag, out.value, out.error)
                 elif out.slot == 'kernels':
                     if out.error is not None:
-                        core.events.append(('warn', 'kernels', f'a kernel could not be built: '
-                                                               f'{type(out.error).__name__}: {out.error}'))
+                        core.event('warn', 'kernels', f'a kernel could not be built: '
+                                                      f'{type(out.error).__name__}: {out.error}')
                 elif out.error is not None:   # the trajectory process was not answered: it waits for a fill
-                    core.trajectory_done(f'{type(out.error).__name__}: {out.error}')
+                    self.trajectory_input.done(f'{type(out.error).__name__}: {out.error}')
                 elif out.value is not None:   # refused: counted here
-                    core.trajectory_done(out.value[0], kind=out.value[1])
+                    self.trajectory_input.done(out.value[0], kind=out.value[1])
         busy = worker.busy('model')
         core.note_context(loading=busy[2] if busy is not None else '')
         tp = self.trajectories
@@ -273,11 +276,11 @@ class Background:
             return
         for msg in tp.collect():
             if msg[0] == 'done':
-                core.trajectory_done(msg[1], msg[2], kind=msg[3] or 'malformed')
+                self.trajectory_input.done(msg[1], msg[2], kind=msg[3] or 'malformed')
             elif msg[2]:   # a child lost during a fill: that trajectory is rejected
-                core.trajectory_done(msg[1] + ' while filling', kind='process')
+                self.trajectory_input.done(msg[1] + ' while filling', kind='process')
             else:
-                core.events.append(('warn', 'trajectory:process', f'{msg[1]}; a new one starts'))
+                core.event('warn', 'trajectory:process', f'{msg[1]}; a new one starts')
         if not tp.running and worker.busy('trajectory') is None:
             worker.submit('trajectory', 'start', self._start_trajectories)
 

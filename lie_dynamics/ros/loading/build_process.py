@@ -17,141 +17,21 @@ dies with the node: it exits on end of input, ignores SIGINT (a terminal's Ctrl-
 node, which stops it), and asks the kernel for SIGKILL when the thread that started it ends
 (Linux), so a killed node leaves no orphan.
 """
-import ctypes
-import os
-import pickle
-import select
-import signal
-import struct
 import subprocess
 import sys
 import threading
 import time
-import warnings
 
-from ... import InertiaWarning, load_urdf
-from ... import SOURCE_ROOT
 from ...codegen import native
-from .models import update_refusal, warm_up
+from ..core.descriptions import build, read_description
+from ..core.pipe import TIMEOUT, child_setup, receive, send, start_child
+from .models import warm_up
 
 BUILD_TIMEOUT_S = 120.0   # a build that takes longer is taken for hung (a 5,000-link chain: ~3 s)
-_LEN = struct.Struct('<Q')
-_CHUNK = 1 << 20
-_PR_SET_PDEATHSIG = 1
-# Children yield the CPU to the node: on a machine with fewer free cores than busy threads, a
-# child working at the node's priority took time slices from the control path.
-CHILD_NICE = 5
 
 
 class BuildLost(RuntimeError):
     """The build process died or did not answer in time (it has been killed)."""
-
-
-def read_description(source, caps=None):
-    """The URDF text of `source` within caps = (is_file, max_bytes, max_links): a file is read
-    up to max_bytes + 1 characters; more than max_links `<link` tags (an upper bound: comments
-    count too) raises ValueError before parsing. Without caps: source unchanged."""
-    if caps is None:
-        return source
-    is_file, max_bytes, max_links = caps
-    if is_file:
-        with open(source, encoding='utf-8') as fh:
-            source = fh.read(max_bytes + 1)
-    links = source.count('<link')
-    if links > max_links:
-        raise ValueError(f'{links} <link> elements, more than max_description_links ({max_links})')
-    return source
-
-
-def build(source, caps=None, *, joints=None, gravity=(0.0, 0.0, -9.81), inertia='warn', running=None):
-    """(model, other warnings) of a description: read_description, then load_urdf with its
-    InertiaWarnings recorded (the model's physical_consistency() report carries them; the
-    caller logs that once) and any other warning returned as (message, category, filename,
-    lineno) for the caller to re-issue. running: None, or (description_update, the running
-    robot's name): a model that policy refuses is refused here (models.update_refusal), so a
-    child never sends back a model (thousands of bodies, perhaps) only to have it refused.
-    Raises ValueError."""
-    text = read_description(source, caps)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter('always', InertiaWarning)
-        model = load_urdf(text, joints=joints, gravity=gravity, inertia=inertia)
-    if running is not None:
-        refusal = update_refusal(running[0], _Running(running[1]), model)
-        if refusal:
-            raise ValueError(refusal)
-    other = [(str(w.message), w.category, w.filename, w.lineno) for w in caught
-             if not issubclass(w.category, InertiaWarning)]
-    return model, other
-
-
-class _Running:
-    """What update_refusal reads of the running model."""
-    __slots__ = ('name',)
-
-    def __init__(self, name):
-        self.name = name
-
-
-def send(fd, obj):
-    """Write obj to fd, pickled, with its length first."""
-    data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
-    view = memoryview(_LEN.pack(len(data)) + data)
-    while view:
-        view = view[os.write(fd, view):]
-
-
-TIMEOUT = object()   # what receive returns when its deadline passes
-
-
-def receive(fd, deadline=None, clock=None):
-    """The next object on fd; None at end of input, TIMEOUT when `deadline` (clock()) passes."""
-    buf = bytearray()
-    need = _LEN.size
-    size = None
-    while len(buf) < need:
-        if deadline is not None:
-            left = deadline - clock()
-            if left <= 0 or not select.select([fd], [], [], left)[0]:
-                return TIMEOUT
-        chunk = os.read(fd, min(_CHUNK, need - len(buf)))
-        if not chunk:
-            return None
-        buf += chunk
-        if size is None and len(buf) >= _LEN.size:
-            size = _LEN.unpack_from(buf)[0]
-            need = _LEN.size + size
-    return pickle.loads(memoryview(buf)[_LEN.size:])
-
-
-def start_child(module):
-    """`python -m module <this pid>` with pipes on its stdin and stdout (exec, not a fork of a
-    process with DDS threads); the child calls child_setup first. The package's source root
-    leads its path, so that a source tree runs its own code."""
-    env = dict(os.environ)
-    env['PYTHONPATH'] = os.pathsep.join(p for p in (SOURCE_ROOT, env.get('PYTHONPATH')) if p)
-    return subprocess.Popen([sys.executable, '-m', module, str(os.getpid())], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, env=env, close_fds=True)
-
-
-def child_setup(parent=None):
-    """A child of start_child: dies with the thread that started it (Linux: SIGKILL), ignores
-    SIGINT (a terminal's Ctrl-C goes to the parent, which stops it), runs CHILD_NICE steps
-    nicer than the node, sends stray prints to stderr. Returns the descriptor its answers go to,
-    or None when the parent already died."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        ctypes.CDLL(None).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
-    except (OSError, AttributeError):   # not Linux: end of input still ends the child
-        pass
-    if parent is not None and os.getppid() != parent:   # the parent died before prctl
-        return None
-    try:
-        os.nice(CHILD_NICE)
-    except OSError:
-        pass
-    out = os.dup(1)
-    os.dup2(2, 1)   # stray prints go to stderr, never into the answers
-    return out
 
 
 class BuildProcess:

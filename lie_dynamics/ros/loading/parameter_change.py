@@ -11,8 +11,8 @@ that then fails to load is reported in the log and diagnostics, and the previous
 running.
 """
 from ..core.diagnostics import DIAG_TEXT_MAX, clip
+from ..core.descriptions import update_refusal
 from ..core.params import check_value
-from .models import update_refusal
 from .sources import source_label
 
 # The description parameters, in the order start-up tries them, and the source kind of each.
@@ -36,12 +36,12 @@ def plan_change(core, changes, check, precheck, current_source):
             if err:
                 raise ValueError(f'{source_label(kind, text)}: {err}')
             load = (kind, text)
-    if load is None and 'inertia_policy' in changes and s['inertia_policy'] != core.settings['inertia_policy']:
+    if load is None and 'inertia_policy' in changes and s.inertia_policy != core.settings.inertia_policy:
         kind, text = current_source()
         if kind is not None and core.model is not None:
-            if refusal := update_refusal(s['description_update'], core.model):
+            if refusal := update_refusal(s.description_update, core.model):
                 raise ValueError(f'{refusal} (an inertia_policy change reloads the description)')
-            if s['inertia_policy'] == 'strict' and core.inertia_report:
+            if s.inertia_policy == 'strict' and core.inertia_report:
                 raise ValueError("inertia_policy 'strict' would refuse the running description: " +
                                  '; '.join(r['message'] for r in core.inertia_report))
         if kind is not None:

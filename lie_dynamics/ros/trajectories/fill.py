@@ -1,6 +1,7 @@
 """Trajectory effort fill of the dynamics node, in plain Python (no rclpy import).
 
-`TrajectoryInput` is the Compensator's trajectory side: checks, counters and log lines.
+`TrajectoryInput` is the node's trajectory side, composed with the Compensator: checks,
+counters and log lines.
 
 `TrajectoryFill` is a snapshot of what a fill needs (model, friction, effort limits), taken on
 the control path; its `fill` may then run in another thread. Effort of a controlled joint:
@@ -16,9 +17,8 @@ import numpy as np
 from ...laws import add_friction, clamp
 from ...model.joint_names import joint_columns
 from ...trajectory import fill_trajectory_efforts
-from ..core.diagnostics import DIAG_TEXT_MAX, clip, names_text, problem_key
+from ..core.diagnostics import names_text, problem_key
 from ..core.messages import Rejected, columns_refusal
-from .trajectory_msgs import trajectory_arrays
 
 
 class TrajectoryFill(NamedTuple):
@@ -52,48 +52,40 @@ class TrajectoryFill(NamedTuple):
 
 
 class TrajectoryInput:
-    """The trajectory side of the Compensator (a base class: it uses the core's model,
-    settings, friction, limits, counters, events and last_error)."""
+    """The node's trajectory side, composed with the Compensator `core`: what a fill may use
+    (`job`) and what became of one (`done`), read from the core's public state and told through
+    its public methods (`note_problem`; its counters)."""
 
-    def trajectory_fill(self, points):
+    def __init__(self, core):
+        self.core = core
+
+    def job(self, points):
         """A TrajectoryFill of the current model and settings for a trajectory of `points`
-        points (its fill may run in another thread), or why it is refused (messages.Rejected)."""
-        if self.model is None:
+        points (its fill may run in another thread), or why it is refused (messages.Rejected).
+        Not while disabled, not above max_trajectory_points."""
+        core = self.core
+        if core.model is None:
             return Rejected('model', 'no robot model yet')
-        if not self.settings['enabled']:
+        s = core.settings
+        if not s.enabled:
             return Rejected('disabled', 'node disabled')
-        cap = self.settings['max_trajectory_points']
+        cap = s.max_trajectory_points
         if points > cap:
             return Rejected('points', f'{points} points, more than max_trajectory_points ({cap})')
-        return TrajectoryFill(self.model, self.friction, self.limits, self.settings['effort_limit_scale'],
-                              self.settings['robot_compensates_gravity'])
+        return TrajectoryFill(core.model, core.friction, core.limits, s.effort_limit_scale,
+                              s.robot_compensates_gravity)
 
-    def trajectory_done(self, error=None, note=None, kind='malformed'):
+    def done(self, error=None, note=None, kind='malformed'):
         """Count a trajectory fill and queue its log lines: error is why it was rejected
         (nothing published; kind the problem class), note the clamp note of a filled one. Kind
         'process': the trajectory process was lost during the fill, perhaps after publishing it."""
+        core = self.core
         if note:
-            self.events.append(('warn', 'trajectory:clamp', note))
+            core.event('warn', 'trajectory:clamp', note)
         if error is None:
-            self.count.trajectories_filled += 1
-            return None
-        self.count.trajectories_rejected += 1
-        self.last_error = clip(f'trajectory rejected: {error}', DIAG_TEXT_MAX)
+            core.count.trajectories_filled += 1
+            return
+        core.count.trajectories_rejected += 1
         key = 'trajectory:' + (problem_key(error) if kind == 'malformed' else kind)
         said = ' (the lost process may have published it first)' if kind == 'process' else ' (nothing published)'
-        self.events.append(('warn', key, self.last_error + said))
-        return None
-
-    def on_trajectory(self, names, points):
-        """A planner's trajectory (JointTrajectory joint_names and points) -> efforts (N, k) in the
-        message's joint order, or None (rejected: publish nothing). Not while disabled, not
-        above max_trajectory_points."""
-        job = self.trajectory_fill(len(points))
-        if isinstance(job, Rejected):
-            return self.trajectory_done(job.text, kind=job.kind)
-        try:
-            efforts, note = job.fill(names, trajectory_arrays(names, points))
-        except ValueError as exc:
-            return self.trajectory_done(str(exc))
-        self.trajectory_done(None, note)
-        return efforts
+        core.note_problem(key, f'trajectory rejected: {error}', said)

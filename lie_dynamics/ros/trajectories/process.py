@@ -1,5 +1,5 @@
 """The trajectory process: ~/trajectory_in -> ~/trajectory_out served by a child process, in
-plain Python (no rclpy import): this is the node's side; the child is ros/trajectory_process.py.
+plain Python (no rclpy import): this is the node's side; the child is trajectory_process.py.
 
 rclpy holds the interpreter lock while it takes a serialized message and while it publishes
 one: 31-53 ms each for a 100,000-point trajectory (20 MB), before any code of the node runs,
@@ -8,14 +8,14 @@ subscribes and publishes the node's resolved topic names with the node's QoS, re
 count from the message's header, asks the node for the fill (`Rejected`, or the
 `fill.TrajectoryFill` snapshot of the running model and settings, sent pickled only when it
 changed since the last one), fills and publishes there. The node decides and counts as
-before (`Compensator.trajectory_fill` / `trajectory_done`): the child's outcomes, log lines
+before (`fill.TrajectoryInput`: `job` / `done`): the child's outcomes, log lines
 included, come back over the pipe and go through the node's one throttled log path.
 
-Messages (pickled, length first, build_process.send / receive). Node to child: the start
+Messages (pickled, length first, core/pipe.py: send / receive). Node to child: the start
 configuration (dict: domain_id, name, namespace, topic_in, topic_out, qos), then per question
 ('go', seq, TrajectoryFill or None (the last one still holds), max_trajectory_points) or
 ('no', seq). Child to node: ('ask', seq, points), ('done', error, note, kind) as
-`trajectory_done` takes them, and ('alive',) from its executor loop once subscribed, then
+`TrajectoryInput.done` takes them, and ('alive',) from its executor loop once subscribed, then
 every `heartbeat` s (HEARTBEAT_S; sent with the start configuration).
 
 A child that dies, whose fill takes longer than `timeout` s, or that is silent (no message of
@@ -43,7 +43,7 @@ import subprocess
 import threading
 import time
 
-from ..loading.build_process import receive, send, start_child
+from ..core.pipe import receive, send, start_child
 
 FILL_TIMEOUT_S = 120.0   # a fill that takes longer is taken for hung (100,000 points: about 1 s)
 RESTART_S = 5.0          # a child that keeps dying is started at most this often
@@ -51,7 +51,7 @@ HEARTBEAT_S = 1.0        # the child says it is alive at least this often
 SILENT_S = 5.0           # a child silent longer is taken for hung (its CPU waits excluded: see above)
 START_S = 60.0           # its first message (Python, rclpy and DDS started) may take this long
 STOP_S = 3.0             # from end of input to its exit (then SIGKILL): within a launcher's 5 s for the node
-CHILD = 'lie_dynamics.ros.trajectory_process'
+CHILD = 'lie_dynamics.ros.trajectories.trajectory_process'
 
 
 class TrajectoryProcess:

@@ -1,9 +1,9 @@
-"""The trajectory process (started by trajectories/process.py, which describes it): a node of
+"""The trajectory process (started by process.py, which describes it): a node of
 its own, `<node name>_trajectories` in the node's namespace, that takes ~/trajectory_in
 serialized, asks the dynamics node for the fill, fills and publishes ~/trajectory_out, on the
 dynamics node's resolved topic names with its QoS, in the dynamics node's DDS domain.
 
-    python -m lie_dynamics.ros.trajectory_process PARENT_PID   (stdin / stdout: the pipe)
+    python -m lie_dynamics.ros.trajectories.trajectory_process PARENT_PID   (stdin / stdout: the pipe)
 
 It logs nothing itself: its outcomes go back over the pipe, with ('alive',) from the executor
 loop at least every `heartbeat` s of the start configuration (a loop that stops, stopped or
@@ -24,12 +24,12 @@ from rclpy.serialization import deserialize_message
 from rclpy.signals import SignalHandlerOptions
 from trajectory_msgs.msg import JointTrajectory
 
-from . import interfaces
-from .loading.background import TRIM_BYTES, release_memory
-from .loading.build_process import child_setup, receive, send
-from .loading.worker import Worker
-from .trajectories.trajectory_cdr import Unsupported, arrays, head, read, write
-from .trajectories.trajectory_msgs import set_point_efforts, trajectory_arrays
+from .. import interfaces
+from ..core.pipe import child_setup, receive, send
+from ..loading.background import TRIM_BYTES, release_memory
+from ..loading.worker import Worker
+from .trajectory_cdr import Unsupported, arrays, head, read, write
+from .trajectory_msgs import set_point_efforts, trajectory_arrays
 
 REPLACED = 'a newer trajectory arrived before it was filled'
 
