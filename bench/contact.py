@@ -41,7 +41,7 @@ from bench.common import HERE, write_tables
 from lie_dynamics import default_urdf_path, load_urdf
 from lie_dynamics.algorithms import contact_isolation as ci
 from lie_dynamics.laws import make_friction
-from lie_dynamics.ros.core.params import defaults
+from lie_dynamics.ros.core.settings import Settings
 from lie_dynamics.ros.features.contact import ContactMonitor
 from lie_dynamics.ros.features.contact_link import ContactIsolation, Published
 from lie_dynamics.sim.arm import ArmSim
@@ -72,10 +72,8 @@ def robots():
 
 
 def settings_for(model):
-    s = defaults()
-    s.update({'collision.threshold': (THRESHOLD_SCALE * model.effort_limits).tolist(),
-              'friction.viscous': model.damping.tolist(), 'friction.coulomb': [0.0]})
-    return s
+    return Settings({'collision.threshold': (THRESHOLD_SCALE * model.effort_limits).tolist(),
+                     'friction.viscous': model.damping.tolist(), 'friction.coulomb': [0.0]})
 
 
 def random_state(model, rng):
@@ -104,16 +102,16 @@ def body_link(model, link):
 def simulate(model, settings, q0, link, wrench_mf, rng, noise, tool=''):
     """Run one push: for each isolation mode (literal, strict) the links named during the push and
     the decision at its end; whether the flag rose; the last sample of the push (q, r, tool wrench)."""
-    s = dict(settings, **{'contact.wrench_frame': tool})
-    th = np.asarray(s['collision.threshold'])
-    friction = make_friction(model.damping, None, s['friction.coulomb_velocity_epsilon'])
+    s = settings.replace({'contact.wrench_frame': tool})
+    th = np.asarray(s.collision.threshold)
+    friction = make_friction(model.damping, None, s.friction.coulomb_velocity_epsilon)
     mon = ContactMonitor()
     mon.sync(s, model, friction, model.joint_names)
     isos = {}
     for mode in MODES:
         isos[mode] = ContactIsolation()
-        isos[mode].sync(dict(s, **{'contact.strict_isolation': mode == 'strict',
-                                   'contact.wrench_frame': tool if mode == 'literal' else ''}), model)
+        isos[mode].sync(s.replace({'contact.strict_isolation': mode == 'strict',
+                                    'contact.wrench_frame': tool if mode == 'literal' else ''}), model)
     sim = ArmSim(model, DT, q0=q0, limits=False)   # no stops: their impulses would be contact too
     sim.set_external(link, wrench_mf, START, PUSH_S)
     kp, kd = hold_gains(model, q0)
@@ -138,7 +136,7 @@ def simulate(model, settings, q0, link, wrench_mf, rng, noise, tool=''):
 
 def push_isolation(name, model, n_push, rng, noise):
     settings = settings_for(model)
-    th = np.asarray(settings['collision.threshold'])
+    th = np.asarray(settings.collision.threshold)
     links = [ln for ln, (b, _) in model.link_frames.items() if b >= 0 and ci.supporting_joints(model, ln).any()]
     rows = []
     for _ in range(n_push):
@@ -178,7 +176,7 @@ def push_isolation(name, model, n_push, rng, noise):
 
 def tool_pushes(name, model, tool, n_push, rng, noise):
     settings = settings_for(model)
-    th = np.asarray(settings['collision.threshold'])
+    th = np.asarray(settings.collision.threshold)
     rows = []
     for _ in range(n_push):
         q0 = random_state(model, rng)

@@ -4,7 +4,7 @@ flag is up and one zero wrench after it, the tool wrench every sample, re-initia
 import numpy as np
 
 from lie_dynamics import default_urdf_path, load_urdf
-from lie_dynamics.ros.core.params import defaults
+from lie_dynamics.ros.core.settings import Settings
 from lie_dynamics.ros.features.contact_link import ContactIsolation
 
 K, DT = 50.0, 1e-3
@@ -13,9 +13,7 @@ Q = np.array([0.0, -0.6, 0.0, 2.0, 0.0, 1.6, 0.8])
 
 
 def settings(**extra):
-    s = defaults()
-    s.update({'observer.gain': K, 'collision.threshold': TH.tolist()}, **extra)
-    return s
+    return Settings({'observer.gain': K, 'collision.threshold': TH.tolist(), **extra})
 
 
 def test_the_link_waits_for_a_settled_residual_and_the_wrench_follows_the_flag():
@@ -65,14 +63,14 @@ def test_changes_that_restart_the_observer_restart_isolation_and_a_lost_frame_tu
     assert iso.link == 'link7' and iso.isolation is not None
     level, values = iso.report(0, [])
     assert dict(values)['contact_isolation'] == 'isolated' and dict(values)['contact_wrench_rank'] == '6'
-    iso.sync(dict(s, gravity=[0.0, 0.0, -9.0]), model)     # as the observer: a new integral
+    iso.sync(s.replace({'gravity': [0.0, 0.0, -9.0]}), model)     # as the observer: a new integral
     assert iso.isolation is None
     assert dict(iso.report(0, [])[1])['contact_isolation'] == 'settling'   # the flag was up
-    iso.sync(dict(s, **{'collision.hold_time': 0.02}), model)   # not an observer change
+    iso.sync(s.replace({'collision.hold_time': 0.02}), model)   # not an observer change
     other = load_urdf(default_urdf_path())
     other.name = 'renamed'
-    iso.sync(dict(s), other)
+    iso.sync(s.replace({}), other)
     assert iso.frame == 'tool0'
     xml = open(default_urdf_path()).read().replace('tool0', 'tool9')
-    iso.sync(dict(s), load_urdf(xml))
+    iso.sync(s.replace({}), load_urdf(xml))
     assert iso.frame == '' and any('tool_wrench off' in text for _, _, text in iso.events)

@@ -41,7 +41,7 @@ class Published(NamedTuple):
 def check_wrench_frame(settings, model):
     """contact.wrench_frame against `model` (None: not loaded yet): ValueError with the close matches
     or the reason (contact.rcond's range is checked with the other parameters, params.py)."""
-    frame = settings['contact.wrench_frame']
+    frame = settings.contact.wrench_frame
     if frame and model is not None:
         try:
             ci.check_moving_link(model, frame)
@@ -75,11 +75,11 @@ class ContactIsolation:
         if settings is self.settings and model is self.model:
             return
         old = self.settings
-        reinit = model is not self.model or old is None or any(settings[k] != old[k] for k in REINIT_KEYS)
+        reinit = model is not self.model or old is None or settings.differs(old, REINIT_KEYS)
         self.settings, self.model = settings, model
-        self.rcond = settings['contact.rcond']
-        self.strict = settings['contact.strict_isolation']
-        self.frame = settings['contact.wrench_frame']
+        self.rcond = settings.contact.rcond
+        self.strict = settings.contact.strict_isolation
+        self.frame = settings.contact.wrench_frame
         if self.frame and model is not None:
             try:
                 check_wrench_frame(settings, model)
@@ -87,7 +87,7 @@ class ContactIsolation:
                 self.events.append(('error', 'contact:frame', f'~/contact/tool_wrench off: {exc}'))
                 self.frame = ''
         if model is not None:
-            gain = np.atleast_1d(np.asarray(settings['observer.gain'], dtype=float))
+            gain = np.atleast_1d(np.asarray(settings.observer.gain, dtype=float))
             self.settling = ci.Settling(1.0 / float(gain.min()))
         if reinit:
             self.reset()

@@ -57,7 +57,7 @@ class ContactTopics(Feature):
     def kernels(self, settings):
         if not observer_on(settings):
             return ()
-        frame = settings['contact.wrench_frame']
+        frame = settings.contact.wrench_frame
         return ((warm_observer,),) + (((jacobian_at_rest, frame, 'local'),) if frame else ())
 
     def configure(self, settings, model, derived):
