@@ -106,11 +106,11 @@ def simulate(model, settings, q0, link, wrench_mf, rng, noise, tool=''):
     th = np.asarray(s.collision.threshold)
     friction = make_friction(model.damping, None, s.friction.coulomb_velocity_epsilon)
     mon = ContactMonitor()
-    mon.sync(s, model, friction, model.joint_names)
+    mon.adopt(s, model, friction, model.joint_names)
     isos = {}
     for mode in MODES:
         isos[mode] = ContactIsolation()
-        isos[mode].sync(s.replace({'contact.strict_isolation': mode == 'strict',
+        isos[mode].adopt(s.replace({'contact.strict_isolation': mode == 'strict',
                                     'contact.wrench_frame': tool if mode == 'literal' else ''}), model)
     sim = ArmSim(model, DT, q0=q0, limits=False)   # no stops: their impulses would be contact too
     sim.set_external(link, wrench_mf, START, PUSH_S)

@@ -50,7 +50,7 @@ def motion(t):
 
 def monitor(model, **changes):
     m = ContactMonitor(clock=lambda: 0.0)
-    m.sync(settings(**changes), model, None, JOINTS)
+    m.adopt(settings(**changes), model, None, JOINTS)
     return m
 
 
@@ -198,7 +198,7 @@ def test_time_going_back_or_a_gap_restarts_the_integral(model, oracle):
 def test_stamps_absent_use_the_clock(model, oracle):
     now = [0.0]
     mon = ContactMonitor(clock=lambda: now[0])
-    mon.sync(settings(), model, None, JOINTS)
+    mon.adopt(settings(), model, None, JOINTS)
     step = np.full(7, 1.5)
     for k in range(300):
         now[0] = 100.0 + k * DT
@@ -212,23 +212,23 @@ def test_settings_changes_and_model_swaps(model, oracle):
     for k in range(50):
         feed(mon, oracle, k, ext=np.ones(7))
     obs = mon.observer
-    mon.sync(s.replace({'collision.threshold': [1.0], 'collision.hold_time': 0.5}), model, None, JOINTS)
+    mon.adopt(s.replace({'collision.threshold': [1.0], 'collision.hold_time': 0.5}), model, None, JOINTS)
     assert mon.observer is obs and mon.last_stamp is not None          # no restart for thresholds
     assert mon.debounce.hold == 0.5 and np.all(mon.threshold == 1.0)
-    mon.sync(mon.settings.replace({'observer.gain': 10.0}), model, None, JOINTS)
+    mon.adopt(mon.settings.replace({'observer.gain': 10.0}), model, None, JOINTS)
     assert mon.observer is not obs and mon.last_stamp is None and mon.observer.gain[0] == 10.0
-    mon.sync(mon.settings.replace({'observer.enabled': False}), model, None, JOINTS)
+    mon.adopt(mon.settings.replace({'observer.enabled': False}), model, None, JOINTS)
     assert not mon.active and mon.state == 'off' and feed(mon, oracle, 60) is None
-    mon.sync(mon.settings.replace({'observer.enabled': True, 'measured_effort': 'none'}), model, None, JOINTS)
+    mon.adopt(mon.settings.replace({'observer.enabled': True, 'measured_effort': 'none'}), model, None, JOINTS)
     assert not mon.active
-    mon.sync(mon.settings.replace({'measured_effort': 'total'}), model, None, JOINTS)
+    mon.adopt(mon.settings.replace({'measured_effort': 'total'}), model, None, JOINTS)
     assert mon.active
     other = load_urdf(XML)
     feed(mon, oracle, 61)
-    mon.sync(mon.settings, other, None, JOINTS)                       # a new model: a new integral
+    mon.adopt(mon.settings, other, None, JOINTS)                       # a new model: a new integral
     assert mon.observer.model is other and mon.last_stamp is None
     few = load_urdf(XML, joints=JOINTS[:3])                           # thresholds that do not fit: off, said
-    mon.sync(mon.settings.replace({'collision.threshold': [1.0] * 7}), few, None, JOINTS[:3])
+    mon.adopt(mon.settings.replace({'collision.threshold': [1.0] * 7}), few, None, JOINTS[:3])
     assert not mon.active and 'collision.threshold' in mon.error
     assert any(e[0] == 'error' for e in mon.events)
 
@@ -236,7 +236,7 @@ def test_settings_changes_and_model_swaps(model, oracle):
 def test_a_stream_that_starts_at_stamp_zero_switches_time_base_quietly(model, oracle):
     now = [50.0]
     mon = ContactMonitor(clock=lambda: now[0])
-    mon.sync(settings(), model, None, JOINTS)
+    mon.adopt(settings(), model, None, JOINTS)
     step = np.full(7, 1.5)
     for _ in range(3):                                   # a simulator re-sending its first state, stamp 0
         now[0] += 0.003
@@ -282,7 +282,7 @@ def test_monitor_equals_the_reference_observer_step_by_step(name, monkeypatch):
     thr = np.linspace(2.0, 8.0, n)                # per joint: the largest |r| is not always the one over
     s = settings(observer__gain=40.0, collision__threshold=thr.tolist(), collision__hold_time=0.003)
     mon = ContactMonitor(clock=lambda: 0.0)
-    mon.sync(s, model, friction, joints)
+    mon.adopt(s, model, friction, joints)
     ref = MomentumObserver(model, 40.0, friction)
     calls = {'update': 0}
     update = MomentumObserver.update

@@ -19,7 +19,7 @@ def settings(**extra):
 def test_the_link_waits_for_a_settled_residual_and_the_wrench_follows_the_flag():
     model = load_urdf(default_urdf_path())
     iso = ContactIsolation()
-    iso.sync(settings(**{'contact.wrench_frame': 'tool0'}), model)
+    iso.adopt(settings(**{'contact.wrench_frame': 'tool0'}), model)
     f = np.array([12.0, -20.0, 8.0])
     F = np.concatenate([f, np.cross([0.04, 0.03, 0.02], f)])    # at tool0: isolated at link7
     tau = model.jacobian(Q, 'tool0', 'local').T @ F
@@ -56,21 +56,21 @@ def test_changes_that_restart_the_observer_restart_isolation_and_a_lost_frame_tu
     model = load_urdf(default_urdf_path())
     iso = ContactIsolation()
     s = settings(**{'contact.wrench_frame': 'tool0'})
-    iso.sync(s, model)
+    iso.adopt(s, model)
     tau = model.jacobian(Q, 'link7', 'local').T @ np.array([10.0, -20.0, 5.0, 0.5, -1.0, 2.0])
     for k in range(200):
         iso.update(k * DT, Q, tau, True, TH)
     assert iso.link == 'link7' and iso.isolation is not None
     level, values = iso.report(0, [])
     assert dict(values)['contact_isolation'] == 'isolated' and dict(values)['contact_wrench_rank'] == '6'
-    iso.sync(s.replace({'gravity': [0.0, 0.0, -9.0]}), model)     # as the observer: a new integral
+    iso.adopt(s.replace({'gravity': [0.0, 0.0, -9.0]}), model)     # as the observer: a new integral
     assert iso.isolation is None
     assert dict(iso.report(0, [])[1])['contact_isolation'] == 'settling'   # the flag was up
-    iso.sync(s.replace({'collision.hold_time': 0.02}), model)   # not an observer change
+    iso.adopt(s.replace({'collision.hold_time': 0.02}), model)   # not an observer change
     other = load_urdf(default_urdf_path())
     other.name = 'renamed'
-    iso.sync(s.replace({}), other)
+    iso.adopt(s.replace({}), other)
     assert iso.frame == 'tool0'
     xml = open(default_urdf_path()).read().replace('tool0', 'tool9')
-    iso.sync(s.replace({}), load_urdf(xml))
+    iso.adopt(s.replace({}), load_urdf(xml))
     assert iso.frame == '' and any('tool_wrench off' in text for _, _, text in iso.events)

@@ -41,25 +41,25 @@ def test_check_vector():
 def test_follows_the_topic_falls_back_once_and_resumes(setup):
     core, src, clock = setup
     q = np.linspace(-0.5, 0.5, 7)
-    src.sync(core)
+    src.apply(core)
     assert np.allclose(core.model.gravity_vector, [0, 0, -9.81]) and not src.events  # nothing came yet: no fallback
     assert src.offer((0.0, -9.81, 0.0), '', core.model)
-    src.sync(core)
+    src.apply(core)
     ref = load_urdf(default_urdf_path(), gravity=(0, -9.81, 0)).gravity(q)
     assert np.allclose(core.on_joint_state(core.layout, q), ref, atol=1e-12)
     version = core.model.version
-    src.sync(core)
+    src.apply(core)
     assert core.model.version == version   # nothing changed: the model is not touched
     # rejected vectors leave the followed one in force
     assert not src.offer((np.nan, 0, 0), '', core.model) and not src.offer((0, 0, 500.0), '', core.model)
     assert src.rejected == 2 and [e[1] for e in src.events] == ['gravity:rejected'] * 2
     src.events.clear()
     clock.t += 0.4
-    src.sync(core)
+    src.apply(core)
     assert np.allclose(core.model.gravity_vector, [0, -9.81, 0])
     clock.t += 0.2   # 0.6 s > gravity_timeout: the parameter again, said once
     for _ in range(5):
-        src.sync(core)
+        src.apply(core)
     assert np.allclose(core.model.gravity_vector, [0, 0, -9.81])
     assert [e[1] for e in src.events] == ['gravity:stale']
     level, message, values = src.report(0, '')
@@ -67,7 +67,7 @@ def test_follows_the_topic_falls_back_once_and_resumes(setup):
     assert dict(values)['gravity_source'] == 'parameter (fallback: topic stale)'
     assert dict(values)['gravity_fallback_events'] == '1'
     src.offer((9.81, 0.0, 0.0), '', core.model)
-    src.sync(core)
+    src.apply(core)
     assert np.allclose(core.model.gravity_vector, [9.81, 0, 0]) and src.events[-1][1] == 'gravity:resumed'
     assert dict(src.report(0, '')[2])['gravity_source'] == 'topic /gravity'
 
@@ -75,10 +75,10 @@ def test_follows_the_topic_falls_back_once_and_resumes(setup):
 def test_scale_and_parameter_changes_keep_following(setup):
     core, src, clock = setup
     src.offer((0.0, -9.81, 0.0), '', core.model)
-    src.sync(core)
+    src.apply(core)
     core.update({'gravity_scale': 0.5, 'payload.link': 'hand', 'payload.mass': 1.0})  # resets the model's gravity
     assert np.allclose(core.model.gravity_vector, [0, 0, -4.905])
-    src.sync(core)
+    src.apply(core)
     assert np.allclose(core.model.gravity_vector, [0, -4.905, 0])
 
 

@@ -282,13 +282,13 @@ def test_stale_and_fresh_again_are_said_by_one_object(arm):
     assert core.count.fallback_events == 1
     src = GravitySource('/g', clock=lambda: t[0])
     src.offer((0.0, 0.0, -9.81), '', arm, now=0.0)
-    src.sync(core, now=0.1)
-    src.sync(core, now=0.75)
+    src.apply(core, now=0.1)
+    src.apply(core, now=0.75)
     assert isinstance(src.freshness, Freshness) and src.freshness.fallen
     assert src.events[-1] == ('warn', 'gravity:stale', 'no valid gravity on /g for 0.750 s (gravity_timeout 0.5 s): '
                                                        'using the gravity parameter [0.0, 0.0, -9.81]')
     src.offer((0.0, 0.0, -9.81), '', arm, now=1.0)
-    src.sync(core, now=1.0)
+    src.apply(core, now=1.0)
     assert src.events[-1] == ('info', 'gravity:resumed', 'gravity on /g fresh again: following it')
 
 

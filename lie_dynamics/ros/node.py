@@ -107,7 +107,7 @@ class DynamicsNode(Node):
             if err is not None:
                 raise ValueError(err)
         self._check(self.core.settings)  # exit 2
-        self.features.sync(self.core)
+        self.features.configure_if_changed(self.core)
         if self.core.model is None:
             self.background.expect_description()
             topic = self.resolve_topic_name('robot_description')

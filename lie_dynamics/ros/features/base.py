@@ -87,7 +87,7 @@ class Features:
         self.all.append(feature)
         if callable(getattr(feature, 'before_command', None)):
             self.steering.append(feature)
-        self._settings = None   # configured at the next sync
+        self._settings = None   # configured at the next configure_if_changed
 
     def get(self, name):
         """The feature registered under `name`."""
@@ -104,7 +104,7 @@ class Features:
         """The warm-up calls of every feature under `settings`, each once, in order."""
         return tuple(dict.fromkeys(k for f in self.all for k in f.kernels(settings)))
 
-    def sync(self, core):
+    def configure_if_changed(self, core):
         """Configure the features if core's settings or model changed since the last call."""
         if core.settings is not self._settings or core.model is not self._model:
             self._settings, self._model = core.settings, core.model
@@ -119,7 +119,7 @@ class Features:
     def feed(self, core):
         """After the command for a joint_states message: each active feature gets core.result if
         the core accepted it (a rejected message, or the same result again, feeds nothing)."""
-        self.sync(core)
+        self.configure_if_changed(core)
         sample = core.result
         if sample is self._last or sample is None or not sample.accepted:
             return

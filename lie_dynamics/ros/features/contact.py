@@ -113,7 +113,7 @@ class Debounce:
 class ContactMonitor:
     """Observer + collision flag of the node (module docstring). Plain values in, plain values out.
 
-    `sync(settings, model, friction, layout)` follows the compensator's current configuration
+    `adopt(settings, model, friction, layout)` follows the compensator's current configuration
     (cheap when nothing changed); `on_sample(result)` returns (estimate, collision) to publish, or
     None. `events` holds (severity, throttle_key, text) for the node's log; `report(...)` adds the
     diagnostics of the window since the last call.
@@ -145,7 +145,7 @@ class ContactMonitor:
         self._window_collisions = 0
 
     # ------------------------------------------------------------------ configuration
-    def sync(self, settings, model, friction, layout):
+    def adopt(self, settings, model, friction, layout):
         """Adopt the compensator's settings, model and friction (identity checks: per message)."""
         if settings is self.settings and model is self.model:
             return

@@ -51,7 +51,7 @@ def check_wrench_frame(settings, model):
 
 
 class ContactIsolation:
-    """The decisions of the module docstring. `sync(settings, model)` on every configuration;
+    """The decisions of the module docstring. `adopt(settings, model)` on every configuration;
     `update(...)` per observer sample; `reset()` when the observer pauses."""
 
     def __init__(self):
@@ -71,7 +71,7 @@ class ContactIsolation:
         self._settled = False       # the residual was settled at the last sample of the flag
         self._fits = {}             # 'link' / 'tool' -> (link, time, WrenchEstimate) of the last fit
 
-    def sync(self, settings, model):
+    def adopt(self, settings, model):
         if settings is self.settings and model is self.model:
             return
         old = self.settings

@@ -62,9 +62,9 @@ class ContactTopics(Feature):
 
     def configure(self, settings, model, derived):
         m = self.monitor
-        m.sync(settings, model, None if derived is None else derived.friction,
+        m.adopt(settings, model, None if derived is None else derived.friction,
                None if model is None else model.joint_names)
-        self.isolation.sync(settings, model)
+        self.isolation.adopt(settings, model)
         self.active = m.active
 
     def on_sample(self, s):

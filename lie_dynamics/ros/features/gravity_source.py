@@ -7,7 +7,7 @@ norm at most GRAVITY_NORM_MAX, a frame the root frame or a link fixed to it); a 
 followed until it is older than `gravity_timeout` (steady clock, injectable). Then the node falls
 back to the `gravity` parameter, says so once and in the diagnostics, and follows the topic again
 when it returns. Both transitions blend the command (ramp_time), a topic update in between does
-not (it follows a slowly turning base). `sync` puts the vector on the model before each command;
+not (it follows a slowly turning base). `apply` puts the vector on the model before each command;
 its fast path is two comparisons.
 
 `robot_compensates_gravity`: a robot that adds g(q) itself (libfranka torque control, KUKA FRI
@@ -54,7 +54,7 @@ def check_vector(vector, frame_id, model):
 class GravitySource:
     """The gravity the node follows: the topic's while fresh, else the `gravity` parameter.
 
-    offer(vector, frame_id, model, now) takes one message; sync(core, now) puts the vector in force
+    offer(vector, frame_id, model, now) takes one message; apply(core, now) puts the vector in force
     on core.model (times gravity_scale). Events (severity, key, text) queue in `events` for the
     node's throttled log; counters are totals. topic: the resolved topic name ('' = none).
     """
@@ -65,7 +65,7 @@ class GravitySource:
         self.vector = None       # last valid vector (root frame), or None
         self.time = None         # when it arrived
         self.seq = 0             # bumped by each valid vector
-        self.following = False   # the last sync used the topic's vector
+        self.following = False   # the last apply used the topic's vector
         self.freshness = Freshness('gravity', 'gravity_timeout', 'gravity')   # fallen: a vector came and went stale
         self.received = self.rejected = 0
         self.last_error = ''
@@ -90,7 +90,7 @@ class GravitySource:
     def fresh(self, timeout, now):
         return fresh(self.time, timeout, now)
 
-    def sync(self, core, now=None):
+    def apply(self, core, now=None):
         """Put the gravity in force on core.model: the topic's vector while fresh, else the
         `gravity` parameter; both times gravity_scale. A switch between the two blends the command
         and is said once."""

@@ -31,7 +31,7 @@ class GravityTopic(Feature):
     def before_command(self, core):
         """The gravity in force for the next command (topic or parameter)."""
         if self.source.topic:
-            self.source.sync(core)
+            self.source.apply(core)
 
     def report(self, level, message):
         return self.source.report(level, message)
@@ -42,7 +42,7 @@ class GravityTopic(Feature):
             try:
                 v = msg.vector
                 self.source.offer((v.x, v.y, v.z), msg.header.frame_id, node.core.model)
-                self.source.sync(node.core)
+                self.source.apply(node.core)
             except Exception as exc:  # noqa: BLE001 - the node never dies on input
                 self.events.append(('error', 'internal:gravity', f'gravity message: {type(exc).__name__}: {exc}'))
             node.drain_events()
