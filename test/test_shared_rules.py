@@ -173,7 +173,7 @@ def test_the_payload_rule_is_the_same_for_every_way_in(arm):
 
 def test_payload_keys_are_one_list():
     assert PAYLOAD_KEYS == ('payload.link', 'payload.mass', 'payload.com', 'payload.inertia')
-    assert payload_service.PAYLOAD_PARAMS is PAYLOAD_KEYS and settings_module.PAYLOAD_KEYS is PAYLOAD_KEYS
+    assert settings_module.PAYLOAD_KEYS is PAYLOAD_KEYS
     assert set(PAYLOAD_KEYS) <= set(contact.REINIT_KEYS) and set(PAYLOAD_KEYS) <= set(settings_module.BLEND_KEYS)
 
 

@@ -47,7 +47,6 @@ STILL_VELOCITY = 0.02
 DERIVATIVE_HALF_WIDTH = 0.05
 # Wall-clock limit of a recording: joint_states may run slower than real time (lockstep simulation)
 WALL_FACTOR, WALL_EXTRA = 5.0, 10.0
-PAYLOAD_PARAMS = PAYLOAD_KEYS
 
 
 class Recording:
