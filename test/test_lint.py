@@ -107,13 +107,6 @@ LAYERS = (
 )
 
 
-# Upward imports still to remove (docs/architecture.md, "Layers"): (module, what it imports).
-UPWARD = {
-    # rosbag JointStates read with the node's CDR reader; the reader belongs below both
-    ('calibration.recordings', 'ros.core.cdr'),
-}
-
-
 def _under(target, prefixes):
     return any(target == p.rstrip('.') or target.startswith(p if p.endswith('.') else p + '.') for p in prefixes)
 
@@ -135,10 +128,8 @@ def test_layers_only_point_down():
     assert 'algorithms.rnea' in math_core and 'laws' in math_core
     for name in math_core:
         bad += [f'{name} imports {t} (the math core knows no node)' for t in sorted(_imports(name))
-                if _under(t, ROS_PARTS) and (name, t) not in UPWARD]
+                if _under(t, ROS_PARTS)]
     assert not bad, '\n'.join(bad)
-    for name, t in UPWARD:   # an exception that is gone must leave the list
-        assert t in _imports(name), (name, t)
 
 
 def test_the_import_parser_sees_relative_imports():

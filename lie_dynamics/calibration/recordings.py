@@ -7,7 +7,7 @@ positions, velocities if every sample has them, measured efforts) from
   * a rosbag2 folder (the one `ros2 bag record` writes: metadata.yaml and its files) in either
     storage format, mcap (Jazzy's default) or sqlite3, with sensor_msgs/msg/JointState on `topic`.
     The container is read by the `rosbags` package (no ROS installation needed), the messages by
-    the node's own JointState reader (ros/core/cdr.py). A sample's time is its header stamp, or
+    the JointState reader the node uses too (lie_dynamics/cdr.py). A sample's time is its header stamp, or
     the time the bag took it when the stamp is zero (a driver that does not stamp);
   * a trajectory CSV (lie_dynamics.trajectory's format: time, pos.<joint>, vel.<joint>,
     acc.<joint>) with eff.<joint> columns, the measured efforts.
@@ -25,7 +25,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from ..ros.core.cdr import JointStateDecoder, joint_state_template
+from ..cdr import JointStateDecoder, joint_state_template
 from ..trajectory import read_csv
 
 __all__ = ['JOINT_STATE_TYPE', 'Recording', 'read_bag', 'read_csv_recording', 'read_recording',
@@ -89,8 +89,8 @@ def _assemble(stamps_ns, names_of, rows, joints, source):
 
 def read_bag(path, topic='/joint_states', joints=None):
     """A Recording of the sensor_msgs/JointState messages on `topic` in the rosbag2 folder `path`
-    (mcap or sqlite3). The container is read by rosbags, the messages by the node's own JointState
-    reader (ros/core/cdr.py: rclpy's serializer leaves trailing alignment bytes, which rosbags'
+    (mcap or sqlite3). The container is read by rosbags, the messages by the JointState reader the node
+    uses too (lie_dynamics/cdr.py: rclpy's serializer leaves trailing alignment bytes, which rosbags'
     deserializer refuses). Raises ValueError: not a rosbag2 folder, no such topic (naming the
     topics it has), another message type, no efforts."""
     from rosbags.rosbag2 import Reader
