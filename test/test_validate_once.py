@@ -135,3 +135,22 @@ def test_callers_of_the_algorithms_validate_once(arm, counted, native):
     runtime.use_native(loaded, native)
     fit = _once(counted, payload.identify_payload, m, link, q, qd, qdd, loaded.inverse_dynamics(q, qd, qdd))
     assert fit.mass == pytest.approx(0.8, rel=1e-6)
+
+
+@pytest.mark.parametrize('native', [True, False])
+def test_observer_step_is_a_fast_path(arm, counted, native):
+    """MomentumObserver.update: its step kernel (runtime.fast, as every entry) validates nothing;
+    when the native kernel declines (here a non-contiguous q), update validates once (at most
+    once without it: the float kernels take such a q) and gives the same estimate."""
+    model, _ = arm
+    m = copy.deepcopy(model)
+    runtime.use_native(m, native)
+    q, qd, tau = states(m, 3, seed=8)
+    fast, slow = observer.MomentumObserver(m, 5.0), observer.MomentumObserver(m, 5.0)
+    for k in range(3):
+        counted['states'] = counted['batch'] = 0
+        r = fast.update(0.01 * k, q[k], qd[k], tau[k])
+        assert (counted['states'], counted['batch']) == (0, 0)
+        strided = np.repeat(q[k], 2)[::2]
+        ref = _once(counted, slow.update, 0.01 * k, strided, qd[k], tau[k], fast=not native)
+        np.testing.assert_allclose(r, ref, rtol=1e-9, atol=1e-9)

@@ -172,13 +172,7 @@ class MomentumObserver:
                 return None
         z = self._state
         z[-1] = dt
-        nk = runtime.native(self.model, _STEP)   # C checks its outputs; the float kernel's are checked here
-        if nk is not None:
-            out = nk(q, qd, tau_measured, z, settings)
-        else:
-            out = runtime.fast(self.model, _STEP)(q, qd, tau_measured, z, settings)
-            if out is not None and not math.isfinite(out.sum()):
-                out = None
+        out = runtime.fast(self.model, _STEP)(q, qd, tau_measured, z, settings)   # None: not finite, or declined
         if out is None:
             return None
         state, estimate, first = self._parts
