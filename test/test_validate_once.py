@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dyn_cases import case, states
-from lie_dynamics import validation
+from lie_dynamics import load_urdf, validation
 from lie_dynamics.algorithms import aba, aba_derivatives, identification, observer, payload
 from lie_dynamics.codegen import runtime
 
@@ -154,3 +154,23 @@ def test_observer_step_is_a_fast_path(arm, counted, native):
         strided = np.repeat(q[k], 2)[::2]
         ref = _once(counted, slow.update, 0.01 * k, strided, qd[k], tau[k], fast=not native)
         np.testing.assert_allclose(r, ref, rtol=1e-9, atol=1e-9)
+
+
+WELDED = ('<robot name="welded"><link name="base"/><link name="rotor"><inertial><mass value="1"/>'
+          '<inertia ixx="0.1" iyy="0.1" izz="0.1" ixy="0" ixz="0" iyz="0"/></inertial></link>'
+          '<joint name="fix" type="fixed"><parent link="base"/><child link="rotor"/></joint></robot>')
+
+
+def test_a_robot_without_joints_validates_once(counted):
+    """A model without movable joints checks its state arguments with the one validation (once)
+    and returns empty results of the usual shapes; a bad one is named."""
+    model = load_urdf(WELDED)
+    assert model.n == 0
+    for lead in ((), (3,)):
+        z = np.zeros(lead + (0,))
+        for fn, args, shape in ((model.inverse_dynamics, (z, z, z), (0,)), (model.gravity, (z,), (0,)),
+                                (model.mass_matrix, (z,), (0, 0)), (model.kinetic_energy, (z, z), ()),
+                                (model.forward_dynamics, (z, z, z), (0,)), (model.regressor, (z, z, z), (0, 0))):
+            assert _once(counted, fn, *args).shape == lead + shape
+    with pytest.raises(ValueError, match='qd must have shape'):
+        model.inverse_dynamics(np.zeros(0), np.zeros(1), np.zeros(0))
