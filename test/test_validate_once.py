@@ -11,6 +11,7 @@ from dyn_cases import case, states
 from lie_dynamics import load_urdf, validation
 from lie_dynamics.algorithms import aba, aba_derivatives, identification, observer, payload
 from lie_dynamics.codegen import runtime
+from lie_dynamics.codegen.traced.observer import OBSERVER_STEP
 
 
 @pytest.fixture
@@ -145,6 +146,7 @@ def test_observer_step_is_a_fast_path(arm, counted, native):
     model, _ = arm
     m = copy.deepcopy(model)
     runtime.use_native(m, native)
+    native = runtime.native(m, OBSERVER_STEP) is not None   # off under LIE_DYNAMICS_NATIVE=0
     q, qd, tau = states(m, 3, seed=8)
     fast, slow = observer.MomentumObserver(m, 5.0), observer.MomentumObserver(m, 5.0)
     for k in range(3):
