@@ -2,14 +2,16 @@
 it takes: the fast path (none), the kernels, or the references behind them, whose fallbacks call
 the already-validated functions (runtime.call, crba.mass_matrix_validated, ...)."""
 import copy
+import warnings
 
 import numpy as np
 import pytest
 
 from dyn_cases import case, states
-from lie_dynamics import validation
-from lie_dynamics.algorithms import aba, aba_derivatives, observer
+from lie_dynamics import load_urdf, validation
+from lie_dynamics.algorithms import aba, aba_derivatives, identification, observer, payload
 from lie_dynamics.codegen import runtime
+from lie_dynamics.codegen.traced.observer import OBSERVER_STEP
 
 
 @pytest.fixture
@@ -32,10 +34,12 @@ def arm():
     return model, oracle
 
 
-def _once(counted, fn, *args, **kwargs):
+def _once(counted, fn, *args, fast=False, **kwargs):
+    """fn(*args, **kwargs), asserting one validation (fast: at most one, as one state may take
+    the fast path, which validates nothing)."""
     counted['states'] = counted['batch'] = 0
     out = fn(*args, **kwargs)
-    assert (counted['states'], counted['batch']) == (1, 0), fn.__name__
+    assert (counted['states'], counted['batch']) in ({(0, 0), (1, 0)} if fast else {(1, 0)}), fn.__name__
     return out
 
 
@@ -99,3 +103,76 @@ def test_the_fast_path_validates_nothing(arm, counted):
     counted['states'] = counted['batch'] = 0
     np.testing.assert_allclose(model.forward_dynamics(q, qd, tau), qdd, rtol=1e-9, atol=1e-9)
     assert (counted['states'], counted['batch']) == (0, 0)
+
+
+@pytest.mark.parametrize('native', [True, False])
+def test_callers_of_the_algorithms_validate_once(arm, counted, native):
+    """The observer's momentum terms, identification and the payload fit validate their data
+    once and then call the functions that take validated arrays (rnea.gravity_validated,
+    regressor.regressor_validated, rnea.inverse_dynamics_validated, ...): once for a batch, at most
+    once for one state (it may take the fast path); before, two or three times."""
+    model, _ = arm
+    m = copy.deepcopy(model)
+    runtime.use_native(m, native)
+    q, qd, qdd = states(m, 40, seed=7)
+    tau = m.inverse_dynamics(q, qd, qdd)
+    obs = observer.MomentumObserver(m, 5.0)
+    for sl in (slice(None), 0):
+        p, beta = _once(counted, obs.momentum_terms, q[sl], qd[sl], tau[sl], fast=sl == 0)
+        np.testing.assert_allclose(p, np.einsum('...ij,...j->...i', m.mass_matrix(q[sl]), qd[sl]), rtol=1e-9,
+                                   atol=1e-9)
+        # beta = tau + C^T qd - g
+        C = m.coriolis_matrix(q[sl], qd[sl], method='recursive')
+        ctqd = np.einsum('...ji,...j->...i', C, qd[sl])
+        np.testing.assert_allclose(beta + m.gravity(q[sl]) - ctqd, tau[sl], rtol=1e-9, atol=1e-9)
+    with warnings.catch_warnings():   # random states leave structural directions unidentified
+        warnings.simplefilter('ignore', identification.UnidentifiableWarning)
+        got = _once(counted, identification.identify, m, q, qd, qdd, tau)
+    np.testing.assert_allclose(np.einsum('nij,j->ni', m.regressor(q, qd, qdd), got.parameters)
+                               + qdd * m.armature, tau, rtol=1e-7, atol=1e-7)
+    link = [ln for ln, (b, _) in m.link_frames.items() if b == m.nb - 1][0]
+    loaded = m.with_body_inertias(m.J_links)
+    loaded.set_payload(link, 0.8, [0.02, -0.01, 0.05])
+    runtime.use_native(loaded, native)
+    fit = _once(counted, payload.identify_payload, m, link, q, qd, qdd, loaded.inverse_dynamics(q, qd, qdd))
+    assert fit.mass == pytest.approx(0.8, rel=1e-6)
+
+
+@pytest.mark.parametrize('native', [True, False])
+def test_observer_step_is_a_fast_path(arm, counted, native):
+    """MomentumObserver.update: its step kernel (runtime.fast, as every entry) validates nothing;
+    when the native kernel declines (here a non-contiguous q), update validates once (at most
+    once without it: the float kernels take such a q) and gives the same estimate."""
+    model, _ = arm
+    m = copy.deepcopy(model)
+    runtime.use_native(m, native)
+    native = runtime.native(m, OBSERVER_STEP) is not None   # off under LIE_DYNAMICS_NATIVE=0
+    q, qd, tau = states(m, 3, seed=8)
+    fast, slow = observer.MomentumObserver(m, 5.0), observer.MomentumObserver(m, 5.0)
+    for k in range(3):
+        counted['states'] = counted['batch'] = 0
+        r = fast.update(0.01 * k, q[k], qd[k], tau[k])
+        assert (counted['states'], counted['batch']) == (0, 0)
+        strided = np.repeat(q[k], 2)[::2]
+        ref = _once(counted, slow.update, 0.01 * k, strided, qd[k], tau[k], fast=not native)
+        np.testing.assert_allclose(r, ref, rtol=1e-9, atol=1e-9)
+
+
+WELDED = ('<robot name="welded"><link name="base"/><link name="rotor"><inertial><mass value="1"/>'
+          '<inertia ixx="0.1" iyy="0.1" izz="0.1" ixy="0" ixz="0" iyz="0"/></inertial></link>'
+          '<joint name="fix" type="fixed"><parent link="base"/><child link="rotor"/></joint></robot>')
+
+
+def test_a_robot_without_joints_validates_once(counted):
+    """A model without movable joints checks its state arguments with the one validation (once)
+    and returns empty results of the usual shapes; a bad one is named."""
+    model = load_urdf(WELDED)
+    assert model.n == 0
+    for lead in ((), (3,)):
+        z = np.zeros(lead + (0,))
+        for fn, args, shape in ((model.inverse_dynamics, (z, z, z), (0,)), (model.gravity, (z,), (0,)),
+                                (model.mass_matrix, (z,), (0, 0)), (model.kinetic_energy, (z, z), ()),
+                                (model.forward_dynamics, (z, z, z), (0,)), (model.regressor, (z, z, z), (0, 0))):
+            assert _once(counted, fn, *args).shape == lead + shape
+    with pytest.raises(ValueError, match='qd must have shape'):
+        model.inverse_dynamics(np.zeros(0), np.zeros(1), np.zeros(0))

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .regressor import regressor_validated
+
 
 class UnidentifiableWarning(UserWarning):
     """Some inertial-parameter directions are not determined by the data."""
@@ -97,7 +99,7 @@ def identify(model, q, qd, qdd, tau, prior=None, weights=None, rcond=1e-8):
     taken as known: its torque is subtracted before the fit.
     Returns an IdentificationResult; warns UnidentifiableWarning when rank < 10 nb.
     """
-    q, qd, qdd, tau = model.check_states(q=q, qd=qd, qdd=qdd, tau=tau)
+    q, qd, qdd, tau = model.check_states(q=q, qd=qd, qdd=qdd, tau=tau)   # the one validation
     N = q.shape[0]
     n, p = model.n, 10 * model.nb
     if N * n < p:
@@ -114,7 +116,7 @@ def identify(model, q, qd, qdd, tau, prior=None, weights=None, rcond=1e-8):
     if not (0.0 < rcond < 1.0):
         raise ValueError(f'rcond must be in (0, 1), got {rcond}')
 
-    Y = (model.regressor(q, qd, qdd) * w[None, :, None]).reshape(N * n, p)
+    Y = (regressor_validated(model, [q, qd, qdd]) * w[None, :, None]).reshape(N * n, p)
     y = ((tau - qdd * model.armature) * w).reshape(N * n)   # the model's armature is known, not fitted
     fit = least_squares(Y, y, prior, rcond)
     r, pi, resid = fit['rank'], fit['parameters'], fit['residual']

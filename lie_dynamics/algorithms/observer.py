@@ -34,7 +34,7 @@ import math
 
 import numpy as np
 
-from . import crba, rnea_derivatives
+from . import crba, rnea, rnea_derivatives
 from ..codegen import runtime
 from ..codegen.traced import observer as observer_kernel
 from ..codegen.traced import rnea as traced
@@ -110,15 +110,21 @@ class MomentumObserver:
 
     def momentum_terms(self, q, qd, tau_measured):
         """(p, beta) with p = M(q) qd and beta = tau + C^T qd - g, for one state (n,) or a batch."""
-        m = self.model
+        m, n = self.model, self.model.n
         q, qd, tau = (np.asarray(x, dtype=float) for x in (q, qd, tau_measured))
-        one = q.shape == qd.shape == tau.shape == (m.n,) and np.count_nonzero(np.isfinite(tau)) == m.n
-        if not one:   # (a node's hot path is one state: the kernels check q and qd themselves)
-            batch = m.check_states(q=q, qd=qd, tau_measured=tau)  # shapes and finiteness, named
-            if q.ndim != 1:
-                q, qd, tau = batch
-        p, ctqd = generalized_momentum(m, q, qd)
-        beta = tau + ctqd - m.gravity(q)
+        pc = g = None
+        if q.shape == qd.shape == tau.shape == (n,) and np.count_nonzero(np.isfinite(tau)) == n:
+            # a node's hot path is one state: the fast paths check q and qd themselves
+            pc = runtime.fast(m, traced.MOMENTUM)(q, qd)
+            if pc is not None:
+                g = runtime.fast(m, traced.GRAVITY)(q)
+        if g is None:   # validated once; then the functions that take validated arrays
+            (q, qd, tau), single = m.validate(('q', 'qd', 'tau_measured'), (q, qd, tau))
+            pc, g = _momentum(m, [q, qd]), rnea.gravity_validated(m, [q])
+            if single:
+                pc, g, tau = pc[0], g[0], tau[0]
+        p, ctqd = pc[..., :n], pc[..., n:]
+        beta = tau + ctqd - g
         if self.friction is not None:
             beta = beta - friction_torque(qd, *self.friction)
         return p, beta
@@ -166,13 +172,7 @@ class MomentumObserver:
                 return None
         z = self._state
         z[-1] = dt
-        nk = runtime.native(self.model, _STEP)   # C checks its outputs; the float kernel's are checked here
-        if nk is not None:
-            out = nk(q, qd, tau_measured, z, settings)
-        else:
-            out = runtime.fast(self.model, _STEP)(q, qd, tau_measured, z, settings)
-            if out is not None and not math.isfinite(out.sum()):
-                out = None
+        out = runtime.fast(self.model, _STEP)(q, qd, tau_measured, z, settings)   # None: not finite, or declined
         if out is None:
             return None
         state, estimate, first = self._parts

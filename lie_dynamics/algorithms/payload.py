@@ -25,6 +25,8 @@ from ..model.inertia import (PARAMETER_NAMES, RTOL, inertia_to_parameters, link_
                              repair, violations)
 from ..spatial import Ad_inv
 from .identification import least_squares
+from .regressor import regressor_validated
+from .rnea import inverse_dynamics_validated
 
 
 @dataclass
@@ -61,11 +63,11 @@ def identify_payload(model, link, q, qd, qdd, tau_measured, rcond=1e-8):
     b, T = model.link_frames[link]
     if b < 0:
         raise ValueError(f"link '{link}' does not move with any controlled joint: a payload there changes no torque")
-    q, qd, qdd, tau = model.check_states(q=q, qd=qd, qdd=qdd, tau_measured=tau_measured)
+    q, qd, qdd, tau = model.check_states(q=q, qd=qd, qdd=qdd, tau_measured=tau_measured)   # the one validation
     N, n = q.shape
     bare = model.with_body_inertias(model.J_links)  # the model without payloads
-    Y = model.regressor(q, qd, qdd)[:, :, 10 * b:10 * b + 10] @ link_to_body_map(T)
-    y = tau - bare.inverse_dynamics(q, qd, qdd)
+    Y = regressor_validated(model, [q, qd, qdd])[:, :, 10 * b:10 * b + 10] @ link_to_body_map(T)
+    y = tau - inverse_dynamics_validated(bare, [q, qd, qdd])
     fit = least_squares(Y.reshape(N * n, 10), y.reshape(N * n), np.zeros(10), rcond)
     if fit['rank'] == 0 or not fit['determined'][0]:
         raise ValueError(f"the data do not determine a payload mass on '{link}' (no gravity or motion acts on it)")

@@ -120,13 +120,15 @@ def regressor(model, q, qd, qdd):
     return runtime.call(model, _REGRESSOR, (q, qd, qdd)) if Y is None else Y
 
 
-def _full(model, arrays):
+def regressor_validated(model, arrays):
+    """regressor on validated (N, n) arrays [q, qd, qdd] (Model.validate) -> (N, n, 10 nb): the
+    kernel, else the vectorised form. For callers that validated their arguments already."""
     q, qd, qdd = arrays
     Y = _kernel(model, q, qd, qdd)
     return _vectorized(model, q, qd, qdd) if Y is None else Y
 
 
-_REGRESSOR = runtime.Entry(('q', 'qd', 'qdd'), None, _full)
+_REGRESSOR = runtime.Entry(('q', 'qd', 'qdd'), None, regressor_validated)
 
 
 def regressor_vectorized(model, q, qd, qdd):

@@ -81,13 +81,14 @@ def gravity(model, q, out=None):
     return runtime.call(model, _GRAVITY, (q,), out) if tau is None else tau
 
 
-def _gravity_full(model, arrs):
-    """g on validated (N, n) arrays: the kernel, else the vectorised form."""
+def gravity_validated(model, arrs):
+    """gravity on validated (N, n) arrays [q] (Model.validate) -> (N, n): the kernel, else the
+    vectorised form. For callers that validated their arguments already."""
     tau = runtime.run(model, traced.GRAVITY, arrs, c_order=True)
     return _gravity_vectorized(model, arrs[0]) if tau is None else tau
 
 
-_GRAVITY = runtime.Entry(('q',), joint_vector, _gravity_full)
+_GRAVITY = runtime.Entry(('q',), joint_vector, gravity_validated)
 
 
 def external_body_wrenches(model, wrenches, N):

@@ -61,6 +61,8 @@ def build_observer_step(fr):
     return Trace(g, 'observer_step_kernel', args, list(p0) + i_k + c_k + [0.0] + r + p + beta)
 
 
-# Single states only (the step is sequential); `inverse_dynamics` sets its size limits.
+# Single states only (the step is sequential); `inverse_dynamics` sets its size limits. Its result
+# (6n + 1 outputs: the next state, the estimate, p, beta) is accepted when finite (rtol 0 and no
+# pivots: spec.accepts), by the float kernel as by the C one, so its fast path is runtime.fast alone.
 OBSERVER_STEP = Spec('observer_step', build_observer_step, ('inertia', 'subtree', 'gravity', 'offsets', 'armature'),
-                     'inverse_dynamics')
+                     'inverse_dynamics', result=lambda model: ((6 * model.n + 1,), 0.0))
