@@ -121,4 +121,7 @@ def test_refusals_keep_the_old_values(tmp_path):
     (tmp_path / 'negative.yaml').write_text(yaml.safe_dump(data))
     _refused(c, tmp_path / 'negative.yaml', 'mass must be > 0')
     assert c.model is calibrated and c.settings.calibration_file == good
+    # larger than max_description_bytes: refused unread
+    c.update({'max_description_bytes': 1000})
+    _refused(c, other.save(tmp_path / 'other.yaml'), 'bytes, more than max_description_bytes')
     assert len(list(tmp_path.iterdir())) == 6

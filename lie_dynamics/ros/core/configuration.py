@@ -11,6 +11,7 @@ most INERTIA_LOG_LINES lines) and kept for the diagnostics. A new model must pas
 reacts to an applied plan in `_applied`.
 """
 import copy
+import os
 import time
 import warnings
 
@@ -124,8 +125,9 @@ class Configuration:
         return Plan(new, changes, model, info, derived, (self.model, self.settings), report, calibration)
 
     def _calibrate(self, new, model):
-        """(model, (uncalibrated, CalibrationResult or None, the description model given or None)) for settings `new` and a new
-        description model (None: the running one), or (model, None) when no calibration is
+        """(model, (uncalibrated, CalibrationResult or None, the description model given or None))
+        for settings `new` and a new description model (None: the running one), or (model, None)
+        when no calibration is
         involved. The calibration goes on a payload-free copy; a file is read only when
         calibration_file changes. ValueError (load_calibration / with_calibration) with the file's
         name: missing, malformed, another robot, physically invalid values."""
@@ -147,6 +149,11 @@ class Configuration:
         c = self.calibration
         if c is None or path != self.settings.calibration_file:
             try:
+                # read in the parameter callback (a refusal keeps the old value): bounded as a description
+                size = os.path.getsize(path)
+                if size > new.max_description_bytes:
+                    raise ValueError(f'calibration_file {path}: {size} bytes, more than max_description_bytes '
+                                     f'({new.max_description_bytes})')
                 c = load_calibration(path)
             except OSError as exc:
                 raise ValueError(f'calibration_file {path}: {exc.strerror or exc}') from None
@@ -177,8 +184,9 @@ class Configuration:
                                                   f"(robot '{c.robot}')")
                 eps = self.settings.friction.coulomb_velocity_epsilon
                 if c.eps != eps:   # its Coulomb values were identified with its own eps
-                    self.event('warn', 'calibration:eps', f'the calibration was identified with Coulomb velocity '
-                                                          f'epsilon {c.eps}, friction.coulomb_velocity_epsilon is {eps}')
+                    self.event('warn', 'calibration:eps', f'the calibration was identified with Coulomb '
+                                                          f'velocity epsilon {c.eps}, '
+                                                          f'friction.coulomb_velocity_epsilon is {eps}')
         if plan.model is not None:
             self._install(plan.model, plan.info, plan.report)
         if plan.derived is not None:
