@@ -125,3 +125,23 @@ def test_refusals_keep_the_old_values(tmp_path):
     c.update({'max_description_bytes': 1000})
     _refused(c, other.save(tmp_path / 'other.yaml'), 'bytes, more than max_description_bytes')
     assert len(list(tmp_path.iterdir())) == 6
+
+
+def test_the_observer_reads_efforts_without_the_offsets(tmp_path):
+    """Efforts of the calibrated robot plus its offsets: the observer's estimate stays at zero
+    (without the subtraction it would settle at the offsets, 0.1-1 N m here)."""
+    from lie_dynamics.ros.core.settings import Settings
+    from lie_dynamics.ros.features.contact import ContactMonitor
+    from test_contact import motion
+    arm = load_urdf(ARM)
+    cal = calibration_of(arm, seed=3)
+    model = arm.with_calibration(cal)
+    assert np.min(np.abs(cal.offset)) > 0.01
+    mon = ContactMonitor(clock=lambda: 0.0)
+    mon.adopt(Settings({'observer.enabled': True}), model, None, list(model.joint_names))
+    for k in range(400):
+        q, qd, qdd = motion(k * 1e-3)
+        effort = model.inverse_dynamics(q, qd, qdd) + cal.offset
+        mon.on_state(q, qd, effort, k * 1_000_000 + 5 * 10 ** 18)
+    assert mon.samples > 390
+    assert np.max(np.abs(mon.estimate)) < 1e-3, mon.estimate
