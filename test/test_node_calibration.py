@@ -145,3 +145,31 @@ def test_the_observer_reads_efforts_without_the_offsets(tmp_path):
         mon.on_state(q, qd, effort, k * 1_000_000 + 5 * 10 ** 18)
     assert mon.samples > 390
     assert np.max(np.abs(mon.estimate)) < 1e-3, mon.estimate
+
+
+def test_payload_identification_reads_efforts_without_the_offsets():
+    """static poses of the calibrated robot carrying a point mass, efforts with the offsets: the
+    fit finds the mass and CoM (the offsets are taken out by the one rule, motor_torque)."""
+    from lie_dynamics.ros.features.payload_service import fit
+    arm = load_urdf(ARM)
+    cal = calibration_of(arm, seed=4)
+    model = arm.with_calibration(cal)
+    loaded = arm.with_calibration(cal)
+    loaded.set_payload('link7', 1.2, [0.01, -0.02, 0.05])
+    rng = np.random.default_rng(5)
+    poses = rng.uniform(arm.position_lower * 0.7, arm.position_upper * 0.7, (8, 7))
+    t = np.arange(8 * 40) * 0.005
+    q = np.repeat(poses, 40, axis=0)
+    zero = np.zeros_like(q)
+    effort = loaded.inverse_dynamics(q, zero, zero) + cal.offset
+    res, changes, _ = fit(model, 'link7', t, q, zero, effort, 'static', 'total', 0.3)
+    assert changes['payload.mass'] == pytest.approx(1.2, rel=1e-6)
+    assert np.allclose(changes['payload.com'], [0.01, -0.02, 0.05], atol=1e-6)
+
+
+def test_calibration_file_set_at_start_up(tmp_path):
+    arm = load_urdf(ARM)
+    path = str(calibration_of(arm, seed=5).save(tmp_path / 'calibration.yaml'))
+    c = Compensator({'ramp_time': 0.0, 'calibration_file': path})
+    c.set_model(load_urdf(ARM))
+    assert np.allclose(gravity_command(c), arm.with_calibration(path).gravity(Q), rtol=0, atol=1e-12)
