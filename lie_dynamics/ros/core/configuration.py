@@ -11,11 +11,13 @@ most INERTIA_LOG_LINES lines) and kept for the diagnostics. A new model must pas
 reacts to an applied plan in `_applied`.
 """
 import copy
+import os
 import time
 import warnings
 
 import numpy as np
 
+from ...calibration.result import load_calibration, with_calibration
 from ...laws import LAWS, uses_velocity
 from .descriptions import build, model_changes, update_refusal
 from .diagnostics import DIAG_TEXT_MAX, INERTIA_LOG_LINES, INERTIA_TEXT_MAX, Counters, clip, names_text
@@ -54,6 +56,8 @@ class Configuration:
         self.needs_velocity = {}      # mode -> does its law read the measured velocity
         self.last_error = ''
         self.description_error = ''
+        self.calibration = None       # CalibrationResult of calibration_file on the current model, or None
+        self.uncalibrated = None      # with a calibration: the model it was applied to (no payload)
 
     def event(self, severity, key, text):
         """Queue a log line (severity 'info'/'warn'/'error', throttle key = its problem class)."""
@@ -83,7 +87,22 @@ class Configuration:
             raise ValueError('joints cannot change at run time')
         check_payload_pair(new)
         derived = None
-        if model is not None:
+        calibration = None
+        if model is not None or new.calibration_file != self.settings.calibration_file:
+            model, calibration = self._calibrate(new, model)
+        if calibration is not None and model is None:
+            pass   # no model yet: the file is checked, a model gets it when it comes
+        elif calibration is not None:
+            # a fresh model without payload: check it and place this plan's payload on it
+            if self.layout is not None and list(model.joint_names) != self.layout:
+                raise ValueError(f'the model controls {names_text(model.joint_names)}, but the command layout is '
+                                 f'{names_text(self.layout)}')
+            refusal = update_refusal(new.description_update, self.model, model)
+            if refusal:
+                raise ValueError(refusal)
+            derived = derive(model, new)
+            place_payload(model, new, '')
+        elif model is not None:
             if self.layout is not None and list(model.joint_names) != self.layout:
                 raise ValueError(f'the model controls {names_text(model.joint_names)}, but the command layout is '
                                  f'{names_text(self.layout)}')
@@ -103,19 +122,71 @@ class Configuration:
         report = None
         if model is not None:
             report = (model_changes(self.model, model) if self.model is not None else [], model.physical_consistency())
-        return Plan(new, changes, model, info, derived, (self.model, self.settings), report)
+        return Plan(new, changes, model, info, derived, (self.model, self.settings), report, calibration)
+
+    def _calibrate(self, new, model):
+        """(model, (uncalibrated, CalibrationResult or None, the description model given or None))
+        for settings `new` and a new description model (None: the running one), or (model, None)
+        when no calibration is
+        involved. The calibration goes on a payload-free copy; a file is read only when
+        calibration_file changes. ValueError (load_calibration / with_calibration) with the file's
+        name: missing, malformed, another robot, physically invalid values."""
+        path, given = new.calibration_file, model
+        if model is not None:
+            if not path:
+                return model, None
+            base = model
+            base.clear_payload()
+        elif self.model is None:
+            base = None
+        elif self.uncalibrated is not None:
+            base = self.uncalibrated
+        else:
+            base = copy.deepcopy(self.model)
+            base.clear_payload()
+        if not path:
+            return (None if base is None else copy.deepcopy(base)), (base, None, given)
+        c = self.calibration
+        if c is None or path != self.settings.calibration_file:
+            try:
+                # read in the parameter callback (a refusal keeps the old value): bounded as a description
+                size = os.path.getsize(path)
+                if size > new.max_description_bytes:
+                    raise ValueError(f'calibration_file {path}: {size} bytes, more than max_description_bytes '
+                                     f'({new.max_description_bytes})')
+                c = load_calibration(path)
+            except OSError as exc:
+                raise ValueError(f'calibration_file {path}: {exc.strerror or exc}') from None
+        if base is None:
+            return None, (None, c, given)
+        try:
+            return with_calibration(base, c), (base, c, given)
+        except ValueError as exc:
+            raise ValueError(f'calibration_file {path}: {exc}') from None
 
     def apply(self, plan, now=None):
         """Make `plan` current. Returns the command to publish once (the zero command when it
         disables without a ramp), or None. A plan made before another change is checked again
         (ValueError)."""
         if plan.base[0] is not self.model or plan.base[1] is not self.settings:
-            plan = self.plan(plan.changes, plan.model, plan.info)
+            given = plan.calibration[2] if plan.calibration is not None else plan.model
+            plan = self.plan(plan.changes, given, plan.info)
         now = self.clock() if now is None else now
         old = self.settings
         if plan.model is None and self.model is not None:
             place_payload(self.model, plan.settings, payload_link(old))
         self.settings = plan.settings
+        if plan.calibration is not None:
+            base, c, _ = plan.calibration
+            self.uncalibrated, self.calibration = (base, c) if c is not None else (None, None)
+            if c is not None:
+                self.event('info', 'calibration', f'calibration {self.settings.calibration_file} applied '
+                                                  f"(robot '{c.robot}')")
+                eps = self.settings.friction.coulomb_velocity_epsilon
+                if c.eps != eps:   # its Coulomb values were identified with its own eps
+                    self.event('warn', 'calibration:eps', f'the calibration was identified with Coulomb '
+                                                          f'velocity epsilon {c.eps}, '
+                                                          f'friction.coulomb_velocity_epsilon is {eps}')
         if plan.model is not None:
             self._install(plan.model, plan.info, plan.report)
         if plan.derived is not None:

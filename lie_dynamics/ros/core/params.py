@@ -155,6 +155,12 @@ PARAMS = (
               'down to zero before going silent; a mode, payload, gravity or model change, and the return of '
               'joint_states after stale input, blend from the previous command to the new law. The stale action '
               'and the effort clamp apply during a ramp.', True, (0.0, 10.0)),
+    ParamSpec('calibration_file', 'string', '',
+              'calibration.yaml (identify_dynamics) applied to the model: its link inertias, armature and '
+              'friction (as Model.damping / Model.friction, which empty friction.viscous / friction.coulomb use), '
+              'and its effort offsets, subtracted from every measured effort the node reads (observer, payload '
+              'identification). Empty: none. A file that is missing, malformed, for another robot or physically '
+              'invalid is refused and the old values kept.', True),
     ParamSpec('payload.link', 'string', '', 'Link the payload is rigidly attached to (empty: none).', True),
     ParamSpec('payload.mass', 'double', 0.0, 'Payload mass, kg (0: no payload).', True, (0.0, 1000.0)),
     ParamSpec('payload.com', 'double_array', [0.0, 0.0, 0.0],

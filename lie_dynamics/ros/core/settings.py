@@ -204,3 +204,6 @@ class Plan(NamedTuple):
     # for a new model: (what changed against the running one, its inertia report), computed
     # with the plan (off the control path) for the log lines of the swap
     report: Optional[tuple] = None
+    # when calibration_file is involved (Configuration._calibrate): (the model without calibration
+    # or payload, its CalibrationResult or None, the description model the plan was given or None)
+    calibration: Optional[tuple] = None

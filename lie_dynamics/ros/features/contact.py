@@ -24,6 +24,7 @@ is published for a paused sample.
 """
 import math
 import time
+import weakref
 
 import numpy as np
 
@@ -32,13 +33,13 @@ from ..core.diagnostics import OK, WARN, clip, names_text
 from ..core.params import EFFORT_CONVENTIONS, PAYLOAD_KEYS, per_joint_values
 from ..core.timebase import TimeBase
 
-__all__ = ['EFFORT_CONVENTIONS', 'ContactMonitor', 'Debounce', 'check_settings', 'effort_convention', 'motor_torque',
-           'observer_on', 'thresholds', 'warm_observer']
+__all__ = ['EFFORT_CONVENTIONS', 'ContactMonitor', 'Debounce', 'check_settings', 'effort_convention', 'effort_offset',
+           'motor_torque', 'observer_on', 'thresholds', 'warm_observer']
 # A longer gap between two samples is not integrated (the trapezoid would spread garbage over it).
 MAX_GAP_S = 0.5
 # Settings whose change starts a new integral: the model's dynamics or the observer itself.
 REINIT_KEYS = ('observer.enabled', 'observer.gain', 'measured_effort', 'gravity', 'gravity_scale') + PAYLOAD_KEYS + (
-    'friction.viscous', 'friction.coulomb', 'friction.coulomb_velocity_epsilon')
+    'friction.viscous', 'friction.coulomb', 'friction.coulomb_velocity_epsilon', 'calibration_file')
 
 
 def effort_convention(settings):
@@ -55,14 +56,40 @@ def observer_on(settings):
     return bool(settings.observer.enabled) and effort_convention(settings) != 'none'
 
 
+def effort_offset(model):
+    """(n,) effort offsets (model order) of the calibration the model carries
+    (Model.with_calibration; measured effort = true effort + offset), or None: none. An offset
+    the calibration does not give (NaN, or a joint it does not name) is 0."""
+    c = getattr(model, 'calibration', None)
+    if c is None:
+        return None
+    cached = _OFFSETS.get(model)
+    if cached is None or cached[0] is not c:   # once per model and calibration, not per sample
+        out = np.zeros(model.n)
+        for name, value in zip(c.joint_names, c.offset, strict=True):
+            if np.isfinite(value):
+                out[list(model.joint_names).index(name)] = value
+        cached = _OFFSETS[model] = (c, out if np.any(out) else None)
+    return cached[1]
+
+
+_OFFSETS = weakref.WeakKeyDictionary()   # model -> (its calibration, the offsets effort_offset gave)
+
+
 def motor_torque(model, q, effort, convention):
     """The total torque the motors put on the joints, from a measured `effort` (model order)
     under `convention` (EFFORT_CONVENTIONS): `total` as is, `gravity_removed` + g(q), `none`
-    None (no usable effort). Raises ValueError for an unknown convention."""
+    None (no usable effort); a calibration's effort offsets (effort_offset) are subtracted first.
+    Raises ValueError for an unknown convention."""
+    if convention in ('total', 'gravity_removed'):
+        effort = np.asarray(effort, dtype=float)
+        offset = effort_offset(model)
+        if offset is not None:
+            effort = effort - offset
     if convention == 'total':
-        return np.asarray(effort, dtype=float)
+        return effort
     if convention == 'gravity_removed':
-        return np.asarray(effort, dtype=float) + model.gravity(q)
+        return effort + model.gravity(q)
     if convention == 'none':
         return None
     raise ValueError(f'measured_effort must be one of {list(EFFORT_CONVENTIONS)}, got {clip(repr(convention), 120)}')
@@ -225,7 +252,7 @@ class ContactMonitor:
         last = self.last_stamp
         if last is not None and not self.time.switched and 0.0 < t - last <= MAX_GAP_S:
             # the steady state: one kernel call; anything it declines takes the full path below
-            e = effort if self.convention == 'total' else motor_torque(self.model, q, effort, self.convention)
+            e = motor_torque(self.model, q, effort, self.convention)
             r = obs.step(t, q, velocity, e)
             if r is not None:
                 return self._accept(r, t)

@@ -9,7 +9,9 @@
 A recording lasts at most `recording_max_s` seconds of joint_states (stamp time; the steady clock
 for unstamped states); then it stops by itself, is written, and says so in one log line (the next
 `false` answers with its path). A recording also stops when the controlled joints change. Samples
-without finite efforts are left out and counted: calibration needs the measured torques.
+without finite efforts are left out and counted: calibration needs the measured torques. The efforts are
+recorded raw, as measured: `calibration_file`'s effort offsets are not subtracted, since a
+re-calibration identifies them again from these efforts.
 
 Nothing of it delays the command: on the control path a sample costs a few row copies into
 preallocated chunks (`SampleLog`, after the command went out; no check: the writer leaves out
