@@ -92,16 +92,6 @@ class Configuration:
             model, calibration = self._calibrate(new, model)
         if calibration is not None and model is None:
             pass   # no model yet: the file is checked, a model gets it when it comes
-        elif calibration is not None:
-            # a fresh model without payload: check it and place this plan's payload on it
-            if self.layout is not None and list(model.joint_names) != self.layout:
-                raise ValueError(f'the model controls {names_text(model.joint_names)}, but the command layout is '
-                                 f'{names_text(self.layout)}')
-            refusal = update_refusal(new.description_update, self.model, model)
-            if refusal:
-                raise ValueError(refusal)
-            derived = derive(model, new)
-            place_payload(model, new, '')
         elif model is not None:
             if self.layout is not None and list(model.joint_names) != self.layout:
                 raise ValueError(f'the model controls {names_text(model.joint_names)}, but the command layout is '
@@ -110,8 +100,9 @@ class Configuration:
             if refusal:
                 raise ValueError(refusal)
             derived = derive(model, new)
-            # a new model carries at most a payload an earlier plan put there (current settings)
-            place_payload(model, new, payload_link(self.settings))
+            # a calibrated model is a fresh copy without payload; another new model carries at most
+            # a payload an earlier plan put there (current settings)
+            place_payload(model, new, '' if calibration is not None else payload_link(self.settings))
         elif self.model is not None:
             derived = derive(self.model, new)
             if payload_link(new) and new.differs(self.settings, PAYLOAD_KEYS):
