@@ -280,7 +280,13 @@ class Compensator(Configuration):
         Checks: messages.read_desired. A rejected message leaves the last valid desired state
         (and its age) as it was.
         """
+        accepted = self._take_desired(names, points, now)
+        # Counted last: a reader (diagnostics, a test on another thread) that sees the message
+        # counted also sees whether it was accepted or rejected.
         self.count.desired_received += 1
+        return accepted
+
+    def _take_desired(self, names, points, now):
         if self.layout is None:  # no model and no `joints` yet: nothing to map to
             return False
         try:
