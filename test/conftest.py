@@ -67,3 +67,14 @@ def pytest_configure(config):
     if config.option.basetemp is None and not hasattr(config, 'workerinput'):
         config.option.basetemp = tempfile.mkdtemp(prefix='lie_dynamics_pytest_')
         config.add_cleanup(lambda: shutil.rmtree(config.option.basetemp, ignore_errors=True))
+
+
+@pytest.fixture
+def ros():
+    """test_node.Harness: the dynamics node started over real DDS with a test node beside it,
+    closed after the test (one definition for the node tests; a file that needs more subscriptions
+    defines its own)."""
+    from test_node import Harness   # imports rclpy: only for the tests that ask for it
+    h = Harness()
+    yield h
+    h.close()

@@ -47,9 +47,6 @@ TIMEOUT = 10.0
 MODEL_TIMEOUT = 60.0
 
 
-_current = None
-
-
 def throttled(logs, text, since):
     """(lines of the node that mention `text`, how many its throttle allows since `since`, a
     time.monotonic()): one per problem class every LOG_THROTTLE_S s, the first at once; a later
@@ -198,14 +195,6 @@ class Harness:
             self.node.destroy_node()
         self.t.destroy_node()
         self.ctx.try_shutdown()
-
-
-@pytest.fixture
-def ros():
-    global _current
-    h = _current = Harness()
-    yield h
-    h.close()
 
 
 @pytest.fixture(scope='module')

@@ -9,17 +9,11 @@ rclpy = pytest.importorskip('rclpy')
 from rclpy.parameter import Parameter  # noqa: E402
 
 from lie_dynamics import default_urdf_path, load_urdf  # noqa: E402
-from test_node import TIMEOUT, Harness, wait_until  # noqa: E402
+from test_node import TIMEOUT, wait_until  # noqa: E402
 from test_node_calibration import calibration_of  # noqa: E402
 
 JOINTS = [f'joint{i}' for i in range(1, 8)]
 
-
-@pytest.fixture
-def ros():
-    h = Harness()
-    yield h
-    h.close()
 
 
 def test_calibration_file_over_dds(ros, tmp_path):

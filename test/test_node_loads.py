@@ -25,18 +25,12 @@ from lie_dynamics.ros.trajectories.process import (SILENT_S, STOP_S, TrajectoryP
 from lie_dynamics.ros.trajectories.trajectory_process import child_config  # noqa: E402
 from lie_dynamics.ros.core.params import SPECS  # noqa: E402
 from lie_dynamics.ros.node import LOG_THROTTLE_S  # noqa: E402
-from test_node import MODEL_TIMEOUT, Harness, wait_until  # noqa: E402
+from test_node import MODEL_TIMEOUT, wait_until  # noqa: E402
 
 from test_node_robustness import ARM, JOINTS, Q, ROOT, heavier, serialized  # noqa: E402
 
 BIG = {'max_description_links': 5000, 'max_description_bytes': 20_000_000}
 
-
-@pytest.fixture
-def ros():
-    h = Harness()
-    yield h
-    h.close()
 
 
 def _alive(pid):

@@ -21,17 +21,11 @@ from lie_dynamics.algorithms.identification import excitation_trajectory  # noqa
 from lie_dynamics.ros.node import SERVICE_QOS  # noqa: E402
 from oracle import Oracle  # noqa: E402
 from robots import with_payload  # noqa: E402
-from test_node import TIMEOUT, TOL, Harness, wait_until  # noqa: E402
+from test_node import TIMEOUT, TOL, wait_until  # noqa: E402
 
 MASS, COM, INERTIA = 1.3, [0.01, -0.02, 0.05], [3e-3, 1e-4, 0.0, 4e-3, -2e-4, 2e-3]
 JOINTS = [f'joint{i}' for i in range(1, 8)]
 
-
-@pytest.fixture
-def ros():
-    h = Harness()
-    yield h
-    h.close()
 
 
 @pytest.fixture(scope='module')

@@ -17,17 +17,11 @@ from lie_dynamics.calibration.recordings import read_recording  # noqa: E402
 from lie_dynamics.ros.core.settings import Settings  # noqa: E402
 from lie_dynamics.ros.core.timebase import TimeBase  # noqa: E402
 from lie_dynamics.ros.features.recording import Recorder  # noqa: E402
-from test_node import Harness, wait_until  # noqa: E402
+from test_node import wait_until  # noqa: E402
 
 JOINTS = [f'joint{i}' for i in range(1, 8)]
 SERVICE = '/dynamics_node/record'
 
-
-@pytest.fixture
-def ros():
-    h = Harness()
-    yield h
-    h.close()
 
 
 @pytest.fixture(scope='module')

@@ -23,7 +23,7 @@ from lie_dynamics import load_urdf  # noqa: E402
 from lie_dynamics.ros.trajectories import trajectory_cdr as cdr  # noqa: E402
 from lie_dynamics.ros.core.diagnostics import DIAG_TEXT_MAX, LOG_TEXT_MAX  # noqa: E402
 from lie_dynamics.ros.node import LOG_THROTTLE_S, SERVICE_QUEUE  # noqa: E402
-from test_node import MODEL_TIMEOUT, TIMEOUT, Harness, wait_until  # noqa: E402
+from test_node import MODEL_TIMEOUT, TIMEOUT, wait_until  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ARM = open(os.path.join(ROOT, 'config', 'arm7.urdf')).read()
@@ -35,12 +35,6 @@ DEEP = QoSProfile(depth=10_000, history=HistoryPolicy.KEEP_LAST, reliability=Rel
 def heavier(xml, factor):
     return re.sub(r'<mass value="([^"]*)"', lambda m: f'<mass value="{factor * float(m.group(1))!r}"', xml)
 
-
-@pytest.fixture
-def ros():
-    h = Harness()
-    yield h
-    h.close()
 
 
 def slow_builds(node, gate=None, burn=0.0):

@@ -17,19 +17,13 @@ from std_srvs.srv import SetBool, Trigger  # noqa: E402
 
 from lie_dynamics import load_urdf  # noqa: E402
 from lie_dynamics.ros.node import JOINT_STATES_QOS  # noqa: E402
-from test_node import MODEL_TIMEOUT, Harness, wait_until  # noqa: E402
+from test_node import MODEL_TIMEOUT, wait_until  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ARM = open(os.path.join(ROOT, 'config', 'arm7.urdf')).read()
 JOINTS = [f'joint{i}' for i in range(1, 8)]
 Q = np.array([0.1, 0.5, -0.2, 1.2, 0.3, 0.8, 0.1])
 
-
-@pytest.fixture
-def ros():
-    h = Harness()
-    yield h
-    h.close()
 
 
 def test_watchdog_runs_on_the_steady_clock_under_sim_time(ros):
