@@ -132,11 +132,11 @@ def _row(sweep, x, runs):
                 joints=np.median([r['after'] for r in runs], axis=0))
 
 
-def run(quick=False, out=None):
+def run(quick=False, out=None, seeds=None):
     from lie_dynamics.calibration import signals
 
     model = load_urdf(default_urdf_path())
-    seeds = (0,) if quick else (0, 1, 2)
+    seeds = range(seeds or (1 if quick else 3))
     rows = []
     for noise in (NOISES_QUICK if quick else NOISES):
         rows.append(_row('noise', noise, [one(model, noise, DURATION, s) for s in seeds]))
@@ -264,13 +264,14 @@ def main(argv=None):
     ap = argparse.ArgumentParser(prog='python -m bench.calibration', description=__doc__.split('\n')[0])
     ap.add_argument('--quick', action='store_true')
     ap.add_argument('--out', default=os.path.join(ROOT, 'bench', 'out'))
+    ap.add_argument('--seeds', type=int, help='seeds per point (default 3; --quick: 1)')
     ap.add_argument('--identify-time', action='store_true', help='only time the identify_dynamics command')
     args = ap.parse_args(argv)
     if args.identify_time:
         text, _ = identify_time(repeats=1 if args.quick else 3)
         print(text)
         return 0
-    rows, status, ok = run(quick=args.quick, out=args.out)
+    rows, status, ok = run(quick=args.quick, out=args.out, seeds=args.seeds)
     print(markdown(rows, status))
     return 0 if ok else 1
 
