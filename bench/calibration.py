@@ -44,6 +44,9 @@ from lie_dynamics import default_urdf_path, load_urdf
 from lie_dynamics.laws import COULOMB_VELOCITY_EPSILON, friction_torque
 
 NOISE = 0.02                                   # the documented effort noise: 2 % of each joint's torque RMS
+# absolute effort noise, N m per joint: the calibration demo's simulated sensors (0.1 on the
+# shoulder and elbow joints, 0.03 on the wrist), 0.6-7.4 % of this trajectory's torque RMS
+NOISE_DEMO = (0.1, 0.1, 0.1, 0.1, 0.03, 0.03, 0.03)
 DURATION = 60.0                                # s
 NOISES = (0.0, 0.005, 0.01, 0.02, 0.05, 0.1)
 NOISES_QUICK = (0.0, 0.02)
@@ -85,7 +88,7 @@ def true_torque(model, true, q, qd, qdd, eps=COULOMB_VELOCITY_EPSILON):
 
 def recording(model, true, duration, noise, seed, rate=RATE):
     """(t, q, effort) joint_states of the true robot: jitter, lost samples, a 17-bit encoder,
-    effort noise of `noise` x each joint's torque RMS."""
+    effort noise of `noise` x each joint's torque RMS (a tuple: N m per joint)."""
     rng = np.random.default_rng(seed + 2000)
     t = np.arange(0.0, duration, 1.0 / rate)
     t = np.sort(t + rng.uniform(-JITTER, JITTER, len(t)))
@@ -93,7 +96,7 @@ def recording(model, true, duration, noise, seed, rate=RATE):
     q, qd, qdd = trajectory(model, t, seed)
     tau = true_torque(model, true, q, qd, qdd)
     quantum = ENCODERS['17-bit']
-    sigma = noise * np.sqrt(np.mean(tau ** 2, axis=0))
+    sigma = np.array(noise) if isinstance(noise, tuple) else noise * np.sqrt(np.mean(tau ** 2, axis=0))
     return t, np.round(q / quantum) * quantum, tau + sigma * rng.normal(size=tau.shape)
 
 
@@ -138,20 +141,23 @@ def run(quick=False, out=None, seeds=None):
     model = load_urdf(default_urdf_path())
     seeds = range(seeds or (1 if quick else 3))
     rows = []
-    for noise in (NOISES_QUICK if quick else NOISES):
+    for noise in (NOISES_QUICK if quick else NOISES) + (NOISE_DEMO,):
         rows.append(_row('noise', noise, [one(model, noise, DURATION, s) for s in seeds]))
     for duration in (DURATIONS_QUICK if quick else DURATIONS):
         rows.append(_row('length', duration, [one(model, NOISE, duration, s) for s in seeds]))
     if not quick:
         for k in OVERSAMPLES:
             rows.append(_row('step', k, [one(model, NOISE, DURATION, s, oversample=k) for s in seeds]))
-    gate = next(r for r in rows if r['sweep'] == 'noise' and r['x'] == NOISE)
-    status = (f"gate: with {100 * NOISE:g} % effort noise and {DURATION:g} s the worst joint's held-out error is "
-              f"{100 * gate['worst']:.2f} % of its torque RMS (target <= {100 * GATE:g} %): "
-              f"{'PASS' if gate['worst'] <= GATE else 'FAIL'}; default decimation OVERSAMPLE = {signals.OVERSAMPLE:g}")
+    gated = [r for r in rows if r['sweep'] == 'noise' and r['x'] in (NOISE, NOISE_DEMO)]
+    worst = max(r['worst'] for r in gated)
+    figures = ', '.join(f"{100 * r['worst']:.2f} %" for r in gated)
+    status = (f"gate: with {100 * NOISE:g} % effort noise and with the demo's (N m: {NOISE_DEMO}), {DURATION:g} s, "
+              f"the worst joint's held-out error is {figures} of its "
+              f"torque RMS (target <= {100 * GATE:g} %): {'PASS' if worst <= GATE else 'FAIL'}; default decimation "
+              f"OVERSAMPLE = {signals.OVERSAMPLE:g}")
     if out is not None:
         write(rows, status, out)
-    return rows, status, gate['worst'] <= GATE
+    return rows, status, worst <= GATE
 
 
 def markdown(rows, status):
@@ -161,7 +167,8 @@ def markdown(rows, status):
              'true torque), RMS relative to the torque RMS, median over seeds.', '',
              '| sweep | x | worst joint | all joints | URDF: worst | URDF: all | fit s | samples fitted |',
              '|---|---:|---:|---:|---:|---:|---:|---:|']
-    unit = {'noise': lambda x: f'{100 * x:g} %', 'length': lambda x: f'{x:g} s',
+    unit = {'noise': lambda x: 'demo (0.1/0.03 N m)' if isinstance(x, tuple) else f'{100 * x:g} %',
+            'length': lambda x: f'{x:g} s',
             'step': lambda x: 'all' if x is None else f'{x:g}/period'}
     for r in rows:
         lines.append(f"| {r['sweep']} | {unit[r['sweep']](r['x'])} | {100 * r['worst']:.3g} % | "
@@ -180,7 +187,7 @@ def chart(rows, path):
     labels = {'noise': 'effort noise, % of torque RMS (60 s)', 'length': 'recording length, s (2 % noise)',
               'step': 'samples kept per period of the cutoff (60 s, 2 % noise)'}
     for ax, s in zip(axes[0], sweeps):
-        sel = [r for r in rows if r['sweep'] == s]
+        sel = [r for r in rows if r['sweep'] == s and not isinstance(r['x'], tuple)]
         x = np.array([RATE / r['cutoff'] if r['x'] is None else r['x'] for r in sel]) * (100 if s == 'noise' else 1)
         for key, style, label in (('worst', 'o-', 'calibrated, worst joint'), ('pooled', 's-', 'calibrated, all'),
                                   ('worst_before', 'o--', 'URDF, worst joint')):

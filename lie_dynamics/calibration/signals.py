@@ -22,6 +22,8 @@ the effort on one uniform grid, in five steps:
 5. q̇ and q̈ are central differences of the filtered positions (or, when velocities are given,
    q̇ is the filtered measured velocity and q̈ its central difference). The filter's start and
    end transients are trimmed: TRIM_PERIODS periods of the cutoff at each end of a segment.
+   `terms` of the filtered state (the smooth Coulomb sign) are low-passed like the efforts, and
+   `oversample` decimates the filtered grid (identify_dynamics keeps OVERSAMPLE per period).
 
 Only the rigid-body and friction models are fitted afterwards; this module knows nothing of the
 robot (no model, no rclpy import).
