@@ -231,9 +231,10 @@ def fit(model, q, qd, qdd, effort, eps=COULOMB_VELOCITY_EPSILON, weights=None, p
 
     # The optimum often lies where a body is at the edge of validity (the prior's projection is
     # not valid), which log-Cholesky reaches only at infinity: the iteration count then bounds it.
-    # lsmr, not trf's SVD per iteration: with OpenBLAS's threads on a loaded 2-core machine each
-    # 128 x 98 SVD took 75-240 ms (4 ms on one thread), and identify_dynamics on 60 s at 1 kHz
-    # took 50 s instead of 12 s (3.6 s and 4.6 s with one BLAS thread; bench/calibration.py).
+    # Steps by lsmr, not an SVD of the Jacobian per iteration ('exact'): with OpenBLAS's threads
+    # on a loaded 2-core machine each 128 x 98 SVD took 75-240 ms (4 ms on one thread), and
+    # identify_dynamics on 60 s at 1 kHz took 50 s instead of 12 s (3.6 s and 4.6 s with one BLAS
+    # thread; bench/calibration.py --identify-time measures the command).
     with np.errstate(over='ignore', invalid='ignore'):   # trial steps too far: trf shrinks them
         sol = solve(residual, x0, jac=jacobian, bounds=(lb, np.full(len(x0), np.inf)), method='trf',
                     x_scale='jac', tr_solver='lsmr', ftol=tol, xtol=tol, gtol=tol, max_nfev=max_nfev)
