@@ -143,3 +143,18 @@ def test_sensor_and_coulomb_options_are_checked():
     sim = ArmSim(model, q0=HOME, qd0=np.full(model.n, 0.02), damping=False, coulomb=2.0, eps=0.05)
     sim.step()
     np.testing.assert_allclose(sim.applied, -2.0 * np.tanh(0.02 / 0.05), rtol=1e-15)
+
+
+@pytest.mark.parametrize('params, msg', [
+    (['-p', 'calibration_file:=/nonexistent/plant.yaml'], "calibration_file '/nonexistent/plant.yaml': No such file"),
+    (['-p', 'effort_noise:=[-1.0]'], 'noise finite and >= 0'),
+    (['-p', 'effort_offset:=[1.0, 2.0]'], 'effort_offset and effort_noise need one value or 7'),
+])
+def test_sim_node_refuses_bad_plant_parameters(params, msg):
+    import os
+    import subprocess
+    import sys
+    r = subprocess.run([sys.executable, '-m', 'lie_dynamics.sim.sim_node', '--ros-args'] + params,
+                       cwd=os.path.join(os.path.dirname(__file__), '..'), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert 'sim_node: invalid configuration' in r.stderr and msg in r.stderr, r.stderr

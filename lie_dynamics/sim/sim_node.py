@@ -156,8 +156,12 @@ class SimNode(Node):
         q0 = q
         offset, eps = np.zeros(model.n), COULOMB_VELOCITY_EPSILON
         if v.calibration_file:  # simulated, never published
-            cal = load_calibration(v.calibration_file)
-            model = with_calibration(model, cal)
+            try:
+                cal = load_calibration(v.calibration_file)
+                model = with_calibration(model, cal)
+            except (OSError, ValueError) as exc:
+                raise ValueError(f'calibration_file {v.calibration_file!r}: {getattr(exc, "strerror", None) or exc}') \
+                    from None
             offset = plant_offsets(model, cal)
             eps = cal.eps
         if v.payload.link or v.payload.mass:  # simulated, never published: the controller must find it
