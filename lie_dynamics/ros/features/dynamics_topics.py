@@ -28,7 +28,7 @@ import numpy as np
 
 from .. import interfaces
 from ...algorithms import jacobian
-from ..core.cdr import Template, joint_state_template
+from ..core.cdr import joint_state_template, multi_array_template
 from ..core.timebase import TimeBase
 from ..core.diagnostics import clip
 from ..loading.models import at_rest, jacobian_at_rest, tip_link
@@ -57,14 +57,7 @@ def check_link(settings, model):
 
 def matrix_template(rows_label, cols_label, rows, cols):
     """(Template, [data slot]) of a std_msgs/Float64MultiArray of rows x cols, row-major."""
-    t = Template()
-    t.uint32(2)
-    for label, size, stride in ((rows_label, rows, rows * cols), (cols_label, cols, cols)):
-        t.string(label)
-        t.uint32(size)
-        t.uint32(stride)
-    t.uint32(0)   # data_offset
-    return t, [t.doubles(rows * cols)]
+    return multi_array_template(rows * cols, ((rows_label, rows, rows * cols), (cols_label, cols, cols)))
 
 
 class RateGate:
