@@ -20,8 +20,8 @@ dynamics node alone at the first rate for MINUTES and reports the RSS slope and 
 four dynamics topics (gravity, coriolis, mass_matrix, jacobian) at every state (dynamics.rate 0) and
 ~/commanded_efforts, with the observer (on by default) and its two topics, nobody subscribed; the
 states then carry velocities (0) and efforts (g(q): no contact) so that the observer runs, for the
-echo nodes too. --robot talos_reduced: example-robot-data's Talos (reduced), its 30 joints but the
-grippers controlled, instead of the bundled 7-joint arm (the same parameters otherwise). Writes
+echo nodes too. --robot talos_reduced: example-robot-data's Talos (reduced), its 32 joints but the
+two grippers controlled (30), instead of the bundled 7-joint arm (the same parameters otherwise). Writes
 node_latency.md/.csv/.json and a latency histogram (node_latency.png) to --out.
 This is a benchmark, not a test: numbers depend on the machine and its load; compare the
 ratios to the echo nodes measured in the same run. Every node runs with its production defaults
@@ -266,11 +266,11 @@ def callback_cost(model, Q, joints=JOINTS):
 CANDIDATES = (('echo, default executor', 'echo', 'single_threaded'), ('echo, events', 'echo', 'events'),
               ('dynamics, events', 'dynamics', 'events'), ('dynamics, default executor', 'dynamics', 'single_threaded'))
 PEER, CHOSEN = CANDIDATES[0][0], CANDIDATES[2][0]
-# --dynamics-topics: the chosen node again, with every dynamics term published at every state
+# --dynamics-topics: the chosen node again with every feature on (every dynamics term at every state)
 TOPICS_CANDIDATE = ('dynamics, every feature on (4 topics at every state), events', 'dynamics', 'events',
                     {'dynamics.publish': '[gravity,coriolis,mass_matrix,jacobian]', 'dynamics.rate': '0.0',
                      'publish_joint_state': 'true'})
-# the same node without the dynamics topics (the echo nodes' figures are the target: p50, p99 <= 1.0x)
+# the events-executor echo node: the floor the node's p50 and p99 are compared with (issue target: <= 1.0x)
 EVENTS_ECHO = CANDIDATES[1][0]
 # Warm-up before the clock starts, in the same stream as the measurement: longer than ramp_time
 # (0.2 s by default: the node blends its first commands in after start-up and after stale input).
