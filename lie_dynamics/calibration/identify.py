@@ -47,12 +47,7 @@ def identify_dynamics(model, t, q, effort, qd=None, *, qdd=None, holdout=HOLDOUT
         coulomb = None
         info = {'rate': float(1.0 / np.median(np.diff(t))) if len(t) > 1 else float('nan'), 'cutoff': None}
     else:
-        from .signals import OVERSAMPLE, prepare   # scipy.signal: imported where it is used
-
-        # the smooth Coulomb sign is low-passed like the efforts: the filter rounds off its steps
-        # in the measured efforts, and tanh of the filtered q̇ would keep them sharp
-        options = dict({'oversample': OVERSAMPLE}, **(signals or {}))
-        s = prepare(t, q, effort, qd, terms=lambda q_, qd_, qdd_: np.tanh(qd_ / eps), **options)
+        s = prepare_recording(t, q, effort, qd, eps=eps, signals=signals)
         t, q, qd, qdd, effort, segment, coulomb = s.t, s.q, s.qd, s.qdd, s.effort, s.segment, s.terms
         q, qd, qdd, effort = model.check_states(q=q, qd=qd, qdd=qdd, effort=effort)
         info = {'rate': s.rate * s.step, 'step': s.step, 'cutoff': s.cutoff, 'dropped': s.dropped,
@@ -79,6 +74,18 @@ def identify_dynamics(model, t, q, effort, qd=None, *, qdd=None, holdout=HOLDOUT
     report['segment'] = segment
     result.report = report
     return result
+
+
+def prepare_recording(t, q, effort, qd=None, *, eps=COULOMB_VELOCITY_EPSILON, signals=None):
+    """A recording's signals as identify_dynamics fits them (calibration.signals.Signals): resampled,
+    low-passed, differentiated, decimated to signals.OVERSAMPLE per cutoff period; `.terms` holds
+    the Coulomb columns to pass to calibration_regressor. signals: options for signals.prepare."""
+    from .signals import OVERSAMPLE, prepare   # scipy.signal: imported where it is used
+
+    # the smooth Coulomb sign is low-passed like the efforts: the filter rounds off its steps
+    # in the measured efforts, and tanh of the filtered q̇ would keep them sharp
+    options = dict({'oversample': OVERSAMPLE}, **(signals or {}))
+    return prepare(t, q, effort, qd, terms=lambda q_, qd_, qdd_: np.tanh(qd_ / eps), **options)
 
 
 def write_report(result, folder, joint_names=None):

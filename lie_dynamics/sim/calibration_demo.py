@@ -150,13 +150,13 @@ def run(duration, rate=1000.0, out='demo_out', log_dir=None, domain=None, iterat
 def torque_prediction(model, calibration, rec):
     """RMS of (predicted - measured) effort over every joint and sample, as a fraction of the
     measured effort's RMS: the URDF's prediction (<dynamics> friction, no armature, no offsets) and
-    the calibration's. The efforts and positions are low-passed and differentiated as
-    identify_dynamics prepares a recording (calibration.signals.prepare)."""
+    the calibration's. The signals are prepared as identify_dynamics prepares a recording
+    (calibration.identify.prepare_recording: the Coulomb columns low-passed like the efforts)."""
+    from ..calibration.identify import prepare_recording
     from ..calibration.regressor import calibration_regressor, prior_parameters
-    from ..calibration.signals import prepare
 
-    s = prepare(rec['t'], rec['q'], rec['tau'], rec['qd'])
-    Y = calibration_regressor(model, s.q, s.qd, s.qdd, calibration.eps)
+    s = prepare_recording(rec['t'], rec['q'], rec['tau'], rec['qd'], eps=calibration.eps)
+    Y = calibration_regressor(model, s.q, s.qd, s.qdd, calibration.eps, s.terms)
     scale = np.sqrt(np.mean(s.effort ** 2))
     out = {'torque_rms': float(scale)}
     for tag, p in (('before', prior_parameters(model)), ('after', calibration.parameters)):
