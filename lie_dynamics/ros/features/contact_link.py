@@ -21,6 +21,7 @@ observer time constant after it (w = inverse r: the estimate r lags the contact 
 new fit every sample would cost more than the observer). A model, gravity, payload or observer
 change (contact.REINIT_KEYS) and a paused observer start it anew, as they start the observer anew.
 """
+import collections
 from typing import NamedTuple, Optional
 
 import numpy as np
@@ -30,6 +31,9 @@ from ..core.diagnostics import WARN, clip
 from .contact import REINIT_KEYS
 
 ZERO = np.zeros(6)
+# The wrenches read the mean residual of the last MEAN_WINDOWS time constants while it is settled:
+# the effort noise averaged out (the observer alone averages over about two), the rise's tail gone.
+MEAN_WINDOWS = 5.0
 
 
 class Published(NamedTuple):
@@ -60,6 +64,7 @@ class ContactIsolation:
         self.frame = ''
         self.rcond = ci.RCOND
         self.strict = False
+        self.tolerance, self.radius = ci.TOLERANCE, ci.RADIUS
         self.settling = None
         self.isolation = None       # the last decision (contact_isolation.Isolation) while the flag is up
         self.link = ''              # the link last published on ~/contact/link
@@ -70,6 +75,9 @@ class ContactIsolation:
         self.flag = False           # the collision flag of the last sample
         self._settled = False       # the residual was settled at the last sample of the flag
         self._fits = {}             # 'link' / 'tool' -> (link, time, WrenchEstimate) of the last fit
+        self.residual = None        # the r of the last wrenches: the mean over a settled stretch, else the sample's
+        self._mean, self._sum = collections.deque(), None   # (t, r) of the settled stretch, their sum
+        self._mean_span = 0.0
 
     def adopt(self, settings, model):
         if settings is self.settings and model is self.model:
@@ -79,6 +87,7 @@ class ContactIsolation:
         self.settings, self.model = settings, model
         self.rcond = settings.contact.rcond
         self.strict = settings.contact.strict_isolation
+        self.tolerance, self.radius = settings.contact.tolerance, settings.contact.link_radius
         self.frame = settings.contact.wrench_frame
         if self.frame and model is not None:
             try:
@@ -89,6 +98,7 @@ class ContactIsolation:
         if model is not None:
             gain = np.atleast_1d(np.asarray(settings.observer.gain, dtype=float))
             self.settling = ci.Settling(1.0 / float(gain.min()))
+            self._mean_span = MEAN_WINDOWS * self.settling.window
         if reinit:
             self.reset()
 
@@ -100,47 +110,55 @@ class ContactIsolation:
         self._settled = False
         self._fits = {}
 
-    def _solve(self, kind, t, q, r, link, est=None):
-        """The wrench on `link` for r: est, or the last fit's inverse when it is younger than one
-        time constant (the estimate r lags the contact by as much), else a new fit."""
+    def _fit(self, kind, t, q, link, est=None):
+        """The fit (WrenchEstimate: its inverse maps r to the wrench) on `link` at q: est, or the
+        last one when it is younger than one time constant (the estimate r lags the contact by as
+        much), else a new one."""
         last = self._fits.get(kind)
         if est is None and last is not None and last[0] == link and 0.0 <= t - last[1] < self.settling.window:
-            est = last[2]
-            return est._replace(wrench=est.inverse @ r)
+            return last[2]
         if est is None:
-            est = ci.link_wrench(self.model, q, r, link, self.rcond)
+            est = ci.link_wrench(self.model, q, np.zeros(self.model.n), link, self.rcond)
         self._fits[kind] = (link, t, est)
         return est
 
     def update(self, t, q, r, collision, threshold):
         """One observer sample: Published."""
-        model = self.model
         self.flag = collision
-        tool = None
-        if self.frame:
-            self.tool = self._solve('tool', t, q, r, self.frame)
-            tool = self.tool.wrench
         wrench = None
         if collision:
             settled = self.settling.update(t, r, threshold)
             if settled and not self._settled:   # decided once per settled stretch (cost)
-                iso = ci.isolate(model, q, r, threshold, rcond=self.rcond, strict=self.strict)
+                iso = ci.isolate(self.model, q, r, threshold, self.tolerance, self.radius, self.rcond, self.strict)
                 if self.isolation is None or iso.status != self.isolation.status or iso.link != self.isolation.link:
                     self._log(iso)
                 self.isolation = iso
-                est = self._solve('link', t, q, r, iso.link, iso.wrench) if iso.link else None
-            else:
-                iso = self.isolation
-                est = self._solve('link', t, q, r, iso.link) if iso is not None and iso.link else None
+                if iso.link:
+                    self._fit('link', t, q, iso.link, iso.wrench)
+                self._mean.clear()
+                self._sum = np.zeros_like(r)
             self._settled = settled
-            if est is not None:
-                self.wrench, self.wrench_link, self.up = est, iso.link, True
-                wrench = (iso.link, est.wrench)
+            if settled:   # the mean over the settled stretch, at most MEAN_WINDOWS time constants
+                m = self._mean
+                m.append((t, r))
+                self._sum += r
+                while t - m[0][0] > self._mean_span:
+                    self._sum -= m.popleft()[1]
+                r = self._sum / len(m)
+            iso = self.isolation
+            if iso is not None and iso.link:
+                self.wrench, self.wrench_link, self.up = self._fit('link', t, q, iso.link), iso.link, True
+                wrench = (iso.link, self.wrench.inverse @ r)
         else:
             if self.up:
                 wrench, self.up = (self.wrench_link, ZERO), False
             if self.isolation is not None or self._settled:
                 self.reset()
+        self.residual = r
+        tool = None
+        if self.frame:
+            self.tool = self._fit('tool', t, q, self.frame)
+            tool = self.tool.inverse @ r
         link = self.isolation.link if self.isolation is not None else ''
         changed = None
         if link != self.link:
