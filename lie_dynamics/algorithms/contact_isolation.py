@@ -293,24 +293,26 @@ class Settling:
     """Whether the residual has stopped changing (module docstring): `update(t, r, threshold)`
     returns True once every joint changed by at most tolerance x max(|r_j|, th_j) since a
     checkpoint one to one and a quarter `window` old (one observer time constant, 1 / K).
-    Checkpoints are taken, and the verdict renewed, every quarter window; in between a sample
-    costs one comparison. `reset()` forgets the history. The r given are kept as they are (not
-    copied): give a new array each time, as the observer does."""
+    Checkpoints are taken, and the verdict renewed, every quarter window (`quarter`); in between
+    a sample costs one comparison (`checked`: the time of the last checkpoint). `reset()` forgets
+    the history. The r given are kept as they are (not copied): give a new array each time, as
+    the observer does."""
 
     def __init__(self, window, tolerance=SETTLE_TOLERANCE):
         if not (math.isfinite(window) and window > 0 and math.isfinite(tolerance) and tolerance > 0):
             raise ValueError(f'settling window and tolerance must be finite and > 0, got {window!r}, {tolerance!r}')
         self.window, self.tolerance = float(window), float(tolerance)
+        self.quarter = 0.25 * self.window
         self.reset()
 
     def reset(self):
         self._history = collections.deque()
-        self._last, self._verdict = -math.inf, False
+        self.checked, self._verdict = -math.inf, False
 
     def update(self, t, r, threshold):
-        if self._last <= t < self._last + 0.25 * self.window:   # a clock that jumps back checks anew
+        if self.checked <= t < self.checked + self.quarter:   # a clock that jumps back checks anew
             return self._verdict
-        self._last = t
+        self.checked = t
         h = self._history
         h.append((t, r))
         while len(h) > 2 and h[1][0] <= t - self.window + 1e-9:   # keep one checkpoint a window old

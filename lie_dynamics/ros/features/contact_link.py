@@ -6,9 +6,12 @@ lie_dynamics.algorithms.contact_isolation; this module decides when to use it.
 ContactMonitor: the estimate r, its time t in s, the debounced flag), returns what to publish:
 
   * the wrench of the isolated link (link name, (fx fy fz mx my mz) at its origin in its axes)
-    at every sample while the flag is up and a link is isolated, and one zero wrench (the last
-    link's, '' if none was) when the flag falls;
-  * the tool wrench (`contact.wrench_frame`, all contact at that link) at every sample, when set;
+    while the flag is up and a link is isolated: at every sample while the residual changes, and
+    while it is settled at every checkpoint (a quarter time constant), the wrench of its mean over
+    the last MEAN_WINDOWS time constants (the effort noise averaged out; unchanged in between, so
+    not sent again); one zero wrench (the last link's, '' if none was) when the flag falls;
+  * the tool wrench (`contact.wrench_frame`, all contact at that link) at every sample, when set
+    (of the same mean while settled);
   * the isolated link when it changes: '' while nothing is in contact, while the residual
     settles, and when the answer is ambiguous.
 
@@ -16,10 +19,10 @@ Isolation is decided on a settled residual only (contact_isolation.Settling, win
 time constant 1 / min(observer.gain)), once each time it settles: after the flag rises the link
 stays '' until the residual has stopped changing, and while it changes again (the push grows or
 moves) the last decision holds until it settles anew. The Jacobians and the isolation run only
-while the flag is up, except the tool wrench's; a fit (Jacobian and SVD) serves the samples of one
-observer time constant after it (w = inverse r: the estimate r lags the contact by as much, and a
-new fit every sample would cost more than the observer). A model, gravity, payload or observer
-change (contact.REINIT_KEYS) and a paused observer start it anew, as they start the observer anew.
+while the flag is up, except the tool wrench's; a fit (Jacobian and SVD) serves while it is
+younger than one time constant or the joints have not moved (REFIT_RAD) since: w = inverse r.
+A model, gravity, payload or observer change (contact.REINIT_KEYS) and a paused observer start
+it anew, as they start the observer anew.
 """
 import collections
 from typing import NamedTuple, Optional
@@ -34,6 +37,9 @@ ZERO = np.zeros(6)
 # The wrenches read the mean residual of the last MEAN_WINDOWS time constants while it is settled:
 # the effort noise averaged out (the observer alone averages over about two), the rise's tail gone.
 MEAN_WINDOWS = 5.0
+# A fit serves while the joints move less than this (rad or m) from where it was made: the
+# Jacobian's change stays below about 1e-4 of the wrench (no new SVD while the arm is held).
+REFIT_RAD = 1e-4
 
 
 class Published(NamedTuple):
@@ -78,6 +84,7 @@ class ContactIsolation:
         self.residual = None        # the r of the last wrenches: the mean over a settled stretch, else the sample's
         self._mean, self._sum = collections.deque(), None   # (t, r) of the settled stretch, their sum
         self._mean_span = 0.0
+        self._held = None           # (link wrench, tool wrench, mean r) of the last checkpoint
 
     def adopt(self, settings, model):
         if settings is self.settings and model is self.model:
@@ -112,58 +119,86 @@ class ContactIsolation:
 
     def _fit(self, kind, t, q, link, est=None):
         """The fit (WrenchEstimate: its inverse maps r to the wrench) on `link` at q: est, or the
-        last one when it is younger than one time constant (the estimate r lags the contact by as
-        much), else a new one."""
+        last one while it is younger than one time constant (the estimate r lags the contact by as
+        much) or the joints have moved less than REFIT_RAD since, else a new one."""
         last = self._fits.get(kind)
-        if est is None and last is not None and last[0] == link and 0.0 <= t - last[1] < self.settling.window:
-            return last[2]
+        if est is None and last is not None and last[0] == link:
+            if last[1] <= t < last[1] + self.settling.window:
+                return last[2]
+            if np.abs(q - last[3]).max() <= REFIT_RAD:   # held still: good for another time constant
+                self._fits[kind] = (link, t, last[2], last[3])
+                return last[2]
         if est is None:
             est = ci.link_wrench(self.model, q, np.zeros(self.model.n), link, self.rcond)
-        self._fits[kind] = (link, t, est)
+        self._fits[kind] = (link, t, est, np.array(q, dtype=float))
         return est
 
     def update(self, t, q, r, collision, threshold):
         """One observer sample: Published."""
+        st = self.settling
+        if collision and self._settled and st.checked < t < st.checked + st.quarter:   # held (cost)
+            return Published(None, self._held[1], None)
         self.flag = collision
-        wrench = None
+        wrench = tool = None
+        settled = False
         if collision:
-            settled = self.settling.update(t, r, threshold)
-            if settled and not self._settled:   # decided once per settled stretch (cost)
-                iso = ci.isolate(self.model, q, r, threshold, self.tolerance, self.radius, self.rcond, self.strict)
-                if self.isolation is None or iso.status != self.isolation.status or iso.link != self.isolation.link:
-                    self._log(iso)
-                self.isolation = iso
-                if iso.link:
-                    self._fit('link', t, q, iso.link, iso.wrench)
-                self._mean.clear()
-                self._sum = np.zeros_like(r)
+            settled = st.update(t, r, threshold)
+            if settled and st.checked == t:
+                self._checkpoint(t, q, r, threshold)
             self._settled = settled
-            if settled:   # the mean over the settled stretch, at most MEAN_WINDOWS time constants
-                m = self._mean
-                m.append((t, r))
-                self._sum += r
-                while t - m[0][0] > self._mean_span:
-                    self._sum -= m.popleft()[1]
-                r = self._sum / len(m)
             iso = self.isolation
             if iso is not None and iso.link:
-                self.wrench, self.wrench_link, self.up = self._fit('link', t, q, iso.link), iso.link, True
-                wrench = (iso.link, self.wrench.inverse @ r)
+                self.wrench_link, self.up = iso.link, True
+                if settled:
+                    wrench = (iso.link, self._held[0])
+                else:
+                    self.wrench = self._fit('link', t, q, iso.link)
+                    wrench = (iso.link, self.wrench.inverse @ r)
         else:
             if self.up:
                 wrench, self.up = (self.wrench_link, ZERO), False
             if self.isolation is not None or self._settled:
                 self.reset()
-        self.residual = r
-        tool = None
         if self.frame:
-            self.tool = self._fit('tool', t, q, self.frame)
-            tool = self.tool.inverse @ r
+            if settled:
+                tool = self._held[1]
+            else:
+                self.tool = self._fit('tool', t, q, self.frame)
+                tool = self.tool.inverse @ r
+        self.residual = self._held[2] if settled else r
         link = self.isolation.link if self.isolation is not None else ''
         changed = None
         if link != self.link:
             self.link = changed = link
         return Published(wrench, tool, changed)
+
+    def _checkpoint(self, t, q, r, threshold):
+        """A checkpoint of a settled stretch (every quarter time constant): the decision at its
+        first, the mean residual of the last MEAN_WINDOWS time constants' checkpoints (samples
+        closer than a time constant carry little more: the observer's filter), and the wrenches
+        of that mean, held until the next checkpoint."""
+        if not self._settled:   # decided once per settled stretch (cost)
+            iso = ci.isolate(self.model, q, r, threshold, self.tolerance, self.radius, self.rcond, self.strict)
+            if self.isolation is None or iso.status != self.isolation.status or iso.link != self.isolation.link:
+                self._log(iso)
+            self.isolation = iso
+            if iso.link:
+                self._fit('link', t, q, iso.link, iso.wrench)
+            self._mean.clear()
+            self._sum = np.zeros_like(r)
+        m = self._mean
+        m.append((t, r))
+        self._sum += r
+        while t - m[0][0] > self._mean_span:
+            self._sum -= m.popleft()[1]
+        mean = self._sum / len(m)
+        link = self.isolation.link
+        if link:
+            self.wrench = self._fit('link', t, q, link)
+        if self.frame:
+            self.tool = self._fit('tool', t, q, self.frame)
+        self._held = (self.wrench.inverse @ mean if link else None,
+                      self.tool.inverse @ mean if self.frame else None, mean)
 
     def _log(self, iso):
         self.decisions += 1

@@ -13,6 +13,8 @@ With them, contact_link.py's ContactIsolation: ~/contact/wrench and ~/contact/to
 """
 import struct
 
+import numpy as np
+
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Bool, String
 
@@ -107,4 +109,4 @@ def _wrench(frame, w, stamp):
         body += b'\0' * (-(8 + len(body)) % 8)   # the doubles start 8-aligned after the encapsulation
         head = _WRENCH_HEADS[frame] = body
     sec, nsec = stamp_parts(stamp)
-    return b'\x00\x01\x00\x00' + struct.pack('<iI', sec, nsec) + head + struct.pack('<6d', *w)
+    return b'\x00\x01\x00\x00' + struct.pack('<iI', sec, nsec) + head + np.asarray(w, dtype='<f8').tobytes()
