@@ -77,3 +77,30 @@ def test_changes_that_restart_the_observer_restart_isolation_and_a_lost_frame_tu
     xml = open(default_urdf_path()).read().replace('tool0', 'tool9')
     iso.adopt(s.replace({}), load_urdf(xml))
     assert iso.frame == '' and any('tool_wrench off' in text for _, _, text in iso.events)
+
+
+def test_the_collision_line_names_the_link():
+    model = load_urdf(default_urdf_path())
+    iso = ContactIsolation()
+    iso.adopt(settings(), model)
+    f = np.array([12.0, -20.0, 8.0])
+    tau = model.jacobian(Q, 'tool0', 'local').T @ np.concatenate([f, np.cross([0.04, 0.03, 0.02], f)])
+    iso.inbox.append(('warn', 'collision', 'collision: external torque beyond collision.threshold (total 1)'))
+    iso.flush()
+    assert iso.events == []   # held until the link is decided
+    for k in range(200):
+        iso.update(k * DT, Q, tau.copy(), True, TH)
+        iso.flush()
+    lines = [text for _, key, text in iso.events if key == 'collision']
+    assert len(lines) == 1 and lines[0].startswith('collision: external torque') and "contact link 'link7'" in lines[0]
+    assert not [e for e in iso.events if e[1] == 'collision:link']
+    # the flag falls before the estimate settles: the line says so
+    iso.update(0.3, Q, tau.copy(), False, TH)
+    iso.events.clear()
+    iso.inbox.append(('warn', 'collision', 'collision: external torque beyond collision.threshold (total 2)'))
+    iso.flush()
+    iso.update(0.301, Q, tau * 0.5, True, TH)
+    iso.inbox.append(('info', 'collision:clear', 'collision flag cleared'))
+    iso.flush()
+    assert [key for _, key, _ in iso.events] == ['collision', 'collision:clear']
+    assert '(total 2); contact link not decided' in iso.events[0][2]

@@ -70,7 +70,11 @@ def test_a_push_on_the_tool_is_isolated_and_its_wrench_published(ros, oracle):
     v = ros.diag_values()
     assert v['contact_isolation'] == 'isolated' and v['contact_wrench_rank'] == '6'
     assert v['contact_tool_wrench_rank'] == '6' and v['contact_wrench_frame'] == 'tool0'
-    wait_until(lambda: any("collision at link 'link7'" in line for line in ros.logs), what='the log line')
+    # one line: the collision and the link
+    wait_until(lambda: any('beyond collision.threshold' in line and "contact link 'link7': force" in line
+                           for line in ros.logs), what='the log line')
+    wait_until(lambda: ros.diag is not None and "collision at link 'link7'" in ros.diag.message,
+               what='the link in the diagnostics message')
     # the tool wrench: every sample, the input stamps, F once the residual has settled
     assert [stamp_ns(m) for m in ros.tool] == [T0_NS + k * 1_000_000 for k in range(off)]
     assert all(m.header.frame_id == 'tool0' for m in ros.tool)

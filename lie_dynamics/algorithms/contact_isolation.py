@@ -279,11 +279,11 @@ def _point_force(model, q, r, tol, b, radius):
         out = _segment_distance(p, o, ends) - radius
         return np.append(fit(p), 1e3 * max(out, 0.0) / radius)
 
-    starts = [o] + [o + s * (e - o) for e in ends for s in (0.5, 1.0)]
+    starts = [o] + [o + 0.5 * (e - o) for e in ends]
     for x0 in starts:
         if np.all(np.abs(fit(x0)) <= 1.0):
             return True
-        p = least_squares(fun, x0, x_scale=radius, max_nfev=60).x
+        p = least_squares(fun, x0, x_scale=radius, max_nfev=30).x
         if _segment_distance(p, o, ends) <= radius * (1 + 1e-6) and np.all(np.abs(fit(p)) <= 1.0):
             return True
     return False

@@ -66,6 +66,8 @@ class ContactIsolation:
 
     def __init__(self):
         self.events = []
+        self.inbox = []             # the observer's lines (ContactMonitor.events), passed on by flush()
+        self._pending = None        # the collision line, held until the link is decided
         self.settings = self.model = None
         self.frame = ''
         self.rcond = ci.RCOND
@@ -200,18 +202,47 @@ class ContactIsolation:
         self._held = (self.wrench.inverse @ mean if link else None,
                       self.tool.inverse @ mean if self.frame else None, mean)
 
+    def flush(self):
+        """Pass the observer's lines on to `events`, the collision line once the link is decided
+        (`_log`: one line says both), or said undecided when the flag falls or the observer
+        pauses first."""
+        for event in self.inbox:
+            if self._pending is not None and event[1] in ('collision', 'collision:clear'):
+                self._say_pending('not decided: the estimate did not settle while the flag was up')
+            if event[1] == 'collision':
+                self._pending = event
+            else:
+                self.events.append(event)
+        self.inbox.clear()
+
+    def _say_pending(self, where):
+        severity, key, text = self._pending
+        self._pending = None
+        self.events.append((severity, key, clip(f'{text}; contact link {where}', 600)))
+
     def _log(self, iso):
         self.decisions += 1
         if iso.status == 'isolated':
             w = iso.wrench
-            f = float(np.linalg.norm(w.wrench[:3]))
-            text = (f"collision at link '{iso.link}': force {f:.3g} N, torque {np.linalg.norm(w.wrench[3:]):.3g} N m "
-                    f'at its origin (rank {w.rank} of 6; joints over threshold: {", ".join(iso.over)})')
+            where = (f"'{iso.link}': force {np.linalg.norm(w.wrench[:3]):.3g} N, torque "
+                     f'{np.linalg.norm(w.wrench[3:]):.3g} N m at its origin (rank {w.rank} of 6)')
         else:
-            text = f'collision, contact link ambiguous: {iso.reason}'
+            where = f'ambiguous: {iso.reason}'
             if iso.candidates:
-                text += f" (links {', '.join(repr(c) for c in iso.candidates)})"
-        self.events.append(('warn', 'collision:link', clip(text, 400)))
+                where += f" (links {', '.join(repr(c) for c in iso.candidates)})"
+        if self._pending is not None:   # the collision line, with the link
+            self._say_pending(where)
+        elif iso.status == 'isolated':
+            self.events.append(('warn', 'collision:link', clip(
+                f"collision at link {where}; joints over threshold: {', '.join(iso.over)}", 400)))
+        else:
+            self.events.append(('warn', 'collision:link', clip(f'collision, contact link {where}', 400)))
+
+    def where(self):
+        """The contact link for the diagnostics' message: " at link 'x'", ' (contact link
+        ambiguous)' or ''."""
+        iso = self.isolation
+        return '' if iso is None else f" at link '{iso.link}'" if iso.link else ' (contact link ambiguous)'
 
     def report(self, level, values):
         """(level, [(key, value)]) of the diagnostics: the link, its wrench's conditioning, the tool's."""

@@ -49,7 +49,8 @@ class ContactTopics(Feature):
 
     def use_events(self, queue):
         super().use_events(queue)
-        self.monitor.events = self.isolation.events = queue   # their lines go to the one queue too
+        self.isolation.events = queue   # its lines go to the one queue too, and the monitor's through it
+        self.monitor.events = self.isolation.inbox
 
     def check(self, settings, model):
         layout = self._core.layout   # known before the model when `joints` is set
@@ -72,9 +73,11 @@ class ContactTopics(Feature):
     def on_sample(self, s):
         m = self.monitor
         out = m.on_sample(s)
+        self.isolation.flush()   # the monitor's lines; the collision line waits for the link
         if out is None:
             if m.estimate is None:   # paused: isolation starts anew with the observer
                 self.isolation.reset()
+                self.isolation.flush()
             return
         names = s.names
         if names is not self._names:  # built when the layout changes: no position, no velocity
@@ -91,7 +94,7 @@ class ContactTopics(Feature):
             self._link_pub.publish(String(data=pub.link))
 
     def report(self, level, message):
-        level, message, values = self.monitor.report(level, message, [])
+        level, message, values = self.monitor.report(level, message, [], self.isolation.where())
         level, values = self.isolation.report(level, values)
         return level, message, values
 
