@@ -55,14 +55,18 @@ class ArmSim:
         self.applied = np.zeros(model.n)   # motor - friction of the last step
         self.motor = np.zeros(model.n)     # the clipped command of the last step
         self.external_torque = np.zeros(model.n)
-        self._external = None              # (link, wrench (6,), start, stop)
+        self._external = []                # [(link, wrench (6,), start, stop)]
 
     def set_external(self, link=None, wrench=None, start=0.0, duration=np.inf):
         """Apply `wrench` (m, f) to `link`, in the link frame, while start <= t < start + duration
-        (simulated seconds); link None removes it. Only the default integrator applies it."""
-        if link is None:
-            self._external = None
-            return
+        (simulated seconds), instead of any wrench set before; link None removes them. Only the
+        default integrator applies it."""
+        self._external = []
+        if link is not None:
+            self.add_external(link, wrench, start, duration)
+
+    def add_external(self, link, wrench, start=0.0, duration=np.inf):
+        """Another wrench, as set_external's, beside those set before (pushes in turn)."""
         if link not in self.model.link_frames:
             raise ValueError(f"unknown link '{link}' for the external wrench")
         w = np.asarray(wrench, dtype=float)
@@ -72,13 +76,14 @@ class ArmSim:
             raise ValueError(f'external wrench window must be finite and non-negative, got {start}, {duration}')
         if self.integrator != 'semi_implicit_euler':
             raise ValueError('external wrenches are applied by the semi_implicit_euler integrator only')
-        self._external = (link, w, float(start), float(start) + float(duration))
+        self._external.append((link, w, float(start), float(start) + float(duration)))
 
     def _wrenches(self):
-        e = self._external
-        if e is None or not (e[2] <= self.t + 1e-12 < e[3]):
-            return None
-        return {e[0]: e[1]}
+        out = {}
+        for link, w, start, stop in self._external:
+            if start <= self.t + 1e-12 < stop:
+                out[link] = out[link] + w if link in out else w
+        return out or None
 
     def set_command(self, tau):
         """Hold a new effort command (like ros2_control's JointGroupEffortController)."""

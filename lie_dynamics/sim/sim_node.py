@@ -8,7 +8,7 @@ Publishes   robot_description (std_msgs/String, reliable, transient local, depth
             acting at that state, i.e. the clipped held command, as a drive reports it, plus the
             sensor's offset and noise if set; header.stamp = simulated time),
             ~/external_torques_true (sensor_msgs/JointState, effort = J^T F of the external wrench,
-            while external.duration > 0: the ground truth of external-torque estimates)
+            while an external wrench is set: the ground truth of external-torque estimates)
 Subscribes  <command_topic> (std_msgs/Float64MultiArray, ordered as `joints`), held until the
             next one like JointGroupEffortController; a message of the wrong length or with a
             non-finite value is dropped with a log line (recent controllers drop them too).
@@ -80,6 +80,10 @@ PARAMETERS = (
     ('external.wrench', [0.0, 0.0, 0.0, 0.0, 0.0, 0.0], 'external wrench (m, f) in the link frame, N m and N'),
     ('external.start', 0.0, 'simulated time the external wrench starts, s'),
     ('external.duration', 0.0, 'how long it acts, s (0: never)'),
+    ('external.link2', '', 'a second external wrench, as external.*: its link (empty: none)'),
+    ('external.wrench2', [0.0, 0.0, 0.0, 0.0, 0.0, 0.0], 'the second wrench (m, f) in its link frame'),
+    ('external.start2', 0.0, 'simulated time the second wrench starts, s'),
+    ('external.duration2', 0.0, 'how long the second wrench acts, s (0: never)'),
     ('lockstep_stamped_topic', '',
      'lockstep: also wait for a trajectory_msgs/JointTrajectory stamped with the last state (empty: none)'),
     # a load the simulated arm carries but its published robot_description does not show
@@ -176,9 +180,12 @@ class SimNode(Node):
         self.effort = self.sensor.read(self.sim.held_torque)  # reported with the current state
         self.names = model.joint_names
         self.truth_pub = None
-        if v.external.link and v.external.duration > 0:
-            self.sim.set_external(v.external.link, list(v.external.wrench), v.external.start,
-                                  v.external.duration)
+        pushes = [(v.external.link, v.external.wrench, v.external.start, v.external.duration),
+                  (v.external.link2, v.external.wrench2, v.external.start2, v.external.duration2)]
+        pushes = [p for p in pushes if p[0] and p[3] > 0]
+        for link, wrench, start, duration in pushes:
+            self.sim.add_external(link, list(wrench), start, duration)
+        if pushes:
             self.truth_pub = self.create_publisher(JointState, '~/external_torques_true', 1000)
         self.desc_pub = self.create_publisher(String, 'robot_description', DESCRIPTION_QOS)
         self.desc_pub.publish(String(data=self.xml))
