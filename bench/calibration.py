@@ -42,6 +42,7 @@ import numpy as np
 from bench.signals import ENCODERS, JITTER, LOSS, RATE, trajectory
 from lie_dynamics import default_urdf_path, load_urdf
 from lie_dynamics.laws import COULOMB_VELOCITY_EPSILON, friction_torque
+from lie_dynamics.sim.calibration_demo import random_plant
 
 NOISE = 0.02                                   # the documented effort noise: 2 % of each joint's torque RMS
 # absolute effort noise, N m per joint: the calibration demo's simulated sensors (0.1 on the
@@ -58,24 +59,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def true_parameters(model, seed=0):
-    """Calibration parameters (regressor.parameter_names order) of a robot that differs from
-    its URDF: masses +-15 %, CoMs moved by 1-3 cm, inertias about the CoM scaled with the mass;
-    armature 0.05-0.3, viscous 0.1-1, Coulomb 0.1-0.8, offsets +-1 (SI units)."""
-    rng = np.random.default_rng(seed)
-    out = []
-    for b in model.inertial_parameters().reshape(model.nb, 10):
-        m, c = b[0], b[1:4] / b[0]
-        I = np.array([[b[4], b[5], b[7]], [b[5], b[6], b[8]], [b[7], b[8], b[9]]])
-        Ic = I - m * (c @ c * np.eye(3) - np.outer(c, c))
-        f = 1 + rng.uniform(-0.15, 0.15)
-        c2 = c + rng.choice([-1, 1], 3) * rng.uniform(0.01, 0.03, 3) / np.sqrt(3)
-        m2 = m * f
-        I2 = Ic * f + m2 * (c2 @ c2 * np.eye(3) - np.outer(c2, c2))
-        out += [m2, *(m2 * c2), I2[0, 0], I2[0, 1], I2[1, 1], I2[0, 2], I2[1, 2], I2[2, 2]]
-    n = model.n
-    joints = np.stack([rng.uniform(0.05, 0.3, n), rng.uniform(0.1, 1.0, n), rng.uniform(0.1, 0.8, n),
-                       rng.uniform(-1.0, 1.0, n)], axis=1)
-    return np.concatenate([out, joints.reshape(-1)])
+    """The simulated robot (sim.calibration_demo.random_plant): CoMs moved by 1-3 cm."""
+    return random_plant(model, seed, com_shift=(0.01 / np.sqrt(3), 0.03 / np.sqrt(3)))
 
 
 def true_torque(model, true, q, qd, qdd, eps=COULOMB_VELOCITY_EPSILON):

@@ -10,27 +10,14 @@ from lie_dynamics.calibration import fit as cfit
 from lie_dynamics.calibration import regressor as creg
 from lie_dynamics.laws import friction_torque
 from lie_dynamics.model.inertia import parameter_consistency
+from lie_dynamics.sim.calibration_demo import random_plant
 from oracle import Oracle
 
 
 def true_parameters(model, seed=0):
-    """A robot that differs from its URDF: masses +-15 %, CoMs moved by 1-2 cm, inertias about
-    the CoM scaled with the mass, and armature, friction and offsets of its own."""
-    rng = np.random.default_rng(seed)
-    out = []
-    for b in model.inertial_parameters().reshape(model.nb, 10):
-        m, c = b[0], b[1:4] / b[0]
-        I = np.array([[b[4], b[5], b[7]], [b[5], b[6], b[8]], [b[7], b[8], b[9]]])
-        Ic = I - m * (c @ c * np.eye(3) - np.outer(c, c))
-        f = 1 + rng.uniform(-0.15, 0.15)
-        c2 = c + rng.choice([-1, 1], 3) * rng.uniform(0.01, 0.02, 3)
-        m2 = m * f
-        I2 = Ic * f + m2 * (c2 @ c2 * np.eye(3) - np.outer(c2, c2))
-        out += [m2, *(m2 * c2), I2[0, 0], I2[0, 1], I2[1, 1], I2[0, 2], I2[1, 2], I2[2, 2]]
-    n = model.n
-    joints = np.stack([rng.uniform(0.05, 0.3, n), rng.uniform(0.1, 1.0, n), rng.uniform(0.1, 0.8, n),
-                       rng.uniform(-1.0, 1.0, n)], axis=1)
-    return np.concatenate([out, joints.reshape(-1)])
+    """A robot that differs from its URDF (sim.calibration_demo.random_plant): CoMs moved by 1-2 cm
+    per coordinate, armature, friction and offsets of its own."""
+    return random_plant(model, seed, com_shift=(0.01, 0.02))
 
 
 def measured(model, true, q, qd, qdd, eps=0.05):

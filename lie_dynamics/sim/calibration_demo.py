@@ -73,6 +73,27 @@ def plant_calibration(model):
                              std=np.full(k, np.nan), source=['identified'] * k)
 
 
+def random_plant(model, seed=0, com_shift=(0.01, 0.02)):
+    """Calibration parameters (calibration.regressor.parameter_names order) of a random robot
+    that differs from `model`, its URDF: masses +-15 %, each CoM coordinate moved by
+    com_shift[0]..com_shift[1] m with a random sign, inertias about the CoM scaled with the mass;
+    per joint armature 0.05-0.3, viscous 0.1-1, Coulomb 0.1-0.8, offset +-1 (SI units). Seeded:
+    the tests' and the calibration benchmark's simulated robots."""
+    from ..calibration.result import parameters_of, physical
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for b in model.inertial_parameters().reshape(model.nb, 10):
+        m, c, i = physical(b)
+        f = 1 + rng.uniform(-0.15, 0.15)
+        c2 = c + rng.choice([-1, 1], 3) * rng.uniform(*com_shift, 3)
+        out.append(parameters_of(m * f, c2, i * f))
+    n = model.n
+    joints = np.stack([rng.uniform(0.05, 0.3, n), rng.uniform(0.1, 1.0, n), rng.uniform(0.1, 0.8, n),
+                       rng.uniform(-1.0, 1.0, n)], axis=1)
+    return np.concatenate([np.ravel(out), joints.reshape(-1)])
+
+
 def sim_params(plant_file):
     return {'calibration_file': plant_file, 'coulomb_friction': 'true',
             'effort_noise': ros_array(PLANT['noise']), 'noise_seed': str(PLANT['seed'])}
