@@ -6,8 +6,9 @@ depends on a state is one `lie_v` (LANES doubles), a node of parameters and cons
 stays one `double`, computed once for the LANES states. The operations are those of the
 one-state rendering (crender.py), in the same order with the same constants (render.form_text);
 vector arithmetic is IEEE arithmetic lane by lane, sin, cos and sqrt are the C library's on
-each lane, and -ffp-contract=off forbids fused operations: every lane equals the one-state
-kernel's result to the bit.
+each lane (sincos where a node has both: the same functions, one argument reduction, as gcc
+makes of the one-state kernel's sin and cos), and -ffp-contract=off forbids fused operations:
+every lane equals the one-state kernel's result to the bit.
 
     void NAME(const double *const *in, const double *const *par, double *out)
 
@@ -25,7 +26,8 @@ from .render import form_text
 
 LANES = 4
 
-_HEAD = f'''#include <math.h>
+_HEAD = f'''#define _GNU_SOURCE
+#include <math.h>
 #include <string.h>
 typedef double lie_v __attribute__((vector_size({8 * LANES}), aligned(8)));
 #if defined(__x86_64__) && defined(__linux__) && defined(__has_attribute)
@@ -41,6 +43,8 @@ typedef double lie_v __attribute__((vector_size({8 * LANES}), aligned(8)));
 LIE_LANEWISE(lie_vsin, sin)
 LIE_LANEWISE(lie_vcos, cos)
 LIE_LANEWISE(lie_vsqrt, sqrt)
+static inline void lie_vsincos(lie_v a, lie_v *s, lie_v *c)
+  {{ for (int k = 0; k < {LANES}; ++k) sincos(a[k], &(*s)[k], &(*c)[k]); }}
 static inline lie_v lie_bc(double x) {{ lie_v r = {{{', '.join(['x'] * LANES)}}}; return r; }}
 '''
 
@@ -75,9 +79,20 @@ def emit_lanes(g, fname, arg_lists, roles, outputs, index=None, size=None):
     lines = [f'LIE_CLONES void {fname}(const double *const *in, const double *const *par, double *out)', '{']
     lines += [f'  const double *{arr}{k} = {arr}[{k}]; (void){arr}{k};'
               for role, arr in (('state', 'in'), ('param', 'par')) for k in range(ks[role])]
+    both = {}   # argument -> its sin and cos nodes: one sincos call (glibc's sin and cos, one reduction)
+    for i in sorted(live):
+        op, data = g.nodes[i]
+        if op in ('sin', 'cos') and vec[i]:
+            both.setdefault(data, {})[op] = i
+    both = {a: d for a, d in both.items() if len(d) == 2}
     for i in sorted(live):
         op, data = g.nodes[i]
         if op == 'in':
+            continue
+        if op in ('sin', 'cos') and data in both:
+            if i == min(both[data].values()):
+                si, ci = both[data]['sin'], both[data]['cos']
+                lines.append(f'  lie_v t{si}, t{ci}; lie_vsincos({ref(data, 0)}, &t{si}, &t{ci});')
             continue
         if op == 'mul':
             s = f'{ref(data[0], 3)}*{ref(data[1], 3)}'
