@@ -43,8 +43,12 @@ typedef double lie_v __attribute__((vector_size({8 * LANES}), aligned(8)));
 LIE_LANEWISE(lie_vsin, sin)
 LIE_LANEWISE(lie_vcos, cos)
 LIE_LANEWISE(lie_vsqrt, sqrt)
+#ifdef __GLIBC__
 static inline void lie_vsincos(lie_v a, lie_v *s, lie_v *c)
   {{ for (int k = 0; k < {LANES}; ++k) sincos(a[k], &(*s)[k], &(*c)[k]); }}
+#else
+static inline void lie_vsincos(lie_v a, lie_v *s, lie_v *c) {{ *s = lie_vsin(a); *c = lie_vcos(a); }}
+#endif
 static inline lie_v lie_bc(double x) {{ lie_v r = {{{', '.join(['x'] * LANES)}}}; return r; }}
 '''
 
