@@ -1,5 +1,7 @@
 """Native batches across states (codegen/clanes.py), their threads, and `out` buffers."""
+import copy
 import glob
+import inspect
 import os
 import sys
 import warnings
@@ -133,3 +135,32 @@ def test_out_good_and_bad_buffers(single):
     with pytest.raises(ValueError, match='^out must be'):
         model.mass_matrix(q, out=np.empty(shape))
 
+
+
+def test_methods_run_the_kernel_from_c_and_follow_each_model():
+    """model.inverse_dynamics and model.gravity are C methods (dispatch.native_first): they
+    follow a model's setters, several models in turn, use_native and the runtime's clear."""
+    model, _ = _model('arm7')
+    other = copy.deepcopy(model)
+    q, qd, qdd = (x[0] for x in _states(model, 1, seed=8))
+    tau = model.inverse_dynamics(q, qd, qdd)
+    assert type(inspect.getattr_static(model, 'inverse_dynamics')).__name__ == 'Method'
+    assert 'RNEA' in type(model).inverse_dynamics.__doc__
+    oracle = Oracle(_xml('arm7'))
+    other.set_gravity([0.0, 0.0, -3.0])
+    other_oracle = Oracle(_xml('arm7'), gravity=(0.0, 0.0, -3.0))
+    for _ in range(2):   # in turn: each call finds its own model's kernel
+        assert _rel(model.inverse_dynamics(q, qd, qdd), oracle.rnea(q, qd, qdd)) <= TOL
+        assert _rel(other.inverse_dynamics(q, qd, qdd), other_oracle.rnea(q, qd, qdd)) <= TOL
+        assert _rel(other.gravity(q), other_oracle.gravity(q)) <= TOL
+    other.set_gravity(model.gravity_vector)   # a setter bumps the version
+    assert np.array_equal(other.inverse_dynamics(q, qd, qdd), tau)
+    runtime.use_native(other, False)
+    assert _rel(other.inverse_dynamics(q, qd, qdd), tau) <= TOL
+    assert runtime.native(other, t_rnea.INVERSE_DYNAMICS) is None
+    runtime.clear()
+    assert np.array_equal(model.inverse_dynamics(q, qd, qdd), tau)
+    with pytest.raises(ValueError, match='qdd'):
+        model.inverse_dynamics(q, qd, qdd[:-1])
+    with pytest.raises(ValueError, match='q'):
+        model.gravity(np.full_like(q, np.nan))

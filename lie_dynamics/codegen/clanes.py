@@ -42,7 +42,6 @@ typedef double lie_v __attribute__((vector_size({8 * LANES}), aligned(8)));
   {{ lie_v r; for (int k = 0; k < {LANES}; ++k) r[k] = F(a[k]); return r; }}
 LIE_LANEWISE(lie_vsin, sin)
 LIE_LANEWISE(lie_vcos, cos)
-LIE_LANEWISE(lie_vsqrt, sqrt)
 #ifdef __GLIBC__
 static inline void lie_vsincos(lie_v a, lie_v *s, lie_v *c)
   {{ for (int k = 0; k < {LANES}; ++k) sincos(a[k], &(*s)[k], &(*c)[k]); }}
@@ -118,4 +117,6 @@ def emit_lanes(g, fname, arg_lists, roles, outputs, index=None, size=None):
             txt = f'lie_bc({_literal(o)})'
         slot = k if index is None else int(index[k])
         lines.append(f'  *(lie_v *)(out + {LANES * slot}) = {txt};')
-    return _HEAD + '\n'.join(lines + ['}']) + '\n'
+    fns = sorted({g.nodes[i][0] for i in live if vec[i]} - {'in', 'mul', 'inv', 'lin', 'sin', 'cos'})
+    lanewise = [f'LIE_LANEWISE(lie_v{op}, {op})' for op in fns]   # sqrt, tanh, ...: the C library's, lane by lane
+    return _HEAD + '\n'.join(lanewise + lines + ['}']) + '\n'

@@ -8,7 +8,10 @@ the Python kernels, whose results are the same to rounding.
 Compiler: $CC, else the compiler Python was built with, else `cc`; flags FLAGS for the call
 path, KERNEL_FLAGS for the kernels (no -ffast-math, -ffp-contract=off: the C kernels compute
 what the Python kernels compute, operation for operation). A kernel's C text of several
-translation units (crender.py) is compiled on every usable core and linked once.
+translation units (crender.py) is compiled on every usable core and linked once. No -march:
+the cache is per machine, but a home folder (and its cache) may move to another CPU; the
+kernels across states (clanes.py) get their AVX2 form through `target_clones`, which the
+loader picks by the CPU it runs on, with the baseline beside it.
 
 Cache: disk_cache.py (named by a hash of everything that determines a file, checked before
 loading, bounded); a cached kernel loads without being traced.
@@ -223,6 +226,13 @@ def module():
         _unavailable(_STATE['error'])
         return None
     return _STATE['module']
+
+
+def invalidate():
+    """Every native-first method (dispatch.native_first) resolves its kernel again: the runtime
+    forgot kernels or changed a model's switch (cache.clear, forget, use_native)."""
+    if _STATE['module'] is not None:
+        _STATE['module'].invalidate()
 
 
 def _unavailable(msg):

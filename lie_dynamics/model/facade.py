@@ -10,6 +10,7 @@ import numpy as np
 
 from ..algorithms import aba, aba_derivatives, crba, jacobian, lagrangian, regressor, rnea, rnea_derivatives
 from ..codegen import runtime
+from ..codegen.traced import rnea as traced_rnea
 
 
 def _jointless(states, *shapes):
@@ -43,6 +44,7 @@ def _empty(states, shapes, model, given):
 class Algorithms:
     """The algorithm methods of `model.Model` (a mixin: the data and setters live there)."""
 
+    @runtime.native_first(traced_rnea.INVERSE_DYNAMICS, 3)   # (q, qd, qdd[, out=]) straight from C
     @_jointless(('q', 'qd', 'qdd'), (0,))
     def inverse_dynamics(self, q, qd, qdd, wrenches=None, with_gravity=True, out=None):
         """tau = M(q) qdd + C(q, qd) qd + g(q) - J^T F_ext: the Lie-group RNEA (paper eqs 16-21).
@@ -53,6 +55,7 @@ class Algorithms:
         """
         return rnea.inverse_dynamics(self, q, qd, qdd, wrenches, with_gravity, out)
 
+    @runtime.native_first(traced_rnea.GRAVITY, 1)
     @_jointless(('q',), (0,))
     def gravity(self, q, out=None):
         """Gravity compensation torques g(q) (RNEA with V = 0, Vdot_0 = (0, -g)); out: as inverse_dynamics."""
