@@ -15,6 +15,7 @@ ratios:
     rneaInParallel with two threads (N = 10,000).
 Writes DIR/calls.{md,csv,json}.
 """
+import gc
 import os
 import sys
 import time
@@ -33,7 +34,8 @@ ROBOTS = (('UR5', 'ur_description/urdf/ur5_robot.urdf', None),
 
 
 def _timed(fns, rounds, target):
-    """{key: seconds per call, one per round}: rounds interleaved, each the best of REPEATS."""
+    """{key: seconds per call, one per round}: rounds interleaved, each the best of REPEATS (the
+    garbage collector off while timing, as timeit)."""
     calls = {k: common.calibrate(f, target / REPEATS) for k, f in fns.items()}
     t = {k: np.empty(rounds) for k in fns}
     for r in range(rounds):
@@ -41,11 +43,15 @@ def _timed(fns, rounds, target):
         for k in keys:
             f, n = fns[k], calls[k]
             best = np.inf
-            for _ in range(REPEATS):
-                t0 = time.perf_counter()
-                for _ in range(n):
-                    f()
-                best = min(best, time.perf_counter() - t0)
+            gc.disable()   # as timeit
+            try:
+                for _ in range(REPEATS):
+                    t0 = time.perf_counter()
+                    for _ in range(n):
+                        f()
+                    best = min(best, time.perf_counter() - t0)
+            finally:
+                gc.enable()
             t[k][r] = best / n
     return t
 

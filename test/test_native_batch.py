@@ -123,6 +123,15 @@ def test_out_good_and_bad_buffers(single):
         args = {'q': q.copy(), 'qd': qd.copy(), 'qdd': qdd.copy()}
         got = model.inverse_dynamics(**args, out=args[alias])
         assert got is args[alias] and np.array_equal(got, want)
+    if not single:   # out overlapping an input shifted by a row: computed first, then written
+        buf = np.concatenate([q, np.zeros((1, n))])
+        shifted = buf[1:]
+        got = model.inverse_dynamics(buf[:-1], qd, qdd, out=shifted)
+        assert got is shifted and np.array_equal(got, want)
+        mbuf = np.zeros((len(q) * n + 1, n))
+        mbuf[:len(q)] = q
+        assert np.allclose(model.mass_matrix(mbuf[:len(q)], out=mbuf[:len(q) * n].reshape(len(q), n, n)),
+                           model.mass_matrix(q), rtol=0, atol=1e-12)
     readonly = np.empty(shape)
     readonly.flags.writeable = False
     bad = [np.empty(shape, np.float32), np.empty(shape[:-1] + (n + 1,)), np.empty((2,) + shape), readonly,

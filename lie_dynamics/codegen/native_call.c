@@ -230,6 +230,15 @@ static PyObject *bound_call(PyObject *self, PyObject *const *args, size_t nargsf
         npy_intp *d = PyArray_DIMS((PyArrayObject *)out);
         if ((lead && d[0] != N) || d[lead] != b->out_dims[0] || (b->out_nd == 2 && d[lead + 1] != b->out_dims[1]))
             Py_RETURN_NONE;
+        if (lead) {   /* a batch writes state by state: out may be an input only row for row */
+            char *o = PyArray_BYTES((PyArrayObject *)out);
+            size_t on = sizeof(double) * (size_t)N * (size_t)b->n_res;
+            for (int i = 0; i < b->n_in; ++i) {
+                size_t in_n = sizeof(double) * (size_t)N * (size_t)b->width[i];
+                if (data[i] < o + on && o < data[i] + in_n && (data[i] != o || b->width[i] != b->n_res))
+                    Py_RETURN_NONE;   /* the full path computes, then writes */
+            }
+        }
         Py_INCREF(out);
     } else {
         npy_intp dims[3] = {N, b->out_dims[0], b->out_dims[1]};
