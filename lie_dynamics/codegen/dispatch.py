@@ -198,7 +198,7 @@ class native_first:
     native kernel straight from C for model.NAME(*states) and model.NAME(*states, out=buf),
     and the Python method for every other call and whenever the kernel declines. About
     0.3 us less than the Python fast path on a one-state call (three Python frames).
-    Installed on first use (the backend is built then); without it, the Python method."""
+    Installed on first use with the backend (built then); without it, the Python method."""
 
     def __init__(self, spec, n_state):
         self.spec, self.n_state = spec, n_state
@@ -213,7 +213,9 @@ class native_first:
 
     def __get__(self, obj, cls=None):
         mod = _native.module()
-        impl = mod.method(self.method, functools.partial(_resolve, self.spec), self.n_state) if mod else self.method
+        if mod is None:   # asked again next time: the backend may be switched on later in the process
+            return self.method.__get__(obj, cls)
+        impl = mod.method(self.method, functools.partial(_resolve, self.spec), self.n_state)
         if self.owner.__dict__.get(self.name) is self:
             setattr(self.owner, self.name, impl)
         return impl.__get__(obj, cls)
