@@ -11,6 +11,7 @@ import pytest
 
 from lie_dynamics import load_urdf
 from lie_dynamics.codegen import clanes, native, runtime
+from lie_dynamics.codegen.traced import crba as t_crba
 from lie_dynamics.codegen.traced import rnea as t_rnea
 from oracle import Oracle
 
@@ -70,8 +71,6 @@ def test_lanes_equal_the_one_state_kernel_and_pinocchio(name):
         g = model.gravity(q)
         assert np.array_equal(g, np.array([model.gravity(x) for x in q]))
         assert _rel(g, np.array([oracle.gravity(x) for x in q])) <= TOL
-        M = model.mass_matrix(q)   # a kernel with scattered outputs
-        assert np.array_equal(M, np.array([model.mass_matrix(x) for x in q]))
 
 
 def test_threads_give_identical_results():
@@ -173,3 +172,18 @@ def test_methods_run_the_kernel_from_c_and_follow_each_model():
         model.inverse_dynamics(q, qd, qdd[:-1])
     with pytest.raises(ValueError, match='q'):
         model.gravity(np.full_like(q, np.nan))
+
+
+def test_lanes_of_a_kernel_with_scattered_outputs(tmp_path, monkeypatch):
+    """The mass matrix (outputs scattered into n x n) rendered across states when asked for."""
+    monkeypatch.setenv('LIE_DYNAMICS_CACHE_DIR', str(tmp_path / 'cache'))
+    monkeypatch.setattr(clanes, 'FAMILIES', clanes.FAMILIES + ('mass_matrix',))
+    runtime.clear()
+    try:
+        model, _ = _model('arm7')
+        assert runtime.kernel(model, t_crba.MASS_MATRIX).native().lanes_address
+        q, _, _ = _states(model, 2 * clanes.LANES + 1, seed=9)
+        assert np.array_equal(model.mass_matrix(q), np.array([model.mass_matrix(x) for x in q]))
+        assert _rel(model.mass_matrix(q), np.array([Oracle(_xml('arm7')).crba(x) for x in q])) <= TOL
+    finally:
+        runtime.clear()

@@ -25,6 +25,11 @@ is copied to. Elsewhere the compiler's baseline vectors.
 from .render import form_text
 
 LANES = 4
+# The kernels rendered across states too (kernel.Kernel's name): the form costs 2-4x the kernel's
+# compile time at first use (two clones and the one-state form: inverse dynamics of the arm
+# 0.5 -> 1.9 s, forward dynamics 0.9 -> 3.1 s on a loaded machine), paid where batches are the
+# use: inverse dynamics (trajectories, identification) and gravity.
+FAMILIES = ('inverse_dynamics', 'inverse_dynamics_wrench', 'gravity')
 
 _HEAD = f'''#define _GNU_SOURCE
 #include <math.h>

@@ -183,7 +183,7 @@ class Kernel:
             return None
         index, size = t.scatter if t.scatter else (None, None)
         src = crender.emit_c(t.graph, 'lie_kernel', t.arguments, t.roles, t.outputs, index, size)
-        if len(t.graph.live(t.outputs)[1]) <= THRESHOLDS['native_lanes_nodes']:   # batches, clanes.LANES at once
+        if self.name in clanes.FAMILIES and len(t.graph.live(t.outputs)[1]) <= THRESHOLDS['native_lanes_nodes']:
             src += _native.UNIT + clanes.emit_lanes(t.graph, 'lie_kernel_lanes', t.arguments, t.roles, t.outputs,
                                                     index, size)
         _BUILDS[0] += 1
