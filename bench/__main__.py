@@ -1,7 +1,7 @@
 """All benchmarks in one command: tables (Markdown + CSV/JSON) and PNG charts in one folder.
 
     python -m bench [--quick] [--out DIR] [--only core,calls,lagrangian,accuracy,scaling,stability,robots,node,payload,
-                     observer,contact,jacobian,compile,signals] [--docs-img DIR]
+                     observer,contact,jacobian,compile,signals,calibration] [--docs-img DIR]
     make bench ARGS="--quick"
 
 Sections (each writes its own files into DIR, default bench/out/):
@@ -32,6 +32,9 @@ Sections (each writes its own files into DIR, default bench/out/):
               cache, call time cut into parts against one function (bench/compile.py)
   signals     calibration signals: q̇, q̈ and effort error against the low-pass cutoff, a
               dropout's length and the distance from a segment's end (bench/signals.py)
+  calibration identify_dynamics: held-out torque prediction error against effort noise, recording
+              length and decimation, gated at 3 % with 2 % noise; the identify_dynamics command's
+              run time on a 60 s, 1 kHz recording (bench/calibration.py)
 --quick shortens everything (a smoke test runs it); the full run takes a few minutes.
 --docs-img copies the PNG charts, palette-compressed, to DIR (docs/img: the copies docs/benchmarks.md shows).
 A failing section is reported and the others still run; the exit status is then 1.
@@ -46,7 +49,7 @@ import traceback
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 SECTIONS = ('core', 'calls', 'lagrangian', 'accuracy', 'scaling', 'stability', 'robots', 'node', 'payload', 'observer',
-            'contact', 'jacobian', 'compile', 'signals')
+            'contact', 'jacobian', 'compile', 'signals', 'calibration')
 
 
 def _core(quick, out):
@@ -122,6 +125,18 @@ def _signals(quick, out):
     signals.run(quick=quick, out=out)
 
 
+def _calibration(quick, out):
+    from bench import calibration
+    rows, status, ok = calibration.run(quick=quick, out=out)
+    print(calibration.markdown(rows, status))
+    text, _ = calibration.identify_time(repeats=1 if quick else 3)
+    print(text)
+    with open(os.path.join(out, 'calibration.md'), 'a', encoding='utf-8') as fh:
+        fh.write('\n' + text + '\n')
+    if not ok:
+        raise RuntimeError(status)
+
+
 def _small_copy(src, dst):
     """Copy a chart for committing: a 128-colour palette PNG is ~3x smaller and looks the same."""
     try:
@@ -137,7 +152,7 @@ def _small_copy(src, dst):
 RUNNERS = {'core': _core, 'calls': _calls, 'lagrangian': _lagrangian, 'accuracy': _accuracy, 'scaling': _scaling,
            'stability': _stability, 'robots': _robots, 'node': _node, 'payload': _payload,
            'observer': _observer, 'contact': _contact, 'jacobian': _jacobian,
-           'compile': _compile, 'signals': _signals}
+           'compile': _compile, 'signals': _signals, 'calibration': _calibration}
 
 
 def main(argv=None):

@@ -13,12 +13,13 @@ direction, a pure force of 1x to 5x its threshold equivalent force (the force at
 loaded joint reaches its threshold at q0), from t = 0.1 s for PUSH_S s. The observer and the
 decisions are the node's own plain-Python parts (features/contact.py ContactMonitor,
 features/contact_link.py ContactIsolation) with the default gain, hold time and rcond.
-  * isolation, literal and strict (contact.strict_isolation), from one run of the observer:
+  * isolation, default and strict (contact.strict_isolation), from one run of the observer:
     right (the link named at the end of the push is the pushed link's body link), ambiguous
     ('' at the end, the flag up), wrong (any link other than that one named at any time of the
     push), by multiple of the threshold force;
   * identification, links with 6 or more supporting joints: force error (% of |F|) of the wrench
-    at the pushed body's link at the end of the push, and the distance of its line of action
+    at the pushed body's link at the end of the push (from ContactIsolation.residual: the mean
+    over the settled stretch), and the distance of its line of action
     from the pushed point;
   * the tool frame: a force at the tool's origin plus a torque, the tool wrench's force and
     torque errors;
@@ -50,7 +51,7 @@ DT = 1e-3
 THRESHOLD_SCALE = 0.03     # threshold_j = this x effort limit_j
 NOISE = 0.05               # effort noise, x threshold_j
 START, PUSH_S, AFTER_S = 0.1, 0.4, 0.1
-MODES = ('literal', 'strict')   # contact.strict_isolation false, true
+MODES = ('default', 'strict')   # contact.strict_isolation false, true
 HOLD_KP = 3.0              # the hold's stiffness, N m/rad per N m of effort limit (critically damped)
 ERD = next(iter(glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-packages', 'cmeel.prefix', 'share',
                                        'example-robot-data', 'robots'))), None)
@@ -100,7 +101,7 @@ def body_link(model, link):
 
 
 def simulate(model, settings, q0, link, wrench_mf, rng, noise, tool=''):
-    """Run one push: for each isolation mode (literal, strict) the links named during the push and
+    """Run one push: for each isolation mode (default, strict) the links named during the push and
     the decision at its end; whether the flag rose; the last sample of the push (q, r, tool wrench)."""
     s = settings.replace({'contact.wrench_frame': tool})
     th = np.asarray(s.collision.threshold)
@@ -111,7 +112,7 @@ def simulate(model, settings, q0, link, wrench_mf, rng, noise, tool=''):
     for mode in MODES:
         isos[mode] = ContactIsolation()
         isos[mode].adopt(s.replace({'contact.strict_isolation': mode == 'strict',
-                                    'contact.wrench_frame': tool if mode == 'literal' else ''}), model)
+                                    'contact.wrench_frame': tool if mode == 'default' else ''}), model)
     sim = ArmSim(model, DT, q0=q0, limits=False)   # no stops: their impulses would be contact too
     sim.set_external(link, wrench_mf, START, PUSH_S)
     kp, kd = hold_gains(model, q0)
@@ -127,8 +128,8 @@ def simulate(model, settings, q0, link, wrench_mf, rng, noise, tool=''):
                 for m, pub in pubs.items():
                     if pub.link:
                         named[m].add(pub.link)
-                last = (sim.q.copy(), out[0].copy(), {m: iso.isolation for m, iso in isos.items()},
-                        pubs['literal'].tool)
+                last = (sim.q.copy(), isos['default'].residual.copy(), {m: iso.isolation for m, iso in isos.items()},
+                        pubs['default'].tool)
         sim.set_command(model.gravity(sim.q) + kp * (q0 - sim.q) - kd * sim.qd)
         sim.step()
     return {'named': named, 'flagged': flagged, 'last': last}
@@ -255,7 +256,7 @@ def _cost_messages(model, n, push):
     from sensor_msgs.msg import JointState
     rng = np.random.default_rng(3)
     q0 = np.array([0.0, -0.6, 0.0, 2.0, 0.0, 1.6, 0.8])
-    th = np.asarray(settings_for(model)['collision.threshold'])
+    th = np.asarray(settings_for(model).collision.threshold)
     sim = ArmSim(model, DT, q0=q0)
     if push:
         f = np.array([12.0, -20.0, 8.0])    # at (4, 3, 2) cm in tool0: isolated at link7 (test_node_contact_link.py)
@@ -293,7 +294,7 @@ def node_cost(rounds, per_round):
             for k, name in enumerate(cases):
                 params = {'urdf_path': default_urdf_path(), 'friction.viscous': model.damping.tolist(),
                           'friction.coulomb': [0.0], 'stale_timeout': 60.0,
-                          'collision.threshold': s['collision.threshold'],
+                          'collision.threshold': list(s.collision.threshold),
                           'contact.wrench_frame': 'tool0' if 'tool' in name else ''}
                 nodes[name] = DynamicsNode(f'contact_bench_{k}', context=ctx,
                                            parameter_overrides=[Parameter(p, value=v) for p, v in params.items()])

@@ -21,6 +21,7 @@ from lie_dynamics import load_urdf
 from lie_dynamics.algorithms import aba, aba_derivatives, crba, lagrangian, observer, rnea
 from lie_dynamics.algorithms.identification import identify
 from lie_dynamics.codegen import kernel, native, runtime
+from lie_dynamics.codegen.traced import aba as traced_aba
 from lie_dynamics.codegen.traced import observer as observer_kernel
 from lie_dynamics.codegen.traced import rnea as traced_rnea
 from oracle import Oracle
@@ -284,6 +285,34 @@ def test_set_armature_takes_effect_without_recompiling():
     assert _rel(model.mass_matrix(q[0]), oracle.crba(q[0])) < RTOL
     if NATIVE:
         assert runtime.native(model, traced_rnea.INVERSE_DYNAMICS) is not None   # still the C kernel
+
+
+@pytest.mark.parametrize('backend', BACKENDS)
+@pytest.mark.parametrize('name', ['arm7', 'tree12', 'mixed_types'])
+def test_aba_switches_to_the_rigid_kernel_while_the_armature_is_zero(name, backend):
+    """forward_dynamics(method='aba') runs the rigid variant (the armature folded away as the
+    constant 0.0) while the armature is all zero and the armature kernel otherwise: zero, non-zero
+    and zero again, each against pin.aba with model.armature set, every path, one state and a
+    batch, with and without wrenches (against the Cholesky method)."""
+    model, oracle, arm = _setup(name, backend)
+    q, qd, tau = _states(model, 12, seed=4)
+    fext = {model.body_link_names[-1]: np.array([0.3, -0.2, 0.1, 2.0, -1.0, 0.5])}
+    for values, spec in ((np.zeros(model.n), traced_aba.ABA_RIGID), (arm, traced_aba.ABA),
+                         (np.zeros(model.n), traced_aba.ABA_RIGID)):
+        model.set_armature(values)
+        _pin_armature(oracle, values)
+        assert traced_aba.spec(model) is spec and traced_aba.spec(model, True) is {
+            traced_aba.ABA_RIGID: traced_aba.ABA_WRENCH_RIGID, traced_aba.ABA: traced_aba.ABA_WRENCH}[spec]
+        ref = np.array([oracle.aba(*s) for s in zip(q, qd, tau)])
+        assert _rel(model.forward_dynamics(q, qd, tau, method='aba'), ref) < RTOL
+        assert _rel(model.forward_dynamics(q[3], qd[3], tau[3], method='aba'), ref[3]) < RTOL
+        for mode in ('loop', 'rows'):
+            assert _rel(aba.aba_kernel(model, q, qd, tau, mode=mode), ref) < RTOL
+        if backend == 'native':
+            assert runtime.native(model, spec) is not None
+        with_wrench = model.forward_dynamics(q, qd, tau, wrenches=fext, method='aba')
+        assert _rel(with_wrench, model.forward_dynamics(q, qd, tau, wrenches=fext)) < RTOL
+        assert not np.allclose(with_wrench, ref)
 
 
 def test_setter_validation_and_read_only():

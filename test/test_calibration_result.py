@@ -11,6 +11,7 @@ from lie_dynamics import load_urdf
 from lie_dynamics.algorithms.identification import excitation_trajectory
 from lie_dynamics.calibration import CalibrationResult, identify_dynamics, load_calibration, rewrite_urdf, write_report
 from lie_dynamics.calibration import regressor as creg
+from lie_dynamics.calibration.signals import OVERSAMPLE
 from lie_dynamics.model.inertia import parameter_consistency
 from test_calibration_fit import measured, true_parameters
 
@@ -166,8 +167,10 @@ def test_identify_dynamics_filters_a_recording_on_a_uniform_grid(arm):
     c = identify_dynamics(arm, t, q, measured(arm, true, q, qd, qdd))
     rep = c.report
     assert rep['cutoff'] > 0 and rep['rate'] == pytest.approx(200.0)
-    # measured 3-8 % of the effort RMS: the low-pass smooths the Coulomb term's steps in the efforts
-    assert np.all(rep['rms_after'] < 0.1 * rep['rms_effort'])
+    # measured 0.07-0.7 % of the effort RMS (3-8 % while the Coulomb column was tanh of the filtered
+    # q̇: the low-pass rounds off the Coulomb steps in the efforts, so the column is low-passed too)
+    assert np.all(rep['rms_after'] < 0.015 * rep['rms_effort'])
+    assert rep['step'] == int(200.0 / (OVERSAMPLE * rep['cutoff']))   # decimated after filtering
     assert np.all(rep['rms_after'] < rep['rms_before'])
     assert all(ok for ok, _ in parameter_consistency(c.inertial))
 
@@ -199,3 +202,14 @@ def test_identify_dynamics_command(arm, tmp_path):
     bad = _cli(['rec.csv', '--urdf', ARM, '-o', 'x.yaml', '--joints', 'joint1,joint9'], tmp_path)
     assert bad.returncode == 2 and bad.stderr.count('\n') == 1 and bad.stderr.startswith('identify_dynamics: error:')
     assert 'joint9' in bad.stderr and not (tmp_path / 'x.yaml').exists()
+
+
+def test_held_out_error_of_a_noisy_irregular_recording(arm):
+    """bench.calibration's recording (true parameters off the URDF, 1 kHz with jitter and lost
+    samples, a 17-bit encoder, effort noise 2 % of each joint's torque RMS), 20 s: the calibrated
+    model's held-out torque error at the true states (the benchmark measured 0.30 % of the worst
+    joint's torque RMS and 0.07 % pooled; the target is 3 %)."""
+    from bench.calibration import NOISE, one
+    r = one(arm, NOISE, 20.0, 0)
+    assert np.max(r['after']) < 0.015 and r['pooled'] < 0.005
+    assert np.min(r['before']) > 10 * np.max(r['after'])

@@ -53,6 +53,22 @@ def test_derivatives_of_a_quantised_noisy_irregular_recording():
     assert s.t[-1] == pytest.approx(t[-1] - trim, abs=2.0 / s.rate)
 
 
+def test_decimation_keeps_every_step_th_sample_and_terms_are_filtered_like_efforts():
+    """oversample keeps every step-th sample of the filtered grid (the same values); `terms` are
+    evaluated on the filtered state and low-passed by the efforts' filter: a term equal to a
+    torque linear in the state comes out as the filtered effort of that torque."""
+    t, q, _, e = recorded(noise=0.0, quantum=1e-12, jitter=0.0, loss=0.0)
+    full = prepare(t, q, e, harmonic=0.5)
+    s = prepare(t, q, e, harmonic=0.5, oversample=10.0, terms=lambda q_, qd_, qdd_: effort_of(q_, qd_, qdd_))
+    assert s.step == int(500.0 / (10.0 * s.cutoff)) > 1 and s.rate == pytest.approx(full.rate / s.step)
+    assert np.array_equal(s.t, full.t[::s.step]) and np.array_equal(s.qdd, full.qdd[::s.step])
+    assert np.allclose(np.diff(s.t), 1.0 / s.rate, rtol=1e-9)
+    assert full.terms is None and s.terms.shape == s.effort.shape
+    assert rel(s.terms - s.effort, s.effort) < 1e-3
+    with pytest.raises(ValueError, match='oversample'):
+        prepare(t, q, e, harmonic=0.5, oversample=0.0)
+
+
 def test_filtered_effort_and_state_keep_their_relation():
     """The same zero-phase filter on positions and efforts: a torque linear in the state stays that
     function of the filtered state, even with a cutoff that visibly attenuates the signal."""

@@ -82,8 +82,9 @@ def _expected_support(model):
 
 
 def _rigid_root(model, support, b):
-    """The body whose link names a contact on body b: up while a body adds no controlled joint."""
-    while model.parent[b] >= 0 and (support[b] == support[model.parent[b]]).all():
+    """The body whose link names a contact on body b: up while no controlled joint (nor a mimic of
+    one) moves the body's own joint (a locked joint)."""
+    while model.parent[b] >= 0 and not (model.E[b] != 0).any():
         b = model.parent[b]
     return b
 
@@ -204,14 +205,15 @@ def test_two_contacts_are_ambiguous_never_guessed():
         assert one.status == 'isolated' and one.link == 'link7'
         res = ci.isolate(model, q, r, th)
         assert res.status == 'ambiguous' and res.candidates == ('link7',) and 'two contacts' in res.reason, res
-    # a contact further out that stays under its thresholds (between quiet and 1 x threshold)
+    # a joint beyond link4 under its threshold but above the tolerance: the contact is further out
     q = states(model, N=1, seed=1)[0][0]
     r = residual(oracle, q, {'link4': np.array([10.0, -5, 3, 1, 0.5, -1])})
-    r[5] = 0.7
     th = np.array([0.01] * 4 + [1.0] * 3)
-    assert ci.isolate(model, q, np.where(np.arange(7) < 4, r, 0.0), th).link == 'link4'
-    res = ci.isolate(model, q, r, th)
-    assert res.status == 'ambiguous' and res.candidates == ('link4',) and 'further out' in res.reason
+    assert ci.isolate(model, q, r, th).link == 'link4'
+    r[5] = 0.7
+    assert ci.isolate(model, q, r, th).link == 'link6'   # a wrench on link6 (rank 6) gives exactly this r
+    r[5] = 0.5 * ci.TOLERANCE
+    assert ci.isolate(model, q, r, th).link == 'link4'   # within the tolerance: quiet
     assert ci.isolate(model, q, np.zeros(7), 1.0).status == 'none'
 
 
@@ -220,8 +222,10 @@ def test_mimic_fingers_and_locked_fingers():
     model, oracle = _robot('panda_mimic')
     q = states(model, N=1, seed=3)[0][0]
     F = np.array([30.0, 10, 5, 0.1, 0.2, 0.3])
-    res = ci.isolate(model, q, residual(oracle, q, {'panda_leftfinger': F}), 1e-3)
-    assert res.status == 'ambiguous' and set(res.candidates) == {'panda_leftfinger', 'panda_rightfinger'}
+    r = residual(oracle, q, {'panda_leftfinger': F})
+    res = ci.isolate(model, q, r, 1e-3)   # the fingers' Jacobians differ: one of them explains r
+    assert res.status == 'isolated' and res.link == 'panda_leftfinger'
+    assert np.allclose(pin_jacobian(oracle, q, res.link).T @ res.wrench.wrench, r, atol=1e-9)
     # locked fingers are folded into the hand: a push on a finger is a push on the hand's body
     model, oracle = _robot('panda_locked')
     q = states(model, N=1, seed=3)[0][0]
@@ -292,19 +296,22 @@ def test_a_contact_further_out_that_its_own_joints_do_not_feel_is_not_guessed():
     assert np.allclose(T7[:3, 2] @ model.jacobian(q, 'link7', 'world_aligned')[3:, 6], 1.0)   # joint 7 turns about z
     r = J7.T @ F7
     assert abs(r[6]) < 1e-9
-    res = ci.isolate(model, q, r, 1e-3)
+    res = ci.isolate(model, q, r, 1e-3)   # the most proximal link that explains r: the limit of isolation
+    assert res.status == 'isolated' and res.link == 'link6'
+    res = ci.isolate(model, q, r, 1e-3, strict=True)
     assert res.status == 'ambiguous' and res.candidates == ('link6', 'link7') and 'may be there' in res.reason
     # off the axis, joint 7 feels it: isolated, the wrench fully seen
     F7 = np.concatenate([f, np.cross(np.array([0.04, 0.0, 0.05]), f)])
-    res = ci.isolate(model, q, J7.T @ F7, 1e-3)
-    assert res.status == 'isolated' and res.link == 'link7'
-    # a link with fewer than 6 supporting joints: the literal rule names it, strict says it may be further out
+    for strict in (False, True):
+        res = ci.isolate(model, q, J7.T @ F7, 1e-3, strict=strict)
+        assert res.status == 'isolated' and res.link == 'link7'
+    # a link with fewer than 6 supporting joints: named, but strict says a point contact further out fits too
     F3 = np.array([10.0, -20.0, 5.0, 0.5, -1.0, 2.0])
     r = pin_jacobian(oracle, q, 'link3').T @ F3
     assert ci.isolate(model, q, r, 1e-3).link == 'link3'
     res = ci.isolate(model, q, r, 1e-3, strict=True)
-    assert res.status == 'ambiguous' and res.candidates == ('link3', 'link4')
-    # strict still names a link whose wrench on the next one would load that one's joints
+    assert res.status == 'ambiguous' and res.candidates[:2] == ('link3', 'link4'), res
+    # strict still names a link whose wrench no point contact further out gives (a torque as well)
     r6 = pin_jacobian(oracle, q, 'link6').T @ np.array([10.0, -20.0, 5.0, 0.5, -1.0, 2.0])
     res = ci.isolate(model, q, r6, 1e-3, strict=True)
     assert res.status == 'isolated' and res.link == 'link6'

@@ -101,8 +101,8 @@ def test_recorded_torques_respect_limits(runs):
 
 
 def test_contact_is_estimated_and_flagged_without_false_alarms(runs):
-    """The push on the flange: the node's estimate follows J^T F, ~/collision rises within a few
-    time constants of the push and never during free motion."""
+    """The pushes on the forearm and the flange: the node's estimate follows J^T F, ~/collision
+    rises within a few time constants of the push and never during free motion, the link is isolated."""
     m = runs['contact'][1]
     info = dict(m)
     assert m['true_max'] > 5.0, info                                   # the push did reach the joints
@@ -110,6 +110,11 @@ def test_contact_is_estimated_and_flagged_without_false_alarms(runs):
     assert m['free_max_estimate'] < 0.2 * min(demo.contact_demo.THRESHOLD), info
     assert 0 < m['detection_delay'] < 0.1, info
     assert m['false_alarms'] == 0, info
+    # the two pushes in turn: each isolated at its link; the flange's (7 supporting joints) wrench
+    # recovered on the moving arm (2 s run: 5.8 % and 0.42 cm measured)
+    assert (m['push1_link'], m['push1_isolated']) == ('link4', 'link4'), info
+    assert (m['push2_link'], m['push2_isolated']) == ('flange', 'link7'), info
+    assert m['push2_force_error'] < 10.0 and m['push2_line_cm'] < 1.0, info
 
 
 def test_no_shared_memory_left_behind(runs, shm_before):

@@ -227,6 +227,7 @@ def _aba_paths(model, q, qd, tau, wrenches=None):
 def test_aba_kernel_paths_match_pinocchio(name):
     model, oracle = case(name)
     assert runtime.kernel(model, traced_aba.ABA), 'every supported case is within the size cap'
+    assert traced_aba.spec(model) is traced_aba.ABA_RIGID and runtime.kernel(model, traced_aba.ABA_RIGID)
     q, qd, tau = states(model, seed=21)
     tau = tau * 10
     ref = oracle_stack(oracle.aba, q, qd, tau)
@@ -249,11 +250,12 @@ def test_aba_kernel_follows_payload_gravity_and_locked_joints_without_recompilin
     ctrl = model.joint_names[1::2]
     part = load_urdf(xml, joints=ctrl)
     for m in (model, part):
-        assert runtime.kernel(m, traced_aba.ABA)
+        assert runtime.kernel(m, traced_aba.spec(m))
 
     def no_compile(*args, **kw):
         raise AssertionError('the ABA kernel was rebuilt')
-    monkeypatch.setattr(traced_aba.ABA, 'build', no_compile)
+    for spec in (traced_aba.ABA, traced_aba.ABA_RIGID):
+        monkeypatch.setattr(spec, 'build', no_compile)
     payload = ('link7', 1.7, (0.05, -0.02, 0.1), (0.01, 0.001, 0.0, 0.02, 0.0, 0.015))
     model.set_payload(*payload)
     model.set_gravity((1.0, -2.0, -9.0))
@@ -298,7 +300,7 @@ def test_aba_falls_back_to_the_vectorised_form(monkeypatch):
     # beyond the size cap
     monkeypatch.setitem(runtime.THRESHOLDS, 'aba', runtime.THRESHOLDS['aba']._replace(compile_max=model.nb - 1))
     runtime.forget(model)   # its cached routes
-    assert not runtime.kernel(model, traced_aba.ABA)
+    assert not runtime.kernel(model, traced_aba.ABA) and not runtime.kernel(model, traced_aba.ABA_RIGID)
     assert aba.aba_kernel(model, q, qd, tau, None, 'rows') is None
     assert rel_err(model.forward_dynamics(q, qd, tau, method='aba'), ref) < 1e-10
     assert rel_err(model.forward_dynamics(q[0], qd[0], tau[0], method='aba')[None], ref[:1]) < 1e-10
@@ -307,7 +309,7 @@ def test_aba_falls_back_to_the_vectorised_form(monkeypatch):
     # screws that are not unit revolute / prismatic axes: no kernel
     other = copy.deepcopy(model)
     other.S = other.S * 1.5
-    assert not runtime.kernel(other, traced_aba.ABA)
+    assert not runtime.kernel(other, traced_aba.ABA) and not runtime.kernel(other, traced_aba.ABA_RIGID)
     got = other.forward_dynamics(q, qd, tau, method='aba')
     assert np.array_equal(got, aba.aba_vectorized(other, q, qd, tau)) and not np.allclose(got, ref)
     # mimic joints: the same error on every path

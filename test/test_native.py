@@ -34,8 +34,8 @@ ROOT = next(iter(glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-pac
 REAL = ['ur_description/urdf/ur5_robot.urdf', 'talos_data/robots/talos_left_arm.urdf']
 TOL = 1e-12
 SPECS = [t_rnea.INVERSE_DYNAMICS, t_rnea.GRAVITY, t_rnea.MOMENTUM, t_crba.MASS_MATRIX, t_chol.FORWARD_DYNAMICS,
-         t_aba.ABA, t_der.INVERSE_DYNAMICS_DERIVATIVES, t_der.CORIOLIS, t_der.FORWARD_DYNAMICS_DERIVATIVES,
-         t_reg.REGRESSOR]
+         t_aba.ABA, t_aba.ABA_RIGID, t_der.INVERSE_DYNAMICS_DERIVATIVES, t_der.CORIOLIS,
+         t_der.FORWARD_DYNAMICS_DERIVATIVES, t_reg.REGRESSOR]
 
 pytestmark = pytest.mark.skipif(native.module() is None, reason='no working C compiler')
 
@@ -87,7 +87,7 @@ def test_every_family_equals_the_python_kernels(name):
     q, qd, qdd = _states(model, 6)
     for spec in SPECS:
         nk = runtime.native(model, spec)
-        if spec is t_aba.ABA and not t_aba.supports(model):
+        if spec in (t_aba.ABA, t_aba.ABA_RIGID) and not t_aba.supports(model):
             assert nk is None
             continue
         if nk is None:   # only a kernel above the size cap of the C compiler stays Python

@@ -2,6 +2,7 @@
 benchmarks `python -m bench` runs: `python -m bench.probes.<name>`.
 
   ab              this tree against another checkout, call by call, in one process
+  aba_armature    the ABA kernel's rigid variant (armature zero) beside the armature kernel and pin.aba
   kernel_warm_up  what warming a new model's kernels costs where it is built
   log_line        the node's log line against rclpy's Python logger
   record_gaps     the node's joint_states callback while ~/record records and writes

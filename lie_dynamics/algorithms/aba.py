@@ -53,7 +53,7 @@ def forward_dynamics(model, q, qd, tau, wrenches=None, method='cholesky', out=No
     if method not in METHODS:
         raise ValueError(f"unknown forward dynamics method {method!r}: use one of {METHODS}")
     if not wrenches:   # the fast path (its kernels take no wrenches): the result, or None
-        qdd = runtime.fast(model, traced_aba.ABA if method == 'aba' else traced_cholesky.FORWARD_DYNAMICS)(
+        qdd = runtime.fast(model, traced_aba.spec(model) if method == 'aba' else traced_cholesky.FORWARD_DYNAMICS)(
             q, qd, tau, out)
         if qdd is not None:
             return qdd
@@ -119,8 +119,8 @@ def aba_kernel(model, q, qd, tau, wrenches=None, mode=None):
 
 def _aba_kernel(model, q, qd, tau, fext, mode=None):
     if fext is None:
-        return runtime.run(model, traced_aba.ABA, [q, qd, tau], mode)
-    return runtime.run(model, traced_aba.ABA_WRENCH, [q, qd, tau, traced_aba.wrenches(model, fext)], mode)
+        return runtime.run(model, traced_aba.spec(model), [q, qd, tau], mode)
+    return runtime.run(model, traced_aba.spec(model, True), [q, qd, tau, traced_aba.wrenches(model, fext)], mode)
 
 
 def aba_vectorized(model, q, qd, tau, wrenches=None):

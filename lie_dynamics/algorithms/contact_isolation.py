@@ -8,34 +8,27 @@ the link, zero for every joint that does not move link k. So r is zero on every 
 not support k, and the support grows from the root outwards: every joint over its threshold
 supports the contact link.
 
-Isolation (`isolate`), on a settled residual (`Settling`) and per-joint thresholds th:
+Isolation (`isolate`), on a settled residual (`Settling`), per-joint thresholds th and a
+tolerance tol_j = TOLERANCE x th_j (above the residual's noise and model error):
   1. over = {j : |r_j| > th_j}; none: no contact.
-  2. The candidate bodies are those whose supporting joints include every joint of `over`; the
-     isolated body is the least supported of them: on a chain the most proximal, the body of the
-     most distal joint over its threshold (a candidate with more supporting joints is further
-     out, and step 4 rules it out). No candidate (joints over threshold on two branches) or
-     several least supported ones: ambiguous. Bodies behind locked joints are rigid with their
-     parent: the named link (the child link of the body's joint) stands for every link fixed to
-     it. A body that a mimic of an existing joint moves is a body of its own, so a master joint
-     whose mimic moves another branch (two gripper fingers) is ambiguous.
-  3. Every joint that does not move the isolated link must be quiet, |r_j| <= quiet th_j: a
-     joint beyond the link between quiet th_j and th_j may be a contact further out that stays
-     under its thresholds (a joint on another branch, a second contact): ambiguous.
-  4. Some wrench on the isolated link must explain r to within th_j on every joint (the part of
-     r outside the range of J_k^T, nonzero only with more supporting joints than 6, e.g. 7 on a
-     7-DoF arm): otherwise two contacts, ambiguous.
-  5. No wrench on the next body beyond (the one with the fewest additional supporting joints, on
-     each branch) that gives what the link's joints show may load the joints that body adds
-     within quiet th_j of what r shows: otherwise a contact there whose own joints stay under
-     their thresholds (a push along the last joint's axis) gives the same r: ambiguous. With all
-     6 components seen (rank 6 with singular values above RULE_RCOND x the largest) the wrench
-     is fixed and this is checked always. With fewer (a link near the base, a singularity) the
-     unseen components are free: `strict` fits them to the measured
-     joints (least squares weighted by 1 / th_j), and then such a link whose next joint stays
-     quiet is nearly always ambiguous (joint torques alone cannot tell it from the next link
-     out); without `strict` (the default) the answer is the literal rule's, right unless the
-     contact is further out with its own joints under their thresholds. That is the limit of
-     isolation (docs/benchmarks.md measures both).
+  2. The candidate bodies are those that every felt joint (|r_j| > tol_j) moves, one per rigid
+     group: bodies behind locked joints are rigid with their parent, and the named link (the
+     child link of the body's joint) stands for every link fixed to it; a body that a mimic of an
+     existing joint moves is a body of its own. None (joints felt on two branches): ambiguous.
+  3. A candidate explains r if some wrench on it gives r within tol_j on every joint (the part
+     of r outside the range of J_k^T, nonzero only with more supporting joints than its rank).
+     None: two contacts, ambiguous.
+  4. Of those that explain r, the least supported one (on a chain the most proximal) is named;
+     several least supported ones (two branches, fingers a mimic moves alike): ambiguous. A body
+     further out always explains r too when it has 6 joints or fewer (a wrench on it that leaves
+     its own joints quiet), but only if its own joints stay within tol_j: for a contact there
+     that is a force whose line passes (nearly) through those joints' axes.
+  5. strict: the named link only if no pure force whose line passes within `radius` of a body
+     further out that explains r gives r within tol_j (`_point_force`: the segments from the
+     body's origin to its frames and next joints, no meshes); else ambiguous. With fewer than 6
+     joints on the named link such a force usually exists, so strict is right far less often.
+  That is the limit of isolation: joint torques alone cannot tell a contact whose own joints feel
+  less than the tolerance from one on the link before (docs/benchmarks.md measures how often).
 An ambiguous answer names its candidate links and the reason; it never picks one.
 
 Identification (`link_wrench`): J_k^T w = r in least squares through the SVD of J_k^T (n x 6),
@@ -67,14 +60,14 @@ from .jacobian import target
 # a component seen 1000 times more weakly than the best one would carry 1000 times its noise.
 # (On the bundled arm and a Panda at random states within +-pi, about 3 % of the states drop one.)
 RCOND = 1e-3
-# Step 5 of isolation trusts a component of the wrench only above this fraction of the largest
-# singular value: with 1e-3 (RCOND), a pushed link's wrench fitted at the link before it near a
-# singularity predicted its joint's torque far from the truth and named the wrong link.
-RULE_RCOND = 1e-2
 # Singular values below this fraction of the largest are rounding: the range of J^T is the rest.
 _EXACT = 1e-10
-# A joint that does not move the isolated link is quiet below QUIET x its threshold.
-QUIET = 0.5
+# Isolation: a joint's torque is explained (or quiet) within TOLERANCE x its threshold (the
+# residual's noise and model error must stay below it; docs/node.md: choosing the thresholds).
+TOLERANCE = 0.05
+# A point contact lies within RADIUS (m) of the segments from a link's origin to its frames and
+# next joints (no meshes: a cylinder this thick around the kinematic skeleton).
+RADIUS = 0.1
 # Settling: every joint changed by at most this fraction of max(|r_j|, th_j) over one time constant.
 SETTLE_TOLERANCE = 0.05
 
@@ -188,126 +181,144 @@ def line_of_action(wrench, tol=1e-9):
     return np.cross(f, m) / ff, f / math.sqrt(ff), float(m @ f) / ff
 
 
-def isolate(model, q, r, threshold, quiet=QUIET, rcond=RCOND, strict=False):
+def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RCOND, strict=False):
     """Isolation of the contact link from a settled residual r (n,) at the state q with the
-    per-joint thresholds `threshold` (one value or n): the rule of the module docstring. Returns
-    an Isolation; the wrench of an isolated link comes with it. strict: step 5 also for a link
-    whose wrench is not fully seen (else only for rank 6)."""
+    per-joint thresholds `threshold` (one value or n): the rule of the module docstring, with
+    consistency within tolerance x threshold_j on each joint and point contacts within `radius`
+    (m) of a link's skeleton. Returns an Isolation; the wrench of an isolated link comes with it."""
     n = model.n
     r = _vector('r', r, n)
     th = broadcast_joints(threshold, n)
     if th is None or not np.all(np.isfinite(th)) or np.any(th <= 0):
         raise ValueError(f'threshold must be one or {n} finite positive values, got {threshold!r}')
-    if not 0 <= quiet <= 1:
-        raise ValueError(f'quiet must be in [0, 1], got {quiet!r}')
+    if not (math.isfinite(tolerance) and 0 < tolerance <= 1):
+        raise ValueError(f'tolerance must be in (0, 1], got {tolerance!r}')
+    if not (math.isfinite(radius) and radius > 0):
+        raise ValueError(f'radius must be finite and > 0, got {radius!r}')
     names, links = model.joint_names, model.body_link_names
     over = np.abs(r) > th
     over_names = tuple(names[j] for j in np.flatnonzero(over))
     if not over.any():
         return Isolation('none', '', (), (), '', None)
     t = tree(model)
+    tol = tolerance * th
 
     def ambiguous(bodies, reason):
         return Isolation('ambiguous', '', tuple(links[b] for b in bodies), over_names, reason, None)
 
-    cand = np.all(t.support[:, over], axis=1)
-    if not cand.any():
+    # step 2: the bodies that every joint felt moves, one per rigid group (locked joints)
+    felt = np.abs(r) > tol
+    cand = [b for b in np.flatnonzero(np.all(t.support[:, felt], axis=1))
+            if model.parent[b] < 0 or t.moving[b] or not (t.support[model.parent[b]] == t.support[b]).all()]
+    if not cand:
         return ambiguous((), f'joints over threshold on more than one branch ({", ".join(over_names)}): '
                              'two contacts or more')
-    # the least supported candidates: a body with more supporting joints is further out (step 4
-    # rules it out by its quiet joints); among bodies with one support, those rigid with their
-    # parent (locked joints) are their parent, those a mimic moves are bodies of their own
-    sup = t.support[cand]
-    fewer = (sup[:, None, :] <= sup[None, :, :]).all(axis=2) & (sup.sum(axis=1)[:, None] < sup.sum(axis=1)[None, :])
-    least = np.zeros(model.nb, dtype=bool)
-    least[np.flatnonzero(cand)[~fewer.any(axis=0)]] = True
-    reps = [b for b in np.flatnonzero(least) if model.parent[b] < 0 or not least[model.parent[b]] or t.moving[b]]
-    if len(reps) > 1:
-        alike = all((t.support[b] == t.support[reps[0]]).all() for b in reps)
-        return ambiguous(reps, 'the joints over threshold move these links alike (a mimic coupling)' if alike else
-                         'the joints over threshold fit links on several branches')
-    k = reps[0]
-    loud = ~t.support[k] & (np.abs(r) > quiet * th)
-    if loud.any():
-        j = int(np.flatnonzero(loud)[0])
-        beyond = bool(t.below[k][t.own[:, j]].any())
-        where = 'beyond it: the contact may be further out' if beyond else 'on another branch: a second contact?'
-        return ambiguous([k], f"joint '{names[j]}' does not move link '{links[k]}' but its external torque is "
-                              f'{abs(r[j]) / th[j]:.0%} of its threshold ({where})')
-    est = link_wrench(model, q, r, links[k], rcond)
-    bad = np.abs(est.unexplained) > th
-    if bad.any():
-        j = int(np.flatnonzero(bad)[0])
-        return ambiguous([k], f"no single wrench on link '{links[k]}' explains the external torques (joint "
-                              f"'{names[j]}' off by {abs(est.unexplained[j]):.3g}): two contacts?")
-    # step 5 on the components seen well enough to rule a link out (a nearly unseen one would
-    # carry the lag and the noise of r, times 1 / sigma, into the prediction)
-    sure = est if est.rank < 6 else link_wrench(model, q, r, links[k], max(rcond, RULE_RCOND))
-    alike = _further_alike(model, t, q, r, th * quiet, k, sure) if strict or sure.rank == 6 else []
-    if alike:
-        return ambiguous([k] + alike, f"a wrench on link '{links[alike[0]]}' that gives what link '{links[k]}' "
-                                      'shows would load its own joints as little as measured: the contact may be '
-                                      'there')
-    return Isolation('isolated', links[k], (links[k],), over_names, '', est)
-
-
-def _further_alike(model, t, q, r, tol, k, est):
-    """The next bodies beyond k (the fewest supporting joints more than k's) on which some wrench
-    with k's visible components (est: at k's origin in k's axes; its unseen ones free) would give
-    the joints they add what r shows, within tol (a least-squares fit of the unseen components,
-    weighted by 1 / tol)."""
-    more = np.flatnonzero(np.all(t.support >= t.support[k], axis=1) & (t.support.sum(axis=1) > t.support[k].sum()))
-    if not more.size:
-        return []
-    sub = t.support[more]
+    # step 3: some wrench on the body explains r within tol on every joint
+    fits = {b: link_wrench(model, q, r, links[b], rcond) for b in cand}
+    whole = [b for b in cand if np.all(np.abs(fits[b].unexplained) <= tol)]
+    if not whole:
+        b = min(cand, key=lambda b: t.support[b].sum())
+        j = int(np.argmax(np.abs(fits[b].unexplained) / tol))
+        return ambiguous([b], f"no single wrench on link '{links[b]}' explains the external torques (joint "
+                              f"'{names[j]}' off by {abs(fits[b].unexplained[j]):.3g}): two contacts?")
+    # step 4: the least supported of them (the most proximal on a chain): a body further out
+    # explains r only with its own joints quiet
+    sub = t.support[whole]
     inner = (sub[:, None, :] <= sub[None, :, :]).all(axis=2) & (sub.sum(axis=1)[:, None] < sub.sum(axis=1)[None, :])
-    nxt = [d for d in more[~inner.any(axis=0)] if model.parent[d] < 0 or t.moving[d]
-           or not (t.support[model.parent[d]] == t.support[d]).all()]
-    T = model.link_pose(model.body_link_names[k], q)
-    R, p = T[:3, :3], T[:3, 3]
-    X = np.zeros((6, 6))   # (f, m) at k's origin in k's axes -> at the root origin in root axes
-    X[:3, :3] = X[3:, 3:] = R
-    X[3:, :3] = np.cross(p[:, None], R, axis=0)   # [p] R
-    out = []
-    for d in nxt:
-        extra = t.support[d] & ~t.support[k]
-        P = model.jacobian(q, model.body_link_names[d], 'world')[:, extra].T @ X / tol[extra][:, None]
-        miss = P @ est.wrench - r[extra] / tol[extra]
-        if est.unseen.shape[1]:   # the unseen components chosen to match the measured joints best
-            A = P @ est.unseen
-            miss = miss - A @ np.linalg.lstsq(A, miss, rcond=None)[0]
-        if np.all(np.abs(miss) <= 1.0):
-            out.append(int(d))
-    return out
+    least = [whole[i] for i in np.flatnonzero(~inner.any(axis=0))]
+    if len(least) > 1:
+        alike = len({tuple(t.support[b]) for b in least}) == 1
+        return ambiguous(least, 'the joints move these links alike (a mimic coupling)' if alike else
+                         'a wrench on any of these links gives these external torques')
+    k = least[0]
+    # step 5 (strict): no point contact further out gives r with its own joints quiet
+    further = [b for b in whole if b != k and _point_force(model, q, r, tol, b, radius)] if strict else []
+    if further:
+        return ambiguous([k] + further, f"a point contact on link '{links[further[0]]}' would load its own joints "
+                                        'as little as measured: the contact may be there')
+    return Isolation('isolated', links[k], (links[k],), over_names, '', fits[k])
+
+
+def _skeleton(model, q, b):
+    """(origin (3,), ends (m, 3)) in root coordinates: body b's origin and the origins of the link
+    frames fixed to it and of the bodies next out (its child joints): the segments a link spans."""
+    links = model.body_link_names
+    T = model.link_pose(links[b], q)
+    ends = [T[:3, :3] @ pose[:3, 3] + T[:3, 3] for name, (c, pose) in model.link_frames.items()
+            if c == b and name != links[b]]
+    ends += [model.link_pose(links[c], q)[:3, 3] for c in np.flatnonzero(model.parent == b)]
+    return T[:3, 3], np.array(ends).reshape(-1, 3)
+
+
+def _segment_distance(p, o, ends):
+    """Distance from p (3,) to the union of the segments o -> ends[i] (a point when ends is empty)."""
+    d = ends - o
+    dd = np.einsum('ij,ij->i', d, d)
+    s = np.clip(np.divide(d @ (p - o), dd, out=np.zeros(len(d)), where=dd > 0), 0.0, 1.0)
+    near = o + s[:, None] * d
+    return float(np.sqrt(min(np.min(np.sum((near - p) ** 2, axis=1), initial=np.inf), (p - o) @ (p - o))))
+
+
+def _point_force(model, q, r, tol, b, radius):
+    """Whether a pure force whose line passes within `radius` of body b's skeleton gives r within
+    tol on every joint: the torques of a force f at p are a(p) f, a_j(p) = v_j + w_j x p (the
+    'world' Jacobian's columns); f solved in least squares for each p (weighted by 1 / tol), p by
+    Gauss-Newton from the skeleton's points, kept within the radius by a penalty."""
+    from scipy.optimize import least_squares   # only on this path (isolation decisions)
+    J = model.jacobian(q, model.body_link_names[b], 'world')
+    V, W = J[:3].T / tol[:, None], J[3:].T / tol[:, None]   # (n, 3) each, weighted
+    rw = r / tol
+    o, ends = _skeleton(model, q, b)
+
+    def fit(p):
+        A = V + np.cross(W, p)
+        f = np.linalg.lstsq(A, rw, rcond=None)[0]
+        return A @ f - rw
+
+    def fun(p):
+        out = _segment_distance(p, o, ends) - radius
+        return np.append(fit(p), 1e3 * max(out, 0.0) / radius)
+
+    starts = [o] + [o + 0.5 * (e - o) for e in ends]
+    for x0 in starts:
+        if np.all(np.abs(fit(x0)) <= 1.0):
+            return True
+        p = least_squares(fun, x0, x_scale=radius, max_nfev=30).x
+        if _segment_distance(p, o, ends) <= radius * (1 + 1e-6) and np.all(np.abs(fit(p)) <= 1.0):
+            return True
+    return False
 
 
 class Settling:
     """Whether the residual has stopped changing (module docstring): `update(t, r, threshold)`
-    returns True once, over the last `window` seconds (one observer time constant, 1 / K), every
-    joint changed by at most tolerance x max(|r_j|, th_j); checked at most every quarter window
-    (the verdict in between is the last one). `reset()` forgets the history. The r given are
-    kept as they are (not copied): give a new array each time, as the observer does."""
+    returns True once every joint changed by at most tolerance x max(|r_j|, th_j) since a
+    checkpoint one to one and a quarter `window` old (one observer time constant, 1 / K).
+    Checkpoints are taken, and the verdict renewed, every quarter window (`quarter`); in between
+    a sample costs one comparison (`checked`: the time of the last checkpoint). `reset()` forgets
+    the history. The r given are kept as they are (not copied): give a new array each time, as
+    the observer does."""
 
     def __init__(self, window, tolerance=SETTLE_TOLERANCE):
         if not (math.isfinite(window) and window > 0 and math.isfinite(tolerance) and tolerance > 0):
             raise ValueError(f'settling window and tolerance must be finite and > 0, got {window!r}, {tolerance!r}')
         self.window, self.tolerance = float(window), float(tolerance)
+        self.quarter = 0.25 * self.window
         self.reset()
 
     def reset(self):
         self._history = collections.deque()
-        self._checked, self._verdict = -math.inf, False
+        self.checked, self._verdict = -math.inf, False
 
     def update(self, t, r, threshold):
+        if self.checked <= t < self.checked + self.quarter:   # a clock that jumps back checks anew
+            return self._verdict
+        self.checked = t
         h = self._history
         h.append((t, r))
-        while len(h) > 2 and h[1][0] <= t - self.window:   # keep one sample at least a window old
+        while len(h) > 2 and h[1][0] <= t - self.window + 1e-9:   # keep one checkpoint a window old
             h.popleft()
-        if t - self._checked < 0.25 * self.window and t >= self._checked:
-            return self._verdict   # checked a quarter window ago at most (cost per sample)
         t0, r0 = h[0]
         rn = np.asarray(r, dtype=float)
-        self._checked = t
         self._verdict = bool(t - t0 >= self.window - 1e-9 and np.all(
             np.abs(rn - r0) <= self.tolerance * np.maximum(np.abs(rn), threshold)))
         return self._verdict

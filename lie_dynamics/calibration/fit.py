@@ -57,26 +57,31 @@ def _pseudo_inertia(pi):
 
 
 def _parameters_of(P):
-    """Inverse of _pseudo_inertia (linear): (10,) parameters of P."""
-    S = P[:3, :3]
-    I = np.trace(S) * np.eye(3) - S
-    return np.array([P[3, 3], P[0, 3], P[1, 3], P[2, 3], I[0, 0], I[0, 1], I[1, 1], I[0, 2], I[1, 2], I[2, 2]])
+    """Inverse of _pseudo_inertia (linear): (..., 10) parameters of P (..., 4, 4)."""
+    S = P[..., :3, :3]
+    tr = np.trace(S, axis1=-2, axis2=-1)
+    return np.stack([P[..., 3, 3], P[..., 0, 3], P[..., 1, 3], P[..., 2, 3], tr - S[..., 0, 0], -S[..., 0, 1],
+                     tr - S[..., 1, 1], -S[..., 0, 2], -S[..., 1, 2], tr - S[..., 2, 2]], axis=-1)
+
+
+_DIAG = (0, 1, 2)
+_ROWS, _COLS = np.array(_OFF).T
 
 
 def _factor(theta):
-    """U of theta (one body)."""
-    U = np.zeros((4, 4))
-    U[[0, 1, 2], [0, 1, 2]] = np.exp(theta[1:4])
-    U[3, 3] = 1.0
-    for (i, j), v in zip(_OFF, theta[4:]):
-        U[i, j] = v
-    return np.exp(theta[0]) * U
+    """U (..., 4, 4) of theta (..., 10), one per body."""
+    theta = np.asarray(theta)
+    U = np.zeros(theta.shape[:-1] + (4, 4))
+    U[..., _DIAG, _DIAG] = np.exp(theta[..., 1:4])
+    U[..., 3, 3] = 1.0
+    U[..., _ROWS, _COLS] = theta[..., 4:]
+    return np.exp(theta[..., 0])[..., None, None] * U
 
 
 def theta_to_parameters(theta):
     """(nb, 10) log-Cholesky coordinates -> (nb, 10) inertial parameters (always physically valid)."""
-    theta = np.atleast_2d(theta)
-    return np.array([_parameters_of(U @ U.T) for U in map(_factor, theta)])
+    U = _factor(np.atleast_2d(theta))
+    return _parameters_of(U @ np.swapaxes(U, -1, -2))
 
 
 def parameters_to_theta(pi):
@@ -98,21 +103,18 @@ def parameters_to_theta(pi):
 
 
 def _theta_jacobian(theta):
-    """d pi / d theta (10, 10) for one body, analytic: dP = dU U^T + U dU^T, pi linear in P."""
+    """d pi / d theta (nb, 10, 10), one block per body, analytic: dP = dU U^T + U dU^T, pi linear
+    in P; dU/d theta_0 = U, dU/d theta_k = U_kk on the diagonal entry (k = 1..3), and e^alpha on
+    the off-diagonal entry of theta_k (k = 4..9)."""
+    theta = np.atleast_2d(theta)
     U = _factor(theta)
-    a = np.exp(theta[0])
-    J = np.empty((10, 10))
-    for k in range(10):
-        dU = np.zeros((4, 4))
-        if k == 0:
-            dU = U
-        elif k < 4:
-            dU[k - 1, k - 1] = U[k - 1, k - 1]
-        else:
-            dU[_OFF[k - 4]] = a
-        dP = dU @ U.T
-        J[:, k] = _parameters_of(dP + dP.T)
-    return J
+    dU = np.zeros(theta.shape[:-1] + (10, 4, 4))
+    dU[..., 0, :, :] = U
+    for k in _DIAG:
+        dU[..., k + 1, k, k] = U[..., k, k]
+    dU[..., 4 + np.arange(6), _ROWS, _COLS] = np.exp(theta[..., 0])[..., None]
+    dP = dU @ np.swapaxes(U, -1, -2)[..., None, :, :]
+    return np.swapaxes(_parameters_of(dP + np.swapaxes(dP, -1, -2)), -1, -2)
 
 
 def _nearest_valid(pi, floor):
@@ -150,7 +152,7 @@ class FitResult:
 
 
 def fit(model, q, qd, qdd, effort, eps=COULOMB_VELOCITY_EPSILON, weights=None, prior=None,
-        regularization=0.0, rcond=1e-8, min_motion=1e-3, tol=1e-14, max_nfev=200, start_floor=1e-3):
+        regularization=0.0, rcond=1e-8, min_motion=1e-3, tol=1e-14, max_nfev=200, start_floor=1e-3, coulomb=None):
     """Physically consistent calibration parameters from measured efforts along (q, qd, qdd).
 
     q, qd, qdd, effort: (N, n) in model.joint_names order. weights: (n,) per-joint weights
@@ -159,7 +161,8 @@ def fit(model, q, qd, qdd, effort, eps=COULOMB_VELOCITY_EPSILON, weights=None, p
     friction, the model's armature, offsets 0). regularization: weight of the pull towards the
     prior along the unseen directions, relative to the data's largest singular value squared.
     min_motion: a joint whose position range and peak speed are both below it (rad, rad/s)
-    never moved. Warns UnidentifiableWarning (naming the joints and parameters, which keep
+    never moved. coulomb: (N, n) the Coulomb columns' values (regressor.calibration_regressor;
+    default tanh(qd / eps)). Warns UnidentifiableWarning (naming the joints and parameters, which keep
     their prior values) when the recording is too short, a joint never moves, or the data
     determine fewer combinations than the robot's structure allows. Returns FitResult.
     """
@@ -177,7 +180,7 @@ def fit(model, q, qd, qdd, effort, eps=COULOMB_VELOCITY_EPSILON, weights=None, p
 
     moved = (np.ptp(q, axis=0) >= min_motion) | (np.abs(qd).max(axis=0) >= min_motion)
     still = [model.joint_names[j] for j in range(n) if not moved[j]]
-    Y, y = creg.stack(model, q, qd, qdd, effort, eps, weights)
+    Y, y = creg.stack(model, q, qd, qdd, effort, eps, weights, coulomb)
     # a still joint's own terms are not fitted: its qd, qdd columns would be noise
     fixed = np.zeros(p, dtype=bool)
     for j in np.flatnonzero(~moved):
@@ -217,9 +220,9 @@ def fit(model, q, qd, qdd, effort, eps=COULOMB_VELOCITY_EPSILON, weights=None, p
 
     def jacobian(x):
         D = np.zeros((p, len(x)))
-        th = x[:ni].reshape(nb, 10)
+        blocks = _theta_jacobian(x[:ni].reshape(nb, 10))
         for b in range(nb):
-            D[10 * b:10 * b + 10, 10 * b:10 * b + 10] = _theta_jacobian(th[b])
+            D[10 * b:10 * b + 10, 10 * b:10 * b + 10] = blocks[b]
         D[jf, ni + np.arange(len(jf))] = 1.0
         D *= scale[:, None]
         return np.vstack([Rs @ D, Nt @ D])
@@ -228,9 +231,13 @@ def fit(model, q, qd, qdd, effort, eps=COULOMB_VELOCITY_EPSILON, weights=None, p
 
     # The optimum often lies where a body is at the edge of validity (the prior's projection is
     # not valid), which log-Cholesky reaches only at infinity: the iteration count then bounds it.
+    # Steps by lsmr, not an SVD of the Jacobian per iteration ('exact'): with OpenBLAS's threads
+    # on a loaded 2-core machine each 128 x 98 SVD took 75-240 ms (4 ms on one thread), and
+    # identify_dynamics on 60 s at 1 kHz took 50 s instead of 12 s (3.6 s and 4.6 s with one BLAS
+    # thread; bench/calibration.py --identify-time measures the command).
     with np.errstate(over='ignore', invalid='ignore'):   # trial steps too far: trf shrinks them
         sol = solve(residual, x0, jac=jacobian, bounds=(lb, np.full(len(x0), np.inf)), method='trf',
-                    x_scale='jac', ftol=tol, xtol=tol, gtol=tol, max_nfev=max_nfev)
+                    x_scale='jac', tr_solver='lsmr', ftol=tol, xtol=tol, gtol=tol, max_nfev=max_nfev)
     pi = full(sol.x)
 
     # standard deviations: sigma^2 (Ys^T Ys)^+ in scaled units, for what the data determine alone

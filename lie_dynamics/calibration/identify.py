@@ -29,7 +29,9 @@ def identify_dynamics(model, t, q, effort, qd=None, *, qdd=None, holdout=HOLDOUT
     """CalibrationResult from a recording: t (N,) s; q, effort (N, n) in model.joint_names order;
     qd (N, n) measured velocities or None. qdd: with qd, exact accelerations (no filtering).
     holdout: the last fraction of the time kept out of the fit for the before/after check
-    (0: none). signals: options for calibration.signals.prepare (cutoff, harmonic, rate, ...).
+    (0: none). signals: options for calibration.signals.prepare (cutoff, harmonic, rate, ...;
+    oversample defaults to signals.OVERSAMPLE, None keeps every grid sample). The smooth Coulomb
+    sign is low-passed with the efforts (prepare's `terms`).
     fit_options: for fit.fit (regularization, rcond, min_motion, ...). Warns
     UnidentifiableWarning as fit.fit does; ValueError names bad input."""
     if not (0 <= holdout < 1):
@@ -42,25 +44,26 @@ def identify_dynamics(model, t, q, effort, qd=None, *, qdd=None, holdout=HOLDOUT
         if len(t) != len(q):
             raise ValueError(f't has {len(t)} stamps for {len(q)} samples')
         segment = np.zeros(len(t), dtype=int)
+        coulomb = None
         info = {'rate': float(1.0 / np.median(np.diff(t))) if len(t) > 1 else float('nan'), 'cutoff': None}
     else:
-        from .signals import prepare   # scipy.signal: imported where it is used
-
-        s = prepare(t, q, effort, qd, **(signals or {}))
-        t, q, qd, qdd, effort, segment = s.t, s.q, s.qd, s.qdd, s.effort, s.segment
+        s = prepare_recording(t, q, effort, qd, eps=eps, signals=signals)
+        t, q, qd, qdd, effort, segment, coulomb = s.t, s.q, s.qd, s.qdd, s.effort, s.segment, s.terms
         q, qd, qdd, effort = model.check_states(q=q, qd=qd, qdd=qdd, effort=effort)
-        info = {'rate': s.rate, 'cutoff': s.cutoff, 'dropped': s.dropped, 'segments': s.segments}
+        info = {'rate': s.rate * s.step, 'step': s.step, 'cutoff': s.cutoff, 'dropped': s.dropped,
+                'segments': s.segments}
     split = t[0] + (1 - holdout) * (t[-1] - t[0]) if holdout > 0 else np.inf
     train = t < split
     test = ~train
     if holdout > 0 and test.sum() < 2:
         raise ValueError(f'the held-out last {holdout:.0%} of the recording has {int(test.sum())} samples')
     fitted = cfit.fit(model, q[train], qd[train], qdd[train], effort[train], eps=eps, weights=weights, prior=prior,
-                      **fit_options)
+                      coulomb=None if coulomb is None else coulomb[train], **fit_options)
     result = from_fit(model, fitted)
     report = dict(info, samples=int(len(t)), train_samples=int(train.sum()), holdout=holdout)
     if test.any():
-        Y = creg.calibration_regressor(model, q[test], qd[test], qdd[test], eps)
+        Y = creg.calibration_regressor(model, q[test], qd[test], qdd[test], eps,
+                                       None if coulomb is None else coulomb[test])
         before = Y @ fitted.prior
         after = Y @ fitted.parameters
         meas = effort[test]
@@ -71,6 +74,18 @@ def identify_dynamics(model, t, q, effort, qd=None, *, qdd=None, holdout=HOLDOUT
     report['segment'] = segment
     result.report = report
     return result
+
+
+def prepare_recording(t, q, effort, qd=None, *, eps=COULOMB_VELOCITY_EPSILON, signals=None):
+    """A recording's signals as identify_dynamics fits them (calibration.signals.Signals): resampled,
+    low-passed, differentiated, decimated to signals.OVERSAMPLE per cutoff period; `.terms` holds
+    the Coulomb columns to pass to calibration_regressor. signals: options for signals.prepare."""
+    from .signals import OVERSAMPLE, prepare   # scipy.signal: imported where it is used
+
+    # the smooth Coulomb sign is low-passed like the efforts: the filter rounds off its steps
+    # in the measured efforts, and tanh of the filtered q̇ would keep them sharp
+    options = dict({'oversample': OVERSAMPLE}, **(signals or {}))
+    return prepare(t, q, effort, qd, terms=lambda q_, qd_, qdd_: np.tanh(qd_ / eps), **options)
 
 
 def write_report(result, folder, joint_names=None):
@@ -85,7 +100,7 @@ def write_report(result, folder, joint_names=None):
     lines = [f'robot {result.robot}: {len(names)} joints, {len(result.parameters)} calibration parameters',
              f"samples: {rep.get('samples')} ({rep.get('train_samples')} fitted, the last "
              f"{rep.get('holdout', 0):.0%} held out); grid rate {rep.get('rate', float('nan')):.6g} Hz, "
-             f"low-pass cutoff {rep.get('cutoff')} Hz",
+             f"low-pass cutoff {rep.get('cutoff')} Hz, decimated by {rep.get('step', 1)} after filtering",
              f'condition number of the base regressor (column-scaled): {result.condition_number:.6g}']
     base = result.base
     if base is not None:

@@ -42,26 +42,31 @@ def parameter_names(model):
             + [f'{joint}.{t}' for joint in model.joint_names for t in JOINT_TERMS])
 
 
-def joint_columns(qd, qdd, eps=COULOMB_VELOCITY_EPSILON):
+def joint_columns(qd, qdd, eps=COULOMB_VELOCITY_EPSILON, coulomb=None):
     """The joint terms' columns for validated (N, n) qd, qdd: (N, n, 4 n), non-zero only on the
-    joint's own row (armature qdd, viscous qd, Coulomb tanh(qd / eps), offset 1)."""
+    joint's own row (armature qdd, viscous qd, Coulomb tanh(qd / eps), offset 1). coulomb: (N, n)
+    the Coulomb column's values instead of tanh(qd / eps) (the smooth sign low-passed like
+    filtered efforts: signals.prepare's `terms`)."""
     N, n = qd.shape
     Z = np.zeros((N, n, n, len(JOINT_TERMS)))
     j = np.arange(n)
     Z[:, j, j, 0] = qdd
     Z[:, j, j, 1] = qd
-    Z[:, j, j, 2] = np.tanh(qd / eps)
+    Z[:, j, j, 2] = np.tanh(qd / eps) if coulomb is None else coulomb
     Z[:, j, j, 3] = 1.0
     return Z.reshape(N, n, n * len(JOINT_TERMS))
 
 
-def calibration_regressor(model, q, qd, qdd, eps=COULOMB_VELOCITY_EPSILON):
+def calibration_regressor(model, q, qd, qdd, eps=COULOMB_VELOCITY_EPSILON, coulomb=None):
     """(n, 10 nb + 4 n) or (N, n, 10 nb + 4 n): [model.regressor(q, qd, qdd) | joint_columns],
-    so that the modelled measured effort is this times `prior_parameters`-shaped vectors."""
+    so that the modelled measured effort is this times `prior_parameters`-shaped vectors.
+    coulomb: (N, n) values of the Coulomb columns (joint_columns) instead of tanh(qd / eps)."""
     if not (np.isfinite(eps) and eps > 0):
         raise ValueError(f'eps (the Coulomb velocity scale) must be > 0, got {eps}')
     (q, qd, qdd), single = model.validate(('q', 'qd', 'qdd'), (q, qd, qdd))
-    Y = np.concatenate([model.regressor(q, qd, qdd), joint_columns(qd, qdd, eps)], axis=2)
+    if coulomb is not None:
+        coulomb = model.check_batch('coulomb', coulomb, len(q))
+    Y = np.concatenate([model.regressor(q, qd, qdd), joint_columns(qd, qdd, eps, coulomb)], axis=2)
     return Y[0] if single else Y
 
 
@@ -159,10 +164,11 @@ def base_parameters(R, c, names, rows=None, rcond=1e-8, tol=1e-9):
                           scale=fit['scale'], null_space=fit['null_space'])
 
 
-def stack(model, q, qd, qdd, effort=None, eps=COULOMB_VELOCITY_EPSILON, weights=None):
+def stack(model, q, qd, qdd, effort=None, eps=COULOMB_VELOCITY_EPSILON, weights=None, coulomb=None):
     """The stacked (N n, p) calibration regressor and, with effort (N, n), the stacked efforts;
-    weights: optional (n,) per-joint weights (1 / noise std) applied to both."""
-    Y = calibration_regressor(model, q, qd, qdd, eps)
+    weights: optional (n,) per-joint weights (1 / noise std) applied to both; coulomb: as in
+    calibration_regressor."""
+    Y = calibration_regressor(model, q, qd, qdd, eps, coulomb)
     Y = np.atleast_3d(Y) if Y.ndim == 3 else Y[None]
     N, n, p = Y.shape
     w = np.ones(n) if weights is None else np.asarray(weights, dtype=float)

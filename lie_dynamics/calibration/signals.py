@@ -22,6 +22,8 @@ the effort on one uniform grid, in five steps:
 5. q̇ and q̈ are central differences of the filtered positions (or, when velocities are given,
    q̇ is the filtered measured velocity and q̈ its central difference). The filter's start and
    end transients are trimmed: TRIM_PERIODS periods of the cutoff at each end of a segment.
+   `terms` of the filtered state (the smooth Coulomb sign) are low-passed like the efforts, and
+   `oversample` decimates the filtered grid (identify_dynamics keeps OVERSAMPLE per period).
 
 Only the rigid-body and friction models are fitted afterwards; this module knows nothing of the
 robot (no model, no rclpy import).
@@ -32,8 +34,8 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.signal import butter, sosfiltfilt
 
-__all__ = ['CUTOFF_FACTOR', 'HARMONIC_TAIL', 'MAX_GAP_PERIODS', 'ORDER', 'PAD_PERIODS', 'TRIM_PERIODS', 'Signals',
-           'highest_harmonic', 'prepare']
+__all__ = ['CUTOFF_FACTOR', 'HARMONIC_TAIL', 'MAX_GAP_PERIODS', 'ORDER', 'OVERSAMPLE', 'PAD_PERIODS', 'TRIM_PERIODS',
+           'Signals',           'highest_harmonic', 'prepare']
 
 # Cutoff = CUTOFF_FACTOR x the excitation's highest harmonic: bench/signals.py measured the q̈
 # error of a quantised Fourier excitation against this factor (docs/benchmarks.md, section 10).
@@ -50,6 +52,11 @@ TRIM_PERIODS = 3.0
 # The signal is extended at each end by this many periods of the cutoff (odd reflection) before
 # filtering: scipy's default (a few samples) left 3x the error in the first period.
 PAD_PERIODS = 1.0
+# identify_dynamics decimates the filtered grid to at least this many samples per period of the
+# cutoff (prepare's `oversample`): the filtered signals hold nothing above a few cutoffs and the
+# fit's cost is linear in the samples (bench/calibration.py measured the held-out error against
+# it: docs/benchmarks.md, Calibration).
+OVERSAMPLE = 25.0
 # A segment with fewer grid samples than this after trimming is dropped (`Signals.short`).
 MIN_SEGMENT_SAMPLES = 20
 
@@ -58,9 +65,12 @@ class Signals(NamedTuple):
     """Uniformly sampled signals of one recording (M samples, n joints).
 
     t (M,) s; q, qd, qdd, effort (M, n); segment (M,) the index of each sample's segment (the
-    grid is uniform within a segment, t jumps between segments); rate (Hz) and cutoff (Hz) used;
+    grid is uniform within a segment, t jumps between segments); rate (Hz, of the samples
+    returned: the grid's over step) and cutoff (Hz) used;
     segments: how many were kept; dropped: samples with a non-finite value; repeated: samples
     whose stamp repeated the previous one; short: samples of segments too short to filter.
+    terms: (M, ...) the `terms` callable's values, filtered like the efforts (None without it);
+    step: the decimation (every step-th sample of the filtered grid kept: `oversample`).
     """
     t: np.ndarray
     q: np.ndarray
@@ -74,6 +84,8 @@ class Signals(NamedTuple):
     dropped: int
     repeated: int
     short: int
+    terms: object = None
+    step: int = 1
 
 
 def _matrix(name, a, N):
@@ -125,7 +137,7 @@ def _grid(t0, t1, rate):
 
 
 def prepare(t, q, effort, qd=None, *, cutoff=None, harmonic=None, rate=None, order=ORDER, max_gap=None,
-            split=True, trim=None):
+            split=True, trim=None, terms=None, oversample=None):
     """Signals (t, q, q̇, q̈, effort on a uniform grid) from a recording; see the module docstring.
 
     t (N,) stamps, s; q (N, n) positions; effort (N, n) measured efforts; qd (N, n) measured
@@ -135,7 +147,13 @@ def prepare(t, q, effort, qd=None, *, cutoff=None, harmonic=None, rate=None, ord
     median sample rate); max_gap: the longest gap between two samples bridged, s (default
     MAX_GAP_PERIODS / cutoff; inf: no limit); split: a backward stamp or a longer gap splits the recording (False:
     ValueError naming it); trim: seconds dropped at each end of every segment (default
-    TRIM_PERIODS / cutoff). Raises ValueError naming the problem.
+    TRIM_PERIODS / cutoff). terms: a callable (q, q̇, q̈) -> (M, ...) array of terms that are
+    nonlinear in the state, evaluated on each segment's filtered signals and then low-passed by
+    the same filter as the efforts, so that they pair with the filtered efforts (the smooth
+    Coulomb sign: a step that the filter rounds off in the efforts; returned as Signals.terms).
+    oversample: decimate after filtering, keeping at least this many samples per period of the
+    cutoff (identify_dynamics passes OVERSAMPLE; default None: every grid sample). Raises
+    ValueError naming the problem.
     """
     t = np.asarray(t, dtype=float).reshape(-1)
     N = len(t)
@@ -188,9 +206,12 @@ def prepare(t, q, effort, qd=None, *, cutoff=None, harmonic=None, rate=None, ord
         max_gap = MAX_GAP_PERIODS / cutoff
     if trim is None:
         trim = TRIM_PERIODS / cutoff
+    if oversample is not None and not (np.isfinite(oversample) and oversample > 0):
+        raise ValueError(f'oversample must be finite and > 0, got {oversample}')
+    step = 1 if oversample is None else max(1, int(rate / (oversample * cutoff)))
     sos = butter(order, cutoff, fs=rate, output='sos')
     edge = int(round(trim * rate))
-    out = {k: [] for k in ('t', 'q', 'qd', 'qdd', 'effort', 'segment')}
+    out = {k: [] for k in ('t', 'q', 'qd', 'qdd', 'effort', 'segment', 'terms')}
     short = 0
     for a, b in _segments(t, max_gap, split):
         grid = _grid(t[a], t[b - 1], rate)
@@ -204,13 +225,16 @@ def prepare(t, q, effort, qd=None, *, cutoff=None, harmonic=None, rate=None, ord
         v = (sosfiltfilt(sos, u[2], axis=0, padlen=pad) if qd is not None
              else np.gradient(qf, dt, axis=0, edge_order=2))
         acc = np.gradient(v, dt, axis=0, edge_order=2)
-        cut = slice(edge, len(grid) - edge)
+        cut = slice(edge, len(grid) - edge, step)
+        if terms is not None:
+            out['terms'].append(sosfiltfilt(sos, np.asarray(terms(qf, v, acc), dtype=float), axis=0,
+                                            padlen=pad)[cut])
         for key, x in (('t', grid), ('q', qf), ('qd', v), ('qdd', acc), ('effort', ef)):
             out[key].append(x[cut])
-        out['segment'].append(np.full(len(grid) - 2 * edge, len(out['segment'])))
+        out['segment'].append(np.full(len(out['t'][-1]), len(out['segment'])))
     if not out['t']:
         raise ValueError(f'no segment is long enough to filter (each needs {MIN_SEGMENT_SAMPLES} samples after '
                          f'trimming {trim:.3g} s at both ends at {rate:g} Hz; {short} samples in short segments)')
-    cat = {k: np.concatenate(v) for k, v in out.items()}
-    return Signals(cat['t'], cat['q'], cat['qd'], cat['qdd'], cat['effort'], cat['segment'], float(rate),
-                   float(cutoff), len(out['t']), dropped, repeated, short)
+    cat = {k: np.concatenate(v) if v else None for k, v in out.items()}
+    return Signals(cat['t'], cat['q'], cat['qd'], cat['qdd'], cat['effort'], cat['segment'], float(rate / step),
+                   float(cutoff), len(out['t']), dropped, repeated, short, cat['terms'], step)

@@ -315,8 +315,9 @@ def trace_aba(fr, geom, g, x, xd, taus, params, a0, armature, fext=None):
     frames of `geom`, where S_i = e_z: U_i = Ia_i S_i is column k of Ia_i (k = 2 for a revolute
     joint, 5 for a prismatic one), D_i = its entry k + the joint's armature and u_i = tau_i -
     (pa_i)_k, as Pinocchio's aba. The update Ia - U U^T / D has row and column k equal to
-    armature_i U_i / D_i (zero only without armature: the armature, a parameter, costs the
-    kernel about an eighth more operations on the arm, whatever its value).
+    armature_i U_i / D_i, zero where the armature is the constant 0.0: the rigid variant
+    (build_aba(armature=False)) folds those terms away, the armature as a parameter costs the
+    kernel more operations on the arm whatever its value (`spec` picks the variant).
 
     x, xd: body coordinates and rates; taus: per body the torque of its joint (0.0 for welded
     bodies); params: per body (m, h, I) in b''; a0: base linear acceleration -g; armature: per
@@ -397,12 +398,13 @@ def trace_aba(fr, geom, g, x, xd, taus, params, a0, armature, fext=None):
     return res
 
 
-def build_aba(fr, wrench=False):
+def build_aba(fr, wrench=False, armature=True):
     """Trace qdd by the articulated body algorithm (trace_aba) for this tree.
 
     Arguments (Q, QD, TAU[, FX], P, A0, E0, AR) as the Cholesky kernel's, but P and FX in the
-    frames of _Geometry (its params and wrenches). Outputs qdd, then per joint D_i and its
-    scale (trace_aba); the caller checks D_i > PD_RTOL * scale, blind to the scale of the
+    frames of _Geometry (its params and wrenches). armature=False: the rigid variant, without
+    AR, the armature the constant 0.0 (the same trace with its terms folded away). Outputs qdd,
+    then per joint D_i and its scale (trace_aba); the caller checks D_i > PD_RTOL * scale, blind to the scale of the
     masses as the Cholesky kernel's pivot test. None when the frames cannot be built.
     """
     geom = _Geometry(fr)
@@ -426,8 +428,12 @@ def build_aba(fr, wrench=False):
         args.append(('FX', names))
         fs = [g.input(nm) for nm in names]
         fext = [(tuple(fs[6 * b:6 * b + 3]), tuple(fs[6 * b + 3:6 * b + 6])) for b in range(nb)]
-    ararg, arm = fr.trace_armature(g)
-    args += [parg, a0arg, co['offset_args'], ararg]
+    args += [parg, a0arg, co['offset_args']]
+    if armature:
+        ararg, arm = fr.trace_armature(g)
+        args.append(ararg)
+    else:
+        arm = [0.0] * n
     res = trace_aba(fr, geom, g, co['x'], co['xd'], [0.0 if j is None else taus[j] for j in joint_of],
                     params, ga, [0.0 if j is None else arm[j] for j in joint_of], fext)
     per_joint = [None] * n
@@ -466,3 +472,18 @@ ABA = Spec('aba', lambda fr: build_aba(fr, False), (_inertias, 'gravity', 'offse
            supports=supports, checked=True, result=lambda model: ((model.n,), PD_RTOL))
 ABA_WRENCH = Spec('aba_wrench', lambda fr: build_aba(fr, True), (_inertias, 'gravity', 'offsets', 'armature'),
                   'aba', supports=supports, checked=True, result=lambda model: ((model.n,), PD_RTOL))
+# The rigid variants, for a model whose armature is all zero (the default): the same trace with
+# the armature the constant 0.0, which folds its terms away (bench/probes/aba_armature.py).
+ABA_RIGID = Spec('aba_rigid', lambda fr: build_aba(fr, False, False), (_inertias, 'gravity', 'offsets'), 'aba',
+                 supports=supports, checked=True, result=lambda model: ((model.n,), PD_RTOL))
+ABA_WRENCH_RIGID = Spec('aba_wrench_rigid', lambda fr: build_aba(fr, True, False), (_inertias, 'gravity', 'offsets'),
+                        'aba', supports=supports, checked=True, result=lambda model: ((model.n,), PD_RTOL))
+
+
+def spec(model, wrench=False):
+    """The ABA kernel for this model: the rigid variant while its armature is all zero (cached
+    until the model's version changes, which set_armature bumps)."""
+    rigid = runtime.derived(model, 'armature_zero', lambda: not model.armature.any())
+    if wrench:
+        return ABA_WRENCH_RIGID if rigid else ABA_WRENCH
+    return ABA_RIGID if rigid else ABA

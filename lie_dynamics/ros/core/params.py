@@ -13,7 +13,7 @@ from typing import Optional, Tuple
 import numpy as np
 
 # MODES: the torque laws (lie_dynamics.laws). Every mode but `gravity` needs the desired-state stream.
-from ...algorithms.contact_isolation import RCOND
+from ...algorithms.contact_isolation import RADIUS, RCOND, TOLERANCE
 from ...laws import COULOMB_VELOCITY_EPSILON, MODES
 from ...model.joint_names import broadcast_joints
 from .diagnostics import clip
@@ -225,10 +225,17 @@ PARAMS = (
               'Singular values of the transposed link Jacobian below this fraction of the largest are not solved '
               'for: the wrench components the joints barely see stay 0 (~/contact/wrench, ~/contact/tool_wrench; '
               'rank and smallest singular value used in the diagnostics).', True, (1e-12, 0.999)),
+    ParamSpec('contact.tolerance', 'double', TOLERANCE,
+              'Isolation: a joint torque is explained (or quiet) within this fraction of its collision.threshold. '
+              'Above the residual\'s noise and model error in free motion, relative to the thresholds.', True,
+              (1e-6, 1.0)),
     ParamSpec('contact.strict_isolation', 'bool', False,
-              'Name a link with fewer than 6 supporting joints only if no contact further out could give the same '
-              'external torques (else: ambiguous). false: the literal rule, the child link of the most distal joint '
-              'over its threshold.', True),
+              'Name a link only if no point contact within contact.link_radius of a link further out could give '
+              'the same external torques with that link\'s own joints quiet (else: ambiguous). false: the most '
+              'proximal link that explains the torques.', True),
+    ParamSpec('contact.link_radius', 'double', RADIUS,
+              'contact.strict_isolation: a point contact lies within this distance (m) of the segments from a '
+              'link\'s origin to its frames and next joints.', True, (1e-3, 10.0), unit='m'),
     # dynamics terms for other nodes (dynamics_topics.py)
     ParamSpec('dynamics.publish', 'string_array', None,
               'Dynamics terms published on ~/dynamics/<term> after each command: gravity (g(q)), coriolis '

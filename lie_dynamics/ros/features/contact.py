@@ -312,13 +312,13 @@ class ContactMonitor:
         return r, self.collision
 
     # ------------------------------------------------------------------ diagnostics
-    def report(self, level, message, values):
+    def report(self, level, message, values, where=''):
         """The compensator's diagnostics (level, message, values) with the observer's added;
-        the window maximum restarts."""
+        the window maximum restarts. where: said after 'collision' (the contact link)."""
         extra = []
         if self.collision:
             level = max(level, WARN)
-            extra.append('collision')
+            extra.append('collision' + where)
         elif self._window_collisions:
             extra.append(f'{self._window_collisions} collision(s)')
         if self.observer is not None and self.state.startswith('paused'):

@@ -6,9 +6,12 @@ lie_dynamics.algorithms.contact_isolation; this module decides when to use it.
 ContactMonitor: the estimate r, its time t in s, the debounced flag), returns what to publish:
 
   * the wrench of the isolated link (link name, (fx fy fz mx my mz) at its origin in its axes)
-    at every sample while the flag is up and a link is isolated, and one zero wrench (the last
-    link's, '' if none was) when the flag falls;
-  * the tool wrench (`contact.wrench_frame`, all contact at that link) at every sample, when set;
+    while the flag is up and a link is isolated: at every sample while the residual changes, and
+    while it is settled at every checkpoint (a quarter time constant), the wrench of its mean over
+    the last MEAN_WINDOWS time constants (the effort noise averaged out; unchanged in between, so
+    not sent again); one zero wrench (the last link's, '' if none was) when the flag falls;
+  * the tool wrench (`contact.wrench_frame`, all contact at that link) at every sample, when set
+    (of the same mean while settled);
   * the isolated link when it changes: '' while nothing is in contact, while the residual
     settles, and when the answer is ambiguous.
 
@@ -16,11 +19,12 @@ Isolation is decided on a settled residual only (contact_isolation.Settling, win
 time constant 1 / min(observer.gain)), once each time it settles: after the flag rises the link
 stays '' until the residual has stopped changing, and while it changes again (the push grows or
 moves) the last decision holds until it settles anew. The Jacobians and the isolation run only
-while the flag is up, except the tool wrench's; a fit (Jacobian and SVD) serves the samples of one
-observer time constant after it (w = inverse r: the estimate r lags the contact by as much, and a
-new fit every sample would cost more than the observer). A model, gravity, payload or observer
-change (contact.REINIT_KEYS) and a paused observer start it anew, as they start the observer anew.
+while the flag is up, except the tool wrench's; a fit (Jacobian and SVD) serves while it is
+younger than one time constant or the joints have not moved (REFIT_RAD) since: w = inverse r.
+A model, gravity, payload or observer change (contact.REINIT_KEYS) and a paused observer start
+it anew, as they start the observer anew.
 """
+import collections
 from typing import NamedTuple, Optional
 
 import numpy as np
@@ -30,6 +34,12 @@ from ..core.diagnostics import WARN, clip
 from .contact import REINIT_KEYS
 
 ZERO = np.zeros(6)
+# The wrenches read the mean residual of the last MEAN_WINDOWS time constants while it is settled:
+# the effort noise averaged out (the observer alone averages over about two), the rise's tail gone.
+MEAN_WINDOWS = 5.0
+# A fit serves while the joints move less than this (rad or m) from where it was made: the
+# Jacobian's change stays below about 1e-4 of the wrench (no new SVD while the arm is held).
+REFIT_RAD = 1e-4
 
 
 class Published(NamedTuple):
@@ -56,10 +66,13 @@ class ContactIsolation:
 
     def __init__(self):
         self.events = []
+        self.inbox = []             # the observer's lines (ContactMonitor.events), passed on by flush()
+        self._pending = None        # the collision line, held until the link is decided
         self.settings = self.model = None
         self.frame = ''
         self.rcond = ci.RCOND
         self.strict = False
+        self.tolerance, self.radius = ci.TOLERANCE, ci.RADIUS
         self.settling = None
         self.isolation = None       # the last decision (contact_isolation.Isolation) while the flag is up
         self.link = ''              # the link last published on ~/contact/link
@@ -70,6 +83,10 @@ class ContactIsolation:
         self.flag = False           # the collision flag of the last sample
         self._settled = False       # the residual was settled at the last sample of the flag
         self._fits = {}             # 'link' / 'tool' -> (link, time, WrenchEstimate) of the last fit
+        self.residual = None        # the r of the last wrenches: the mean over a settled stretch, else the sample's
+        self._mean, self._sum = collections.deque(), None   # (t, r) of the settled stretch, their sum
+        self._mean_span = 0.0
+        self._held = None           # (link wrench, tool wrench, mean r) of the last checkpoint
 
     def adopt(self, settings, model):
         if settings is self.settings and model is self.model:
@@ -79,6 +96,7 @@ class ContactIsolation:
         self.settings, self.model = settings, model
         self.rcond = settings.contact.rcond
         self.strict = settings.contact.strict_isolation
+        self.tolerance, self.radius = settings.contact.tolerance, settings.contact.link_radius
         self.frame = settings.contact.wrench_frame
         if self.frame and model is not None:
             try:
@@ -89,6 +107,7 @@ class ContactIsolation:
         if model is not None:
             gain = np.atleast_1d(np.asarray(settings.observer.gain, dtype=float))
             self.settling = ci.Settling(1.0 / float(gain.min()))
+            self._mean_span = MEAN_WINDOWS * self.settling.window
         if reinit:
             self.reset()
 
@@ -100,65 +119,130 @@ class ContactIsolation:
         self._settled = False
         self._fits = {}
 
-    def _solve(self, kind, t, q, r, link, est=None):
-        """The wrench on `link` for r: est, or the last fit's inverse when it is younger than one
-        time constant (the estimate r lags the contact by as much), else a new fit."""
+    def _fit(self, kind, t, q, link, est=None):
+        """The fit (WrenchEstimate: its inverse maps r to the wrench) on `link` at q: est, or the
+        last one while it is younger than one time constant (the estimate r lags the contact by as
+        much) or the joints have moved less than REFIT_RAD since, else a new one."""
         last = self._fits.get(kind)
-        if est is None and last is not None and last[0] == link and 0.0 <= t - last[1] < self.settling.window:
-            est = last[2]
-            return est._replace(wrench=est.inverse @ r)
+        if est is None and last is not None and last[0] == link:
+            if last[1] <= t < last[1] + self.settling.window:
+                return last[2]
+            if np.abs(q - last[3]).max() <= REFIT_RAD:   # held still: good for another time constant
+                self._fits[kind] = (link, t, last[2], last[3])
+                return last[2]
         if est is None:
-            est = ci.link_wrench(self.model, q, r, link, self.rcond)
-        self._fits[kind] = (link, t, est)
+            est = ci.link_wrench(self.model, q, np.zeros(self.model.n), link, self.rcond)
+        self._fits[kind] = (link, t, est, np.array(q, dtype=float))
         return est
 
     def update(self, t, q, r, collision, threshold):
         """One observer sample: Published."""
-        model = self.model
+        st = self.settling
+        if collision and self._settled and st.checked < t < st.checked + st.quarter:   # held (cost)
+            return Published(None, self._held[1], None)
         self.flag = collision
-        tool = None
-        if self.frame:
-            self.tool = self._solve('tool', t, q, r, self.frame)
-            tool = self.tool.wrench
-        wrench = None
+        wrench = tool = None
+        settled = False
         if collision:
-            settled = self.settling.update(t, r, threshold)
-            if settled and not self._settled:   # decided once per settled stretch (cost)
-                iso = ci.isolate(model, q, r, threshold, rcond=self.rcond, strict=self.strict)
-                if self.isolation is None or iso.status != self.isolation.status or iso.link != self.isolation.link:
-                    self._log(iso)
-                self.isolation = iso
-                est = self._solve('link', t, q, r, iso.link, iso.wrench) if iso.link else None
-            else:
-                iso = self.isolation
-                est = self._solve('link', t, q, r, iso.link) if iso is not None and iso.link else None
+            settled = st.update(t, r, threshold)
+            if settled and st.checked == t:
+                self._checkpoint(t, q, r, threshold)
             self._settled = settled
-            if est is not None:
-                self.wrench, self.wrench_link, self.up = est, iso.link, True
-                wrench = (iso.link, est.wrench)
+            iso = self.isolation
+            if iso is not None and iso.link:
+                self.wrench_link, self.up = iso.link, True
+                if settled:
+                    wrench = (iso.link, self._held[0])
+                else:
+                    self.wrench = self._fit('link', t, q, iso.link)
+                    wrench = (iso.link, self.wrench.inverse @ r)
         else:
             if self.up:
                 wrench, self.up = (self.wrench_link, ZERO), False
             if self.isolation is not None or self._settled:
                 self.reset()
+        if self.frame:
+            if settled:
+                tool = self._held[1]
+            else:
+                self.tool = self._fit('tool', t, q, self.frame)
+                tool = self.tool.inverse @ r
+        self.residual = self._held[2] if settled else r
         link = self.isolation.link if self.isolation is not None else ''
         changed = None
         if link != self.link:
             self.link = changed = link
         return Published(wrench, tool, changed)
 
+    def _checkpoint(self, t, q, r, threshold):
+        """A checkpoint of a settled stretch (every quarter time constant): the decision at its
+        first, the mean residual of the last MEAN_WINDOWS time constants' checkpoints (samples
+        closer than a time constant carry little more: the observer's filter), and the wrenches
+        of that mean, held until the next checkpoint."""
+        if not self._settled:   # decided once per settled stretch (cost)
+            iso = ci.isolate(self.model, q, r, threshold, self.tolerance, self.radius, self.rcond, self.strict)
+            if self.isolation is None or iso.status != self.isolation.status or iso.link != self.isolation.link:
+                self._log(iso)
+            self.isolation = iso
+            if iso.link:
+                self._fit('link', t, q, iso.link, iso.wrench)
+            self._mean.clear()
+            self._sum = np.zeros_like(r)
+        m = self._mean
+        m.append((t, r))
+        self._sum += r
+        while t - m[0][0] > self._mean_span:
+            self._sum -= m.popleft()[1]
+        mean = self._sum / len(m)
+        link = self.isolation.link
+        if link:
+            self.wrench = self._fit('link', t, q, link)
+        if self.frame:
+            self.tool = self._fit('tool', t, q, self.frame)
+        self._held = (self.wrench.inverse @ mean if link else None,
+                      self.tool.inverse @ mean if self.frame else None, mean)
+
+    def flush(self):
+        """Pass the observer's lines on to `events`, the collision line once the link is decided
+        (`_log`: one line says both), or said undecided when the flag falls or the observer
+        pauses first."""
+        for event in self.inbox:
+            if self._pending is not None and event[1] in ('collision', 'collision:clear'):
+                self._say_pending('not decided: the estimate did not settle while the flag was up')
+            if event[1] == 'collision':
+                self._pending = event
+            else:
+                self.events.append(event)
+        self.inbox.clear()
+
+    def _say_pending(self, where):
+        severity, key, text = self._pending
+        self._pending = None
+        self.events.append((severity, key, clip(f'{text}; contact link {where}', 600)))
+
     def _log(self, iso):
         self.decisions += 1
         if iso.status == 'isolated':
             w = iso.wrench
-            f = float(np.linalg.norm(w.wrench[:3]))
-            text = (f"collision at link '{iso.link}': force {f:.3g} N, torque {np.linalg.norm(w.wrench[3:]):.3g} N m "
-                    f'at its origin (rank {w.rank} of 6; joints over threshold: {", ".join(iso.over)})')
+            where = (f"'{iso.link}': force {np.linalg.norm(w.wrench[:3]):.3g} N, torque "
+                     f'{np.linalg.norm(w.wrench[3:]):.3g} N m at its origin (rank {w.rank} of 6)')
         else:
-            text = f'collision, contact link ambiguous: {iso.reason}'
+            where = f'ambiguous: {iso.reason}'
             if iso.candidates:
-                text += f" (links {', '.join(repr(c) for c in iso.candidates)})"
-        self.events.append(('warn', 'collision:link', clip(text, 400)))
+                where += f" (links {', '.join(repr(c) for c in iso.candidates)})"
+        if self._pending is not None:   # the collision line, with the link
+            self._say_pending(where)
+        elif iso.status == 'isolated':
+            self.events.append(('warn', 'collision:link', clip(
+                f"collision at link {where}; joints over threshold: {', '.join(iso.over)}", 400)))
+        else:
+            self.events.append(('warn', 'collision:link', clip(f'collision, contact link {where}', 400)))
+
+    def where(self):
+        """The contact link for the diagnostics' message: " at link 'x'", ' (contact link
+        ambiguous)' or ''."""
+        iso = self.isolation
+        return '' if iso is None else f" at link '{iso.link}'" if iso.link else ' (contact link ambiguous)'
 
     def report(self, level, values):
         """(level, [(key, value)]) of the diagnostics: the link, its wrench's conditioning, the tool's."""

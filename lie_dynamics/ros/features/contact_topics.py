@@ -13,6 +13,8 @@ With them, contact_link.py's ContactIsolation: ~/contact/wrench and ~/contact/to
 """
 import struct
 
+import numpy as np
+
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Bool, String
 
@@ -47,7 +49,8 @@ class ContactTopics(Feature):
 
     def use_events(self, queue):
         super().use_events(queue)
-        self.monitor.events = self.isolation.events = queue   # their lines go to the one queue too
+        self.isolation.events = queue   # its lines go to the one queue too, and the monitor's through it
+        self.monitor.events = self.isolation.inbox
 
     def check(self, settings, model):
         layout = self._core.layout   # known before the model when `joints` is set
@@ -70,9 +73,11 @@ class ContactTopics(Feature):
     def on_sample(self, s):
         m = self.monitor
         out = m.on_sample(s)
+        self.isolation.flush()   # the monitor's lines; the collision line waits for the link
         if out is None:
             if m.estimate is None:   # paused: isolation starts anew with the observer
                 self.isolation.reset()
+                self.isolation.flush()
             return
         names = s.names
         if names is not self._names:  # built when the layout changes: no position, no velocity
@@ -89,7 +94,7 @@ class ContactTopics(Feature):
             self._link_pub.publish(String(data=pub.link))
 
     def report(self, level, message):
-        level, message, values = self.monitor.report(level, message, [])
+        level, message, values = self.monitor.report(level, message, [], self.isolation.where())
         level, values = self.isolation.report(level, values)
         return level, message, values
 
@@ -107,4 +112,4 @@ def _wrench(frame, w, stamp):
         body += b'\0' * (-(8 + len(body)) % 8)   # the doubles start 8-aligned after the encapsulation
         head = _WRENCH_HEADS[frame] = body
     sec, nsec = stamp_parts(stamp)
-    return b'\x00\x01\x00\x00' + struct.pack('<iI', sec, nsec) + head + struct.pack('<6d', *w)
+    return b'\x00\x01\x00\x00' + struct.pack('<iI', sec, nsec) + head + np.asarray(w, dtype='<f8').tobytes()
