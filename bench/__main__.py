@@ -1,11 +1,13 @@
 """All benchmarks in one command: tables (Markdown + CSV/JSON) and PNG charts in one folder.
 
-    python -m bench [--quick] [--out DIR] [--only core,lagrangian,accuracy,scaling,stability,robots,node,payload,
+    python -m bench [--quick] [--out DIR] [--only core,calls,lagrangian,accuracy,scaling,stability,robots,node,payload,
                      observer,contact,jacobian,compile,signals,calibration] [--docs-img DIR]
     make bench ARGS="--quick"
 
 Sections (each writes its own files into DIR, default bench/out/):
   core        inverse dynamics and gravity against Pinocchio and Modern Robotics (bench/core.py)
+  calls       one call (allocating, out=, the ufunc floor) and batches per state (threads, against a
+              Pinocchio loop and rneaInParallel) on UR5, xArm7, the Talos arm and the Panda (bench/calls.py)
   lagrangian  mass matrix, Coriolis, forward dynamics, derivatives (bench/lagrangian.py)
   accuracy    speed against accuracy, every method, arm and 30-joint chain (bench/accuracy.py)
   scaling     time against number of joints, chains and trees, fitted slopes (bench/scaling.py)
@@ -46,7 +48,7 @@ import time
 import traceback
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-SECTIONS = ('core', 'lagrangian', 'accuracy', 'scaling', 'stability', 'robots', 'node', 'payload', 'observer',
+SECTIONS = ('core', 'calls', 'lagrangian', 'accuracy', 'scaling', 'stability', 'robots', 'node', 'payload', 'observer',
             'contact', 'jacobian', 'compile', 'signals', 'calibration')
 
 
@@ -54,6 +56,11 @@ def _core(quick, out):
     from bench import core
     res = core.run(quick=quick)
     core.write(res, out)
+
+
+def _calls(quick, out):
+    from bench import calls
+    calls.run(quick=quick, out=out)
 
 
 def _lagrangian(quick, out):
@@ -142,7 +149,7 @@ def _small_copy(src, dst):
                                    dither=Image.Dither.NONE).save(dst, optimize=True)
 
 
-RUNNERS = {'core': _core, 'lagrangian': _lagrangian, 'accuracy': _accuracy, 'scaling': _scaling,
+RUNNERS = {'core': _core, 'calls': _calls, 'lagrangian': _lagrangian, 'accuracy': _accuracy, 'scaling': _scaling,
            'stability': _stability, 'robots': _robots, 'node': _node, 'payload': _payload,
            'observer': _observer, 'contact': _contact, 'jacobian': _jacobian,
            'compile': _compile, 'signals': _signals, 'calibration': _calibration}

@@ -281,3 +281,14 @@ def test_record_gaps_probe_runs():
     rows = [line for line in done.stdout.splitlines() if line.startswith('| ')]
     assert [r.split('|')[1].strip() for r in rows[1:]] == ['idle', 'recording', 'writing'], done.stdout
     assert 'written: rosbag2_' in done.stdout and int(rows[2].split('|')[2]) == 40   # 2 rounds of 20
+
+
+def test_calls_section_times_one_call_and_batches_beside_pinocchio(tmp_path):
+    from bench import calls
+    res = calls.run(quick=True, out=str(tmp_path), robots=calls.ROBOTS[:1])
+    cases = {r['case'] for r in res['one_state']}
+    assert {'inverse_dynamics', 'inverse_dynamics_out', 'gravity', 'gravity_out', 'ufunc_out'} <= cases
+    assert all(r['ratio'] > 0 for r in res['one_state'])
+    (batch,) = res['batches']
+    assert batch['N'] == 100 and batch['vs_pin_loop'] > 0 and batch['vs_rnea_in_parallel_1'] > 0
+    assert os.path.exists(tmp_path / 'calls.md')

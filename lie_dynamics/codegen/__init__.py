@@ -11,9 +11,11 @@ numpy call at all) and on numpy rows with one entry per state for a batch.
   tracer.py   Sym and Graph: the traced scalars, constant folding, shared subexpressions
   render.py   the graph as source: for floats (emit) and for numpy rows (emit_rows)
   crender.py  the graph as C (the native backend), operation for operation as emit
+  clanes.py   the graph as C on 4 states at once (vector types), for native batches
   kernel.py   Trace (a traced kernel and its argument roles) and Kernel (the one kernel type:
               the trace and its float, rows and native renderings)
   native.py   the native backend: compiler, loading, binding; native_call.c its call path
+              (native_method.c: the Model methods that call it from C)
   disk_cache.py  the native backend's disk cache: names, checks, bound
   algebra.py  3-vectors, 3x3 matrices and spatial algebra on tuples, for tracing
   frames.py   per-structure constants: body frames with every joint axis along z

@@ -81,12 +81,14 @@ def clear():
     with _LOCK:
         _SHARED.clear()
     SLOTS.clear()
+    _native.invalidate()
 
 
 def forget(model):
     """Drop what the runtime keeps for this model (e.g. after changing THRESHOLDS); its
     kernels come back from the shared cache."""
     SLOTS.pop(id(model), None)
+    _native.invalidate()
 
 
 def derived(model, key, compute):
@@ -165,6 +167,7 @@ def use_native(model, on=True):
     s = slot(model)
     s.structure['native_off'] = not on
     s.natives, s.fast, s.values = {}, {}, {}   # values: derived entries that hold a bound native kernel
+    _native.invalidate()
 
 
 # ---------------------------------------------------------------------------- deferred builds

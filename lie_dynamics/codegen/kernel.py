@@ -18,7 +18,7 @@ import threading
 
 import numpy as np
 
-from . import crender, native as _native
+from . import clanes, crender, native as _native
 from .render import Params, compile_function, emit, emit_rows, rows_env
 from .thresholds import THRESHOLDS
 
@@ -183,6 +183,9 @@ class Kernel:
             return None
         index, size = t.scatter if t.scatter else (None, None)
         src = crender.emit_c(t.graph, 'lie_kernel', t.arguments, t.roles, t.outputs, index, size)
+        if self.name in clanes.FAMILIES and len(t.graph.live(t.outputs)[1]) <= THRESHOLDS['native_lanes_nodes']:
+            src += _native.UNIT + clanes.emit_lanes(t.graph, 'lie_kernel_lanes', t.arguments, t.roles, t.outputs,
+                                                    index, size)
         _BUILDS[0] += 1
         ns = self.n_state
         return _native.Rendered(src, tuple(self.widths[:ns]), tuple(self.widths[ns:]), size or len(t.outputs))

@@ -8,7 +8,10 @@ the Python kernels, whose results are the same to rounding.
 Compiler: $CC, else the compiler Python was built with, else `cc`; flags FLAGS for the call
 path, KERNEL_FLAGS for the kernels (no -ffast-math, -ffp-contract=off: the C kernels compute
 what the Python kernels compute, operation for operation). A kernel's C text of several
-translation units (crender.py) is compiled on every usable core and linked once.
+translation units (crender.py) is compiled on every usable core and linked once. No -march:
+the cache is per machine, but a home folder (and its cache) may move to another CPU; the
+kernels across states (clanes.py) get their AVX2 form through `target_clones`, which the
+loader picks by the CPU it runs on, with the baseline beside it.
 
 Cache: disk_cache.py (named by a hash of everything that determines a file, checked before
 loading, bounded); a cached kernel loads without being traced.
@@ -32,6 +35,7 @@ import numpy as np
 from . import disk_cache
 from .disk_cache import (CACHE_MAX_MB, MAGIC, STALE_BUILD_S, cache_dir, cache_max_bytes, evict,  # noqa: F401
                          generator_hash)
+from .clanes import LANES
 from .thresholds import THRESHOLDS
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -186,10 +190,13 @@ def _compile(source, key, suffix, flags):
 
 def _call_module():
     """The extension module of the call path (native_call.c), built or loaded once."""
-    with open(os.path.join(HERE, 'native_call.c'), encoding='utf-8') as fh:
-        source = fh.read()
+    texts = {}
+    for name in ('native_call.c', 'native_method.c'):   # the second is included by the first
+        with open(os.path.join(HERE, name), encoding='utf-8') as fh:
+            texts[name] = fh.read()
+    source = texts['native_call.c'].replace('#include "native_method.c"', texts['native_method.c'])
     incs = [sysconfig.get_paths()['include'], np.get_include()]
-    flags = FLAGS + tuple(f'-I{i}' for i in incs)
+    flags = FLAGS + ('-pthread',) + tuple(f'-I{i}' for i in incs)   # set_threads: POSIX threads
     key = _key(flags, source, sys.version, np.__version__)
     suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
     path, tmp = _compile(source, key, suffix, flags)
@@ -224,6 +231,13 @@ def module():
     return _STATE['module']
 
 
+def invalidate():
+    """Every native-first method (dispatch.native_first) resolves its kernel again: the runtime
+    forgot kernels or changed a model's switch (cache.clear, forget, use_native)."""
+    if _STATE['module'] is not None:
+        _STATE['module'].invalidate()
+
+
 def _unavailable(msg):
     if setting() == 'require':
         raise NativeUnavailable(f'LIE_DYNAMICS_NATIVE=require, but {msg}')
@@ -244,6 +258,10 @@ class Library:
         self.widths = tuple(meta[3:3 + n_in])
         self.par_lengths = tuple(meta[3 + n_in:3 + n_in + n_par])
         self.address = ctypes.cast(self.lib.lie_kernel, ctypes.c_void_p).value
+        try:   # the form on clanes.LANES states at once, when the kernel is small enough to have one
+            self.lanes_address = ctypes.cast(self.lib.lie_kernel_lanes, ctypes.c_void_p).value
+        except AttributeError:
+            self.lanes_address = 0
 
 
 class Rendered(NamedTuple):
@@ -296,6 +314,24 @@ def bind(lib, params, result, gil_rows):
     call(*per_state_arrays[, out]) -> result, or None when it declines (native_call.c)."""
     arrays = tuple(np.ascontiguousarray(p, dtype=float).reshape(-1) if len(p) else np.zeros(1) for p in params)
     check = result.rtol is not None
-    # native_call.c's bind(address, widths, params, n_out, n_res, out_dims, check, rtol, gil_rows, keep)
-    return module().bind(lib.address, lib.widths, arrays, lib.n_out, result.size, tuple(result.shape), int(check),
-                         result.rtol if check else 0.0, gil_rows, (lib, arrays))
+    # native_call.c's bind(address, lanes address, lanes, widths, params, n_out, n_res, out_dims, check, rtol,
+    # gil_rows, keep)
+    return module().bind(lib.address, lib.lanes_address, LANES, lib.widths, arrays, lib.n_out, result.size,
+                         tuple(result.shape), int(check), result.rtol if check else 0.0, gil_rows, (lib, arrays))
+
+
+def set_threads(n=None, min_rows=None):
+    """Threads for the native batches (process-wide): a batch of at least `min_rows` states per
+    thread (default THRESHOLDS['native_thread_rows']) is cut into up to n equal parts run at once
+    in C, the GIL released; results are identical to one thread (each state's outputs depend on
+    that state alone). n None: LIE_DYNAMICS_THREADS, else 1. Returns the previous count; None
+    when the backend is off."""
+    if n is None:
+        env = os.environ.get('LIE_DYNAMICS_THREADS', '').strip()
+        n = int(env) if env.isdigit() else 1
+    if not isinstance(n, int) or isinstance(n, bool) or not 1 <= n <= 64:
+        raise ValueError(f'threads must be an integer from 1 to 64, got {n!r}')
+    m = module()
+    if m is None:
+        return None
+    return m.set_threads(n, THRESHOLDS['native_thread_rows'] if min_rows is None else int(min_rows))

@@ -8,6 +8,11 @@
  * arrays of the right shapes and a finite (and, for forward dynamics, positive definite)
  * result; otherwise it returns None and the caller's full path validates, names the bad
  * argument or falls back to the reference: the fast path never raises about its inputs.
+ *
+ * A batch runs in blocks of LANES states through the kernel's form across states (clanes.py)
+ * when it has one, the rest state by state; each state's outputs equal the one-state kernel's
+ * to the bit. From 2 * thread_rows states it is cut among up to n_threads POSIX threads
+ * (set_threads; native.set_threads), each writing its own rows: the same results.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -16,6 +21,7 @@
 #include <stddef.h>
 #include <stdint.h>
 #include <string.h>
+#include <pthread.h>
 
 #define MAX_LISTS 16
 
@@ -24,8 +30,8 @@ typedef void (*kernel_fn)(const double *const *in, const double *const *par, dou
 typedef struct {
     PyObject_HEAD
     vectorcallfunc vectorcall;
-    kernel_fn fn;
-    int n_in, n_par, out_nd, check;
+    kernel_fn fn, lanes_fn;   /* one state; LANES states at once (clanes.py), or NULL */
+    int n_in, n_par, out_nd, check, lanes;
     Py_ssize_t width[MAX_LISTS];
     const double *par[MAX_LISTS];
     npy_intp out_dims[2];
@@ -33,6 +39,10 @@ typedef struct {
     double rtol;
     PyObject *keep;
 } Bound;
+
+/* set_threads: batches of at least 2 * thread_rows states are cut among up to n_threads threads */
+static int n_threads = 1;
+static Py_ssize_t thread_rows = 1024;
 
 /* 1: the result is finite (and, check 1, every pivot out[n_res + i] > rtol * out[n_res + m + i]) */
 static int accept(const Bound *b, const double *v)
@@ -52,10 +62,11 @@ static int accept(const Bound *b, const double *v)
     return 1;
 }
 
-static int run(const Bound *b, char **data, npy_intp N, double *res, double *tmp)
+/* rows [r0, r1) state by state; tmp: n_out doubles when n_out > n_res, else NULL */
+static int run_rows(const Bound *b, char **data, npy_intp r0, npy_intp r1, double *res, double *tmp)
 {
     const double *in[MAX_LISTS];
-    for (npy_intp r = 0; r < N; ++r) {
+    for (npy_intp r = r0; r < r1; ++r) {
         for (int i = 0; i < b->n_in; ++i)
             in[i] = (const double *)data[i] + r * b->width[i];
         double *row = res + r * b->n_res;
@@ -71,6 +82,107 @@ static int run(const Bound *b, char **data, npy_intp N, double *res, double *tmp
         }
     }
     return 1;
+}
+
+/* rows [r0, r1): blocks of `lanes` states through lanes_fn (inputs and outputs transposed
+ * through one buffer), the rest state by state. 0: a state failed accept, -1: no memory. */
+static int run(const Bound *b, char **data, npy_intp r0, npy_intp r1, double *res)
+{
+    Py_ssize_t L = b->lanes, total = b->n_out;
+    npy_intp full = b->lanes_fn && L > 0 ? r0 + (r1 - r0) / L * L : r0;
+    for (int i = 0; i < b->n_in; ++i)
+        total += full > r0 ? b->width[i] * L : 0;
+    if (full > r0)
+        total += b->n_out * L;
+    double stack[2048], *buf = stack;
+    if (total > 2048 && !(buf = (double *)PyMem_RawMalloc(sizeof(double) * total)))
+        return -1;
+    double *tmp = b->n_out > b->n_res ? buf : NULL, *blk = buf + b->n_out;
+    int ok = 1;
+    if (full > r0) {
+        const double *in[MAX_LISTS];
+        double *p = blk;
+        for (int i = 0; i < b->n_in; ++i) {
+            in[i] = p;
+            p += b->width[i] * L;
+        }
+        double *o = p, *v = buf;
+        for (npy_intp r = r0; r < full && ok; r += L) {
+            for (int i = 0; i < b->n_in; ++i) {   /* state l's value k to in[i][k * L + l] */
+                const double *src = (const double *)data[i] + r * b->width[i];
+                double *dst = (double *)in[i];
+                for (Py_ssize_t l = 0; l < L; ++l)
+                    for (Py_ssize_t k = 0; k < b->width[i]; ++k)
+                        dst[k * L + l] = src[l * b->width[i] + k];
+            }
+            b->lanes_fn(in, b->par, o);
+            for (Py_ssize_t l = 0; l < L && ok; ++l) {
+                double *row = res + (r + l) * b->n_res;
+                double *dst = tmp ? v : row;
+                for (Py_ssize_t k = 0; k < b->n_out && (tmp || k < b->n_res); ++k)
+                    dst[k] = o[k * L + l];
+                if (tmp)
+                    memcpy(row, v, sizeof(double) * b->n_res);
+                ok = accept(b, dst);
+            }
+        }
+    }
+    if (ok)
+        ok = run_rows(b, data, full, r1, res, tmp);
+    if (buf != stack)
+        PyMem_RawFree(buf);
+    return ok;
+}
+
+typedef struct {
+    const Bound *b;
+    char **data;
+    npy_intp r0, r1;
+    double *res;
+    int ok, started;
+    pthread_t id;
+} Part;
+
+static void *run_part(void *arg)
+{
+    Part *p = (Part *)arg;
+    p->ok = run(p->b, p->data, p->r0, p->r1, p->res);
+    return NULL;
+}
+
+/* run on rows [0, N), cut into parts of at least thread_rows states on up to n_threads threads */
+static int run_all(const Bound *b, char **data, npy_intp N, double *res)
+{
+    int T = n_threads;
+    if (T > 1 && N / thread_rows < T)
+        T = (int)(N / thread_rows);
+    if (T <= 1)
+        return run(b, data, 0, N, res);
+    Part parts[64];
+    npy_intp step = (N + T - 1) / T;
+    step = (step + 7) / 8 * 8;   /* parts start on whole blocks of lanes */
+    for (int t = 0; t < T; ++t) {
+        Part *p = &parts[t];
+        p->b = b;
+        p->data = data;
+        p->r0 = t * step < N ? t * step : N;
+        p->r1 = (t + 1) * step < N ? (t + 1) * step : N;
+        p->res = res;
+        p->ok = 1;   /* a part that fails to start runs below, on this thread */
+        p->started = t > 0 && p->r0 < p->r1 && pthread_create(&p->id, NULL, run_part, p) == 0;
+    }
+    int ok = run(b, data, parts[0].r0, parts[0].r1, res);
+    for (int t = 1; t < T; ++t) {
+        if (parts[t].r0 >= parts[t].r1)
+            continue;
+        if (parts[t].started)
+            pthread_join(parts[t].id, NULL);
+        else
+            run_part(&parts[t]);
+        if (parts[t].ok != 1 && ok == 1)
+            ok = parts[t].ok;
+    }
+    return ok;
 }
 
 static int plain(PyObject *o, int nd_lo, int nd_hi)
@@ -118,6 +230,15 @@ static PyObject *bound_call(PyObject *self, PyObject *const *args, size_t nargsf
         npy_intp *d = PyArray_DIMS((PyArrayObject *)out);
         if ((lead && d[0] != N) || d[lead] != b->out_dims[0] || (b->out_nd == 2 && d[lead + 1] != b->out_dims[1]))
             Py_RETURN_NONE;
+        if (lead) {   /* a batch writes state by state: out may be an input only row for row */
+            char *o = PyArray_BYTES((PyArrayObject *)out);
+            size_t on = sizeof(double) * (size_t)N * (size_t)b->n_res;
+            for (int i = 0; i < b->n_in; ++i) {
+                size_t in_n = sizeof(double) * (size_t)N * (size_t)b->width[i];
+                if (data[i] < o + on && o < data[i] + in_n && (data[i] != o || b->width[i] != b->n_res))
+                    Py_RETURN_NONE;   /* the full path computes, then writes */
+            }
+        }
         Py_INCREF(out);
     } else {
         npy_intp dims[3] = {N, b->out_dims[0], b->out_dims[1]};
@@ -125,25 +246,19 @@ static PyObject *bound_call(PyObject *self, PyObject *const *args, size_t nargsf
         if (!out)
             return NULL;
     }
-    double stack[1024], *tmp = NULL;
-    if (b->n_out > b->n_res) {
-        tmp = b->n_out <= 1024 ? stack : (double *)PyMem_RawMalloc(sizeof(double) * b->n_out);
-        if (!tmp) {
-            Py_DECREF(out);
-            return PyErr_NoMemory();
-        }
-    }
     int ok;
     double *res = (double *)PyArray_DATA((PyArrayObject *)out);
     if (N >= b->gil_rows) {
         Py_BEGIN_ALLOW_THREADS
-        ok = run(b, data, N, res, tmp);
+        ok = run_all(b, data, N, res);
         Py_END_ALLOW_THREADS
     } else {
-        ok = run(b, data, N, res, tmp);
+        ok = run(b, data, 0, N, res);
     }
-    if (tmp && tmp != stack)
-        PyMem_RawFree(tmp);
+    if (ok < 0) {
+        Py_DECREF(out);
+        return PyErr_NoMemory();
+    }
     if (!ok) {
         Py_DECREF(out);
         Py_RETURN_NONE;
@@ -168,15 +283,16 @@ static PyTypeObject BoundType = {
     .tp_doc = "A native kernel with its parameters bound: call(*per_state_arrays[, out])",
 };
 
-/* bind(address, widths, params, n_out, n_res, out_dims, check, rtol, gil_rows, keep) */
+/* bind(address, lanes address, lanes, widths, params, n_out, n_res, out_dims, check, rtol, gil_rows, keep) */
 static PyObject *bind(PyObject *mod, PyObject *args)
 {
-    unsigned long long addr;
+    unsigned long long addr, lanes_addr;
+    int lanes;
     PyObject *widths, *params, *dims, *keep;
     Py_ssize_t n_out, n_res, gil_rows;
     int check;
     double rtol;
-    if (!PyArg_ParseTuple(args, "KO!O!nnO!idnO", &addr, &PyTuple_Type, &widths, &PyTuple_Type, &params, &n_out,
+    if (!PyArg_ParseTuple(args, "KKiO!O!nnO!idnO", &addr, &lanes_addr, &lanes, &PyTuple_Type, &widths, &PyTuple_Type, &params, &n_out,
                           &n_res, &PyTuple_Type, &dims, &check, &rtol, &gil_rows, &keep))
         return NULL;
     Py_ssize_t n_in = PyTuple_GET_SIZE(widths), n_par = PyTuple_GET_SIZE(params), out_nd = PyTuple_GET_SIZE(dims);
@@ -189,6 +305,8 @@ static PyObject *bind(PyObject *mod, PyObject *args)
         return NULL;
     b->vectorcall = bound_call;
     b->fn = (kernel_fn)(uintptr_t)addr;
+    b->lanes_fn = lanes_addr && lanes > 1 && lanes <= 64 ? (kernel_fn)(uintptr_t)lanes_addr : NULL;
+    b->lanes = b->lanes_fn ? lanes : 1;
     b->n_in = (int)n_in;
     b->n_par = (int)n_par;
     b->out_nd = (int)out_nd;
@@ -221,8 +339,31 @@ static PyObject *bind(PyObject *mod, PyObject *args)
     return (PyObject *)b;
 }
 
+
+#include "native_method.c"   /* Method: a Model method that runs its kernel from C */
+
+/* set_threads(n, min_rows) -> the previous n */
+static PyObject *set_threads(PyObject *mod, PyObject *args)
+{
+    int n;
+    Py_ssize_t rows;
+    if (!PyArg_ParseTuple(args, "in", &n, &rows))
+        return NULL;
+    if (n < 1 || n > 64 || rows < 1) {
+        PyErr_SetString(PyExc_ValueError, "set_threads: n from 1 to 64, min_rows >= 1");
+        return NULL;
+    }
+    int old = n_threads;
+    n_threads = n;
+    thread_rows = rows;
+    return PyLong_FromLong(old);
+}
+
 static PyMethodDef methods[] = {
     {"bind", bind, METH_VARARGS, "Bind a kernel's address and parameters (native.py)."},
+    {"set_threads", set_threads, METH_VARARGS, "Threads of the native batches (native.set_threads)."},
+    {"method", method_new, METH_VARARGS, "A Model method that runs its native kernel first (dispatch.native_first)."},
+    {"invalidate", invalidate, METH_NOARGS, "Every Method resolves its kernel again."},
     {NULL, NULL, 0, NULL},
 };
 
@@ -231,7 +372,11 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "lie_dynamics_native"
 PyMODINIT_FUNC PyInit_lie_dynamics_native(void)
 {
     import_array();
-    if (PyType_Ready(&BoundType) < 0)
+    if (PyType_Ready(&BoundType) < 0 || PyType_Ready(&MethodType) < 0)
+        return NULL;
+    str_version = PyUnicode_InternFromString("version");
+    str_out = PyUnicode_InternFromString("out");
+    if (!str_version || !str_out)
         return NULL;
     return PyModule_Create(&module);
 }

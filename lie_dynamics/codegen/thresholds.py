@@ -100,6 +100,13 @@ THRESHOLDS = {
     # Native batches release the GIL from this many states (below, the release costs more
     # than other threads gain).
     'native_gil_rows': 64,
+    # Kernels of clanes.FAMILIES of at most this many graph nodes also get the form on
+    # clanes.LANES states at once (clanes.py), which batches run: inverse dynamics of the 6-7-joint
+    # arms has ~1,000 nodes.
+    'native_lanes_nodes': 2500,
+    # native.set_threads: a batch is cut among threads only with at least this many states per
+    # thread (starting a thread costs ~10-30 us, 30-100 states of an arm's inverse dynamics).
+    'native_thread_rows': 1024,
     # Compiled kernels kept for structures no live model uses (about 10 per structure).
     'compiled_cache': 256,
 }

@@ -1,0 +1,127 @@
+"""The C renderer across states: a traced graph as one C function on LANES states at once.
+
+A traced kernel is straight-line code without branches, so the same graph runs on a vector of
+LANES states with the compiler's vector types (GCC/Clang `vector_size`): each node that
+depends on a state is one `lie_v` (LANES doubles), a node of parameters and constants alone
+stays one `double`, computed once for the LANES states. The operations are those of the
+one-state rendering (crender.py), in the same order with the same constants (render.form_text);
+vector arithmetic is IEEE arithmetic lane by lane, sin, cos and sqrt are the C library's on
+each lane (sincos where a node has both: the same functions, one argument reduction, as gcc
+makes of the one-state kernel's sin and cos), and -ffp-contract=off forbids fused operations:
+every lane equals the one-state kernel's result to the bit.
+
+    void NAME(const double *const *in, const double *const *par, double *out)
+
+in[i] the i-th per-state list in lanes order (value k of state l at in[i][k * LANES + l]),
+par[j] a parameter list as in crender, out the outputs in lanes order (n_out or `size` rows of
+LANES). native_call.c transposes blocks of LANES states in and out and tests each state's
+outputs as the one-state call does.
+
+Instruction sets: on x86-64 under GCC or Clang the function is compiled twice
+(`target_clones`): for AVX2 (4 doubles a vector) and for the baseline (SSE2, two halves), the
+loader picks by the CPU it runs on; the cached library is then right on any x86-64 machine it
+is copied to. Elsewhere the compiler's baseline vectors.
+"""
+from .render import form_text
+
+LANES = 4
+# The kernels rendered across states too (kernel.Kernel's name): the form costs 2-4x the kernel's
+# compile time at first use (two clones and the one-state form: inverse dynamics of the arm
+# 0.5 -> 1.9 s, forward dynamics 0.9 -> 3.1 s on a loaded machine), paid where batches are the
+# use: inverse dynamics (trajectories, identification) and gravity.
+FAMILIES = ('inverse_dynamics', 'inverse_dynamics_wrench', 'gravity')
+
+_HEAD = f'''#define _GNU_SOURCE
+#include <math.h>
+#include <string.h>
+typedef double lie_v __attribute__((vector_size({8 * LANES}), aligned(8)));
+#if defined(__x86_64__) && defined(__linux__) && defined(__has_attribute)
+#if __has_attribute(target_clones)
+#define LIE_CLONES __attribute__((target_clones("avx2", "default")))
+#endif
+#endif
+#ifndef LIE_CLONES
+#define LIE_CLONES
+#endif
+#define LIE_LANEWISE(NAME, F) static inline lie_v NAME(lie_v a) \\
+  {{ lie_v r; for (int k = 0; k < {LANES}; ++k) r[k] = F(a[k]); return r; }}
+LIE_LANEWISE(lie_vsin, sin)
+LIE_LANEWISE(lie_vcos, cos)
+#ifdef __GLIBC__
+static inline void lie_vsincos(lie_v a, lie_v *s, lie_v *c)
+  {{ for (int k = 0; k < {LANES}; ++k) sincos(a[k], &(*s)[k], &(*c)[k]); }}
+#else
+static inline void lie_vsincos(lie_v a, lie_v *s, lie_v *c) {{ *s = lie_vsin(a); *c = lie_vcos(a); }}
+#endif
+static inline lie_v lie_bc(double x) {{ lie_v r = {{{', '.join(['x'] * LANES)}}}; return r; }}
+'''
+
+
+def _literal(c):
+    s = repr(float(c))
+    return s if any(ch in s for ch in '.en') else s + '.0'
+
+
+def emit_lanes(g, fname, arg_lists, roles, outputs, index=None, size=None):
+    """C source (one translation unit) of kernel `fname` on LANES states (module docstring);
+    the arguments as crender.emit_c's."""
+    where, lane = {}, {}
+    ks = {'state': 0, 'param': 0}
+    for (_, syms), role in zip(arg_lists, roles, strict=True):
+        arr = 'in' if role == 'state' else 'par'
+        k = ks[role]
+        ks[role] += 1
+        for pos, nm in enumerate(syms):
+            where[nm] = (f'(*(const lie_v *)({arr}{k} + {LANES * pos}))' if role == 'state'
+                         else f'{arr}{k}[{pos}]')
+            lane[nm] = role == 'state'
+    _, live = g.live(outputs)
+    vec = {}
+    for i in sorted(live):
+        op, data = g.nodes[i]
+        vec[i] = lane[data] if op == 'in' else any(vec[a] for a in g.deps(i))
+
+    def ref(a, need):
+        return where[g.nodes[a][1]] if g.nodes[a][0] == 'in' else f't{a}'
+
+    lines = [f'LIE_CLONES void {fname}(const double *const *in, const double *const *par, double *out)', '{']
+    lines += [f'  const double *{arr}{k} = {arr}[{k}]; (void){arr}{k};'
+              for role, arr in (('state', 'in'), ('param', 'par')) for k in range(ks[role])]
+    both = {}   # argument -> its sin and cos nodes: one sincos call (glibc's sin and cos, one reduction)
+    for i in sorted(live):
+        op, data = g.nodes[i]
+        if op in ('sin', 'cos') and vec[i]:
+            both.setdefault(data, {})[op] = i
+    both = {a: d for a, d in both.items() if len(d) == 2}
+    for i in sorted(live):
+        op, data = g.nodes[i]
+        if op == 'in':
+            continue
+        if op in ('sin', 'cos') and data in both:
+            if i == min(both[data].values()):
+                si, ci = both[data]['sin'], both[data]['cos']
+                lines.append(f'  lie_v t{si}, t{ci}; lie_vsincos({ref(data, 0)}, &t{si}, &t{ci});')
+            continue
+        if op == 'mul':
+            s = f'{ref(data[0], 3)}*{ref(data[1], 3)}'
+        elif op == 'inv':
+            s = f'1.0/{ref(data, 3)}'
+        elif op == 'lin':
+            s = form_text(data[0], data[1], ref, _literal)[0]
+        else:
+            s = f'lie_v{op}({ref(data, 0)})' if vec[i] else f'{op}({ref(data, 0)})'
+        lines.append(f'  const {"lie_v" if vec[i] else "double"} t{i} = {s};')
+    if index is not None:
+        lines.append(f'  memset(out, 0, {int(size) * LANES} * sizeof(double));')
+    for k, o in enumerate(outputs):
+        if hasattr(o, 'terms'):
+            txt = form_text(tuple(o.terms.items()), o.const, ref, _literal)[0]
+            if not any(vec[a] for a in o.terms):
+                txt = f'lie_bc({txt})'
+        else:
+            txt = f'lie_bc({_literal(o)})'
+        slot = k if index is None else int(index[k])
+        lines.append(f'  *(lie_v *)(out + {LANES * slot}) = {txt};')
+    fns = sorted({g.nodes[i][0] for i in live if vec[i]} - {'in', 'mul', 'inv', 'lin', 'sin', 'cos'})
+    lanewise = [f'LIE_LANEWISE(lie_v{op}, {op})' for op in fns]   # sqrt, tanh, ...: the C library's, lane by lane
+    return _HEAD + '\n'.join(lanewise + lines + ['}']) + '\n'

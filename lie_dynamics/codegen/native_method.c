@@ -1,0 +1,191 @@
+/* Part of native_call.c (included there, after Bound): a Model method that runs its native
+ * kernel straight from C (dispatch.native_first). */
+/* ------------------------------------------------------------------ Method: a model's method, native first
+ * method(slow, resolve, n_state) is a method descriptor for a Model class. model.NAME(*states)
+ * or model.NAME(*states, out=buf) runs the model's Bound kernel straight from C: the kernel
+ * is cached in the Method for one model at a time (a weak reference to it, its `version` then,
+ * and the epoch of invalidate()), resolved by resolve(model) -> a Bound, False (no kernel: the
+ * slow path, cached) or None (not now: the slow path, not cached). Any other call, a kernel that
+ * declines (bad input, non-finite result), or a model without a cached kernel runs
+ * slow(model, *args, **kwargs), the Python method, which validates and raises. */
+static unsigned long epoch = 1;
+static PyObject *str_version, *str_out;
+
+typedef struct {
+    PyObject_HEAD
+    vectorcallfunc vectorcall;
+    PyObject *slow, *resolve, *model_ref, *version, *kernel;
+    Py_ssize_t n_state;
+    unsigned long epoch;
+} Method;
+
+static PyTypeObject MethodType;
+
+static PyObject *method_kernel(Method *m, PyObject *model)
+{
+    if (m->model_ref && m->epoch == epoch && PyWeakref_GET_OBJECT(m->model_ref) == model) {
+        PyObject *v = PyObject_GetAttr(model, str_version);
+        if (!v) {
+            PyErr_Clear();
+            return NULL;
+        }
+        int same = v == m->version || PyObject_RichCompareBool(v, m->version, Py_EQ) == 1;
+        Py_DECREF(v);
+        PyErr_Clear();
+        if (same)
+            return m->kernel;
+    }
+    PyObject *k = PyObject_CallOneArg(m->resolve, model);
+    if (!k) {
+        PyErr_Clear();
+        return NULL;
+    }
+    Py_CLEAR(m->model_ref);
+    Py_CLEAR(m->version);
+    Py_CLEAR(m->kernel);
+    if (k == Py_None) {
+        Py_DECREF(k);
+        return NULL;
+    }
+    PyObject *ref = PyWeakref_NewRef(model, NULL), *v = ref ? PyObject_GetAttr(model, str_version) : NULL;
+    if (!v) {
+        Py_XDECREF(ref);
+        Py_DECREF(k);
+        PyErr_Clear();
+        return NULL;
+    }
+    m->model_ref = ref;
+    m->version = v;
+    m->kernel = k;   /* a Bound, or False */
+    m->epoch = epoch;
+    return k;
+}
+
+static PyObject *method_call(PyObject *self, PyObject *const *args, size_t nargsf, PyObject *kwnames)
+{
+    Method *m = (Method *)self;
+    Py_ssize_t nargs = PyVectorcall_NARGS(nargsf), nkw = kwnames ? PyTuple_GET_SIZE(kwnames) : 0;
+    if (nargs == 1 + m->n_state &&
+        (nkw == 0 || (nkw == 1 && PyUnicode_Compare(PyTuple_GET_ITEM(kwnames, 0), str_out) == 0))) {
+        PyObject *k = method_kernel(m, args[0]);
+        if (k && Py_TYPE(k) == &BoundType) {
+            Py_INCREF(k);   /* the cache may change while the kernel runs (another thread, the GIL released) */
+            PyObject *r = bound_call(k, args + 1, (size_t)(m->n_state + nkw), NULL);
+            Py_DECREF(k);
+            if (r != Py_None)
+                return r;   /* the result, or NULL: an error already raised */
+            Py_DECREF(r);
+        }
+    }
+    return PyObject_Vectorcall(m->slow, args, nargsf, kwnames);
+}
+
+static PyObject *method_get(PyObject *self, PyObject *obj, PyObject *type)
+{
+    if (obj == NULL || obj == Py_None) {
+        Py_INCREF(self);
+        return self;
+    }
+    return PyMethod_New(self, obj);
+}
+
+static int method_traverse(PyObject *self, visitproc visit, void *arg)
+{
+    Method *m = (Method *)self;
+    Py_VISIT(m->slow);
+    Py_VISIT(m->resolve);
+    Py_VISIT(m->model_ref);
+    Py_VISIT(m->version);
+    Py_VISIT(m->kernel);
+    return 0;
+}
+
+static int method_clear(PyObject *self)
+{
+    Method *m = (Method *)self;
+    Py_CLEAR(m->slow);
+    Py_CLEAR(m->resolve);
+    Py_CLEAR(m->model_ref);
+    Py_CLEAR(m->version);
+    Py_CLEAR(m->kernel);
+    return 0;
+}
+
+static void method_dealloc(PyObject *self)
+{
+    PyObject_GC_UnTrack(self);
+    method_clear(self);
+    Py_TYPE(self)->tp_free(self);
+}
+
+/* __doc__, __name__, __qualname__, __module__, __wrapped__: the Python method's */
+static PyObject *method_getattro(PyObject *self, PyObject *name)
+{
+    PyObject *r = PyObject_GenericGetAttr(self, name);
+    if (r || !PyErr_ExceptionMatches(PyExc_AttributeError))
+        return r;
+    PyErr_Clear();
+    if (PyUnicode_CompareWithASCIIString(name, "__wrapped__") == 0) {
+        Py_INCREF(((Method *)self)->slow);
+        return ((Method *)self)->slow;
+    }
+    return PyObject_GetAttr(((Method *)self)->slow, name);
+}
+
+static PyObject *method_doc(PyObject *self, void *closure)
+{
+    return PyObject_GetAttrString(((Method *)self)->slow, "__doc__");
+}
+
+static PyGetSetDef method_getset[] = {
+    {"__doc__", method_doc, NULL, NULL, NULL},
+    {NULL, NULL, NULL, NULL, NULL},
+};
+
+static PyTypeObject MethodType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "lie_dynamics_native.Method",
+    .tp_basicsize = sizeof(Method),
+    .tp_dealloc = method_dealloc,
+    .tp_vectorcall_offset = offsetof(Method, vectorcall),
+    .tp_call = PyVectorcall_Call,
+    .tp_descr_get = method_get,
+    .tp_getattro = method_getattro,
+    .tp_getset = method_getset,
+    .tp_traverse = method_traverse,
+    .tp_clear = method_clear,
+    .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_VECTORCALL | Py_TPFLAGS_METHOD_DESCRIPTOR | Py_TPFLAGS_HAVE_GC,
+};
+
+/* method(slow, resolve, n_state) */
+static PyObject *method_new(PyObject *mod, PyObject *args)
+{
+    PyObject *slow, *resolve;
+    Py_ssize_t n_state;
+    if (!PyArg_ParseTuple(args, "OOn", &slow, &resolve, &n_state))
+        return NULL;
+    if (n_state < 1 || n_state > MAX_LISTS) {
+        PyErr_SetString(PyExc_ValueError, "method: n_state from 1 to 16");
+        return NULL;
+    }
+    Method *m = PyObject_GC_New(Method, &MethodType);
+    if (!m)
+        return NULL;
+    m->vectorcall = method_call;
+    Py_INCREF(slow);
+    Py_INCREF(resolve);
+    m->slow = slow;
+    m->resolve = resolve;
+    m->model_ref = m->version = m->kernel = NULL;
+    m->n_state = n_state;
+    m->epoch = 0;
+    PyObject_GC_Track((PyObject *)m);
+    return (PyObject *)m;
+}
+
+/* invalidate(): every Method resolves its kernel again (cache.clear, forget, use_native) */
+static PyObject *invalidate(PyObject *mod, PyObject *unused)
+{
+    ++epoch;
+    Py_RETURN_NONE;
+}

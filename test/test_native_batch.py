@@ -1,0 +1,189 @@
+"""Native batches across states (codegen/clanes.py), their threads, and `out` buffers."""
+import copy
+import glob
+import inspect
+import os
+import sys
+import warnings
+
+import numpy as np
+import pytest
+
+from lie_dynamics import load_urdf
+from lie_dynamics.codegen import clanes, native, runtime
+from lie_dynamics.codegen.traced import crba as t_crba
+from lie_dynamics.codegen.traced import rnea as t_rnea
+from oracle import Oracle
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ARM = os.path.join(HERE, '..', 'lie_dynamics', 'data', 'arm7.urdf')
+ROOT = next(iter(glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-packages', 'cmeel.prefix', 'share',
+                                        'example-robot-data', 'robots'))), None)
+ROBOTS = ['arm7', 'ur_description/urdf/ur5_robot.urdf', 'panda_description/urdf/panda.urdf']
+PANDA_ARM = [f'panda_joint{k}' for k in range(1, 8)]
+TOL = 1e-12
+
+pytestmark = pytest.mark.skipif(native.module() is None, reason='no working C compiler')
+
+
+def _xml(name):
+    if name == 'arm7':
+        path = ARM
+    else:
+        if ROOT is None:
+            pytest.skip('example-robot-data is not installed')
+        path = os.path.join(ROOT, name)
+    with open(path, encoding='utf-8') as fh:
+        return fh.read()
+
+
+def _model(name):
+    joints = PANDA_ARM if name.startswith('panda') else None
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore')   # vendor inertias are warned about
+        return load_urdf(_xml(name), joints=joints), joints
+
+
+def _states(model, N, seed):
+    rng = np.random.default_rng(seed)
+    return [np.ascontiguousarray(x) for x in rng.uniform(-2, 2, (3, N, model.n))]
+
+
+def _rel(a, b):
+    return float(np.max(np.abs(a - b)) / max(1.0, float(np.max(np.abs(b)))))
+
+
+@pytest.mark.parametrize('name', ROBOTS)
+def test_lanes_equal_the_one_state_kernel_and_pinocchio(name):
+    """A batch runs blocks of LANES states through the vector form, the rest state by state:
+    every state equals the one-state kernel to the bit, and Pinocchio to 1e-12."""
+    model, joints = _model(name)
+    lib = runtime.kernel(model, t_rnea.INVERSE_DYNAMICS).native()
+    assert lib.lanes_address, 'a 7-joint arm gets the form across states'
+    oracle = Oracle(_xml(name), joints=joints)
+    for N in (clanes.LANES - 1, 4 * clanes.LANES + 3, 101):   # never a multiple of the width
+        q, qd, qdd = _states(model, N, seed=N)
+        batch = model.inverse_dynamics(q, qd, qdd)
+        one = np.array([model.inverse_dynamics(q[i], qd[i], qdd[i]) for i in range(N)])
+        assert np.array_equal(batch, one)
+        ref = np.array([oracle.rnea(q[i], qd[i], qdd[i]) for i in range(N)])
+        assert _rel(batch, ref) <= TOL
+        g = model.gravity(q)
+        assert np.array_equal(g, np.array([model.gravity(x) for x in q]))
+        assert _rel(g, np.array([oracle.gravity(x) for x in q])) <= TOL
+
+
+def test_threads_give_identical_results():
+    model, _ = _model('arm7')
+    q, qd, qdd = _states(model, 2 * 1000 + 7, seed=3)
+    previous = native.set_threads(1)
+    try:
+        one = model.inverse_dynamics(q, qd, qdd)
+        m_one = model.mass_matrix(q)
+        for n in (2, 3):
+            native.set_threads(n, min_rows=64)   # cut even this batch
+            assert np.array_equal(model.inverse_dynamics(q, qd, qdd), one)
+            assert np.array_equal(model.mass_matrix(q), m_one)
+            out = np.full_like(one, np.nan)
+            assert model.inverse_dynamics(q, qd, qdd, out=out) is out and np.array_equal(out, one)
+    finally:
+        native.set_threads(previous)
+    with pytest.raises(ValueError, match='threads'):
+        native.set_threads(0)
+
+
+def test_a_failing_state_in_a_threaded_batch_falls_back_to_the_checked_path():
+    """A non-finite input in one thread's part: the kernel declines, the full path names it."""
+    model, _ = _model('arm7')
+    q, qd, qdd = _states(model, 600, seed=5)
+    qd[555, 2] = np.inf
+    previous = native.set_threads(2, min_rows=64)
+    try:
+        with pytest.raises(ValueError, match='qd'):
+            model.inverse_dynamics(q, qd, qdd)
+    finally:
+        native.set_threads(previous)
+
+
+@pytest.mark.parametrize('single', [True, False])
+def test_out_good_and_bad_buffers(single):
+    model, _ = _model('arm7')
+    n = model.n
+    q, qd, qdd = _states(model, 9, seed=6)
+    if single:
+        q, qd, qdd = q[0], qd[0], qdd[0]
+    want = model.inverse_dynamics(q, qd, qdd)
+    shape = want.shape
+    good = np.full(shape, np.nan)
+    assert model.inverse_dynamics(q, qd, qdd, out=good) is good and np.array_equal(good, want)
+    strided = np.full(shape[:-1] + (2 * n,), np.nan)[..., ::2]   # not contiguous: written all the same
+    assert model.inverse_dynamics(q, qd, qdd, out=strided) is strided and np.array_equal(strided, want)
+    for alias in ('q', 'qd', 'qdd'):   # out may be an input: the inputs are read before it is written
+        args = {'q': q.copy(), 'qd': qd.copy(), 'qdd': qdd.copy()}
+        got = model.inverse_dynamics(**args, out=args[alias])
+        assert got is args[alias] and np.array_equal(got, want)
+    if not single:   # out overlapping an input shifted by a row: computed first, then written
+        buf = np.concatenate([q, np.zeros((1, n))])
+        shifted = buf[1:]
+        got = model.inverse_dynamics(buf[:-1], qd, qdd, out=shifted)
+        assert got is shifted and np.array_equal(got, want)
+        mbuf = np.zeros((len(q) * n + 1, n))
+        mbuf[:len(q)] = q
+        assert np.allclose(model.mass_matrix(mbuf[:len(q)], out=mbuf[:len(q) * n].reshape(len(q), n, n)),
+                           model.mass_matrix(q), rtol=0, atol=1e-12)
+    readonly = np.empty(shape)
+    readonly.flags.writeable = False
+    bad = [np.empty(shape, np.float32), np.empty(shape[:-1] + (n + 1,)), np.empty((2,) + shape), readonly,
+           want.tolist()]
+    for b in bad:
+        with pytest.raises(ValueError, match='^out must be a writeable float64 array'):
+            model.inverse_dynamics(q, qd, qdd, out=b)
+        with pytest.raises(ValueError, match='^out must be'):
+            model.gravity(q, out=b)
+    with pytest.raises(ValueError, match='^out must be'):
+        model.mass_matrix(q, out=np.empty(shape))
+
+
+
+def test_methods_run_the_kernel_from_c_and_follow_each_model():
+    """model.inverse_dynamics and model.gravity are C methods (dispatch.native_first): they
+    follow a model's setters, several models in turn, use_native and the runtime's clear."""
+    model, _ = _model('arm7')
+    other = copy.deepcopy(model)
+    q, qd, qdd = (x[0] for x in _states(model, 1, seed=8))
+    tau = model.inverse_dynamics(q, qd, qdd)
+    assert type(inspect.getattr_static(model, 'inverse_dynamics')).__name__ == 'Method'
+    assert 'RNEA' in type(model).inverse_dynamics.__doc__
+    oracle = Oracle(_xml('arm7'))
+    other.set_gravity([0.0, 0.0, -3.0])
+    other_oracle = Oracle(_xml('arm7'), gravity=(0.0, 0.0, -3.0))
+    for _ in range(2):   # in turn: each call finds its own model's kernel
+        assert _rel(model.inverse_dynamics(q, qd, qdd), oracle.rnea(q, qd, qdd)) <= TOL
+        assert _rel(other.inverse_dynamics(q, qd, qdd), other_oracle.rnea(q, qd, qdd)) <= TOL
+        assert _rel(other.gravity(q), other_oracle.gravity(q)) <= TOL
+    other.set_gravity(model.gravity_vector)   # a setter bumps the version
+    assert np.array_equal(other.inverse_dynamics(q, qd, qdd), tau)
+    runtime.use_native(other, False)
+    assert _rel(other.inverse_dynamics(q, qd, qdd), tau) <= TOL
+    assert runtime.native(other, t_rnea.INVERSE_DYNAMICS) is None
+    runtime.clear()
+    assert np.array_equal(model.inverse_dynamics(q, qd, qdd), tau)
+    with pytest.raises(ValueError, match='qdd'):
+        model.inverse_dynamics(q, qd, qdd[:-1])
+    with pytest.raises(ValueError, match='q'):
+        model.gravity(np.full_like(q, np.nan))
+
+
+def test_lanes_of_a_kernel_with_scattered_outputs(tmp_path, monkeypatch):
+    """The mass matrix (outputs scattered into n x n) rendered across states when asked for."""
+    monkeypatch.setenv('LIE_DYNAMICS_CACHE_DIR', str(tmp_path / 'cache'))
+    monkeypatch.setattr(clanes, 'FAMILIES', clanes.FAMILIES + ('mass_matrix',))
+    runtime.clear()
+    try:
+        model, _ = _model('arm7')
+        assert runtime.kernel(model, t_crba.MASS_MATRIX).native().lanes_address
+        q, _, _ = _states(model, 2 * clanes.LANES + 1, seed=9)
+        assert np.array_equal(model.mass_matrix(q), np.array([model.mass_matrix(x) for x in q]))
+        assert _rel(model.mass_matrix(q), np.array([Oracle(_xml('arm7')).crba(x) for x in q])) <= TOL
+    finally:
+        runtime.clear()
