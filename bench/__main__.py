@@ -1,7 +1,7 @@
 """All benchmarks in one command: tables (Markdown + CSV/JSON) and PNG charts in one folder.
 
     python -m bench [--quick] [--out DIR] [--only core,lagrangian,accuracy,scaling,stability,robots,node,payload,
-                     observer,contact,jacobian,compile,signals] [--docs-img DIR]
+                     observer,contact,jacobian,compile,signals,excitation] [--docs-img DIR]
     make bench ARGS="--quick"
 
 Sections (each writes its own files into DIR, default bench/out/):
@@ -30,6 +30,8 @@ Sections (each writes its own files into DIR, default bench/out/):
               cache, call time cut into parts against one function (bench/compile.py)
   signals     calibration signals: q̇, q̈ and effort error against the low-pass cutoff, a
               dropout's length and the distance from a segment's end (bench/signals.py)
+  excitation  calibration excitation: condition number of the optimised excitation against the
+              random one, bundled arm and UR5 at 10 and 20 s (bench/calibration_excitation.py)
 --quick shortens everything (a smoke test runs it); the full run takes a few minutes.
 --docs-img copies the PNG charts, palette-compressed, to DIR (docs/img: the copies docs/benchmarks.md shows).
 A failing section is reported and the others still run; the exit status is then 1.
@@ -44,7 +46,7 @@ import traceback
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 SECTIONS = ('core', 'lagrangian', 'accuracy', 'scaling', 'stability', 'robots', 'node', 'payload', 'observer',
-            'contact', 'jacobian', 'compile', 'signals')
+            'contact', 'jacobian', 'compile', 'signals', 'excitation')
 
 
 def _core(quick, out):
@@ -115,6 +117,11 @@ def _signals(quick, out):
     signals.run(quick=quick, out=out)
 
 
+def _excitation(quick, out):
+    from bench import calibration_excitation
+    calibration_excitation.run(quick=quick, out=out)
+
+
 def _small_copy(src, dst):
     """Copy a chart for committing: a 128-colour palette PNG is ~3x smaller and looks the same."""
     try:
@@ -130,7 +137,8 @@ def _small_copy(src, dst):
 RUNNERS = {'core': _core, 'lagrangian': _lagrangian, 'accuracy': _accuracy, 'scaling': _scaling,
            'stability': _stability, 'robots': _robots, 'node': _node, 'payload': _payload,
            'observer': _observer, 'contact': _contact, 'jacobian': _jacobian,
-           'compile': _compile, 'signals': _signals}
+           'compile': _compile, 'signals': _signals,
+           'excitation': _excitation}
 
 
 def main(argv=None):
