@@ -11,6 +11,9 @@ calibration regressor (calibration.excitation.condition_number) along
              excitation's limits (0.8 of the velocity limits, 5 rad/s^2, 0.8 of the effort limits);
   optimised  excitation_trajectory(optimize=True, seed 0) with its defaults (the CLI's), limits
              checked on its 100 Hz samples;
+  uniform states  1000 states drawn uniformly over the box the limits allow (positions less the
+             margin, 0.8 of the velocity limits, 5 rad/s^2), free of any trajectory: what spreading
+             the samples alone gives (efforts not checked);
 their ratio (optimised / random; the target is <= 0.2) and the optimiser's wall time (a loaded
 machine: indicative only). Robots: the bundled arm and example-robot-data's UR5 when installed.
 
@@ -76,6 +79,16 @@ def within_limits(model, q, qd, qdd):
     return at(good)
 
 
+def uniform_states(model, count=1000, seed=0):
+    rng = np.random.default_rng(seed)
+    lo = np.where(np.isfinite(model.position_lower), model.position_lower, -np.pi)
+    hi = np.where(np.isfinite(model.position_upper), model.position_upper, np.pi)
+    m = LIMITS['margin'] * (hi - lo)
+    u = rng.random((3, count, model.n))
+    return (lo + m + (hi - lo - 2 * m) * u[0], (2 * u[1] - 1) * LIMITS['velocity_fraction'] * model.velocity_limits,
+            (2 * u[2] - 1) * LIMITS['acceleration'])
+
+
 def run(quick=False, out=None):
     rows = []
     for name, path in robots(quick).items():
@@ -84,6 +97,7 @@ def run(quick=False, out=None):
             _, qr, qdr, qddr = excitation_trajectory(model, duration=duration, rate=RATE, seed=0)
             c_random = condition_number(model, qr, qdr, qddr)
             c_within = condition_number(model, *within_limits(model, qr, qdr, qddr))
+            c_uniform = condition_number(model, *uniform_states(model))
             t0 = time.perf_counter()
             _, q, qd, qdd = excitation_trajectory(model, duration=duration, rate=RATE, optimize=True, seed=0,
                                                   **{k: v for k, v in LIMITS.items() if k != 'margin'},
@@ -91,7 +105,8 @@ def run(quick=False, out=None):
             seconds = time.perf_counter() - t0
             c_opt = condition_number(model, q, qd, qdd)
             rows.append({'robot': name, 'duration': duration, 'random': c_random, 'random_in_limits': c_within,
-                         'optimised': c_opt, 'ratio': c_opt / c_random, 'ratio_in_limits': c_opt / c_within,
+                         'optimised': c_opt, 'uniform_states': c_uniform, 'ratio': c_opt / c_random,
+                         'ratio_in_limits': c_opt / c_within,
                          'excess': excess(model, q, qd, qdd), 'seconds': seconds})
             print(rows[-1], flush=True)
     if out is not None:
@@ -104,10 +119,11 @@ def markdown(rows):
              f'Column-scaled structural base calibration regressor, {RATE:g} Hz samples, seed 0; limits: '
              f'{LIMITS}; target ratio <= {TARGET:g}.', '',
              '| robot | duration (s) | random | random in limits | optimised | optimised / random | '
-             'optimised / random in limits | largest limit excess | optimiser time (s) |',
-             '|---|---:|---:|---:|---:|---:|---:|---:|---:|']
+             'optimised / random in limits | uniform states | largest limit excess | optimiser time (s) |',
+             '|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|']
     lines += [f"| {r['robot']} | {r['duration']:g} | {r['random']:.3g} | {r['random_in_limits']:.3g} | "
-              f"{r['optimised']:.3g} | {r['ratio']:.3f} | {r['ratio_in_limits']:.3f} | {r['excess']:.2g} | "
+              f"{r['optimised']:.3g} | {r['ratio']:.3f} | {r['ratio_in_limits']:.3f} | {r['uniform_states']:.3g} | "
+              f"{r['excess']:.2g} | "
               f"{r['seconds']:.0f} |" for r in rows]
     return '\n'.join(lines) + '\n'
 
@@ -116,20 +132,21 @@ def chart(rows, path):
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(7, 4.2))
+    fig, ax = plt.subplots(figsize=(10, 4.4))
     for i, name in enumerate(dict.fromkeys(r['robot'] for r in rows)):
         sel = [r for r in rows if r['robot'] == name]
         d = [r['duration'] for r in sel]
         ax.plot(d, [r['random'] for r in sel], 's--', color=f'C{i}', label=f'{name}: random')
         ax.plot(d, [r['random_in_limits'] for r in sel], '^:', color=f'C{i}', label=f'{name}: random in limits')
         ax.plot(d, [r['optimised'] for r in sel], 'o-', color=f'C{i}', label=f'{name}: optimised')
+        ax.plot(d, [r['uniform_states'] for r in sel], 'x', color=f'C{i}', label=f'{name}: uniform states')
         ax.plot(d, [TARGET * r['random'] for r in sel], '-', color=f'C{i}', lw=0.6, alpha=0.6,
                 label=f'{name}: target ({TARGET:g} x random)')
     ax.set_yscale('log')
     ax.set_xlabel('duration (s)')
     ax.set_ylabel('condition number (column-scaled base regressor)')
     ax.set_title('excitation: optimised against random')
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc='upper left', bbox_to_anchor=(1.01, 1.0))
     ax.grid(True, which='both', alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -50,7 +50,7 @@ def test_within_its_limits_on_the_sampled_trajectory_and_at_rest_at_both_ends(ar
 def test_better_conditioned_than_the_random_excitation(arm, optimized):
     _, q, qd, qdd = optimized
     _, qr, qdr, qddr = excitation_trajectory(arm, duration=10.0, rate=100.0, seed=0)
-    # measured: 11.9 against 20.1 at 100 iterations, 9.6 (0.48) at the default 300 (bench/calibration_excitation.py);
+    # measured: 11.4 against 20.1 at 100 iterations, 9.3 (0.46) at the default 300 (bench/calibration_excitation.py);
     # the target, 1/5, is not reached: states drawn uniformly over the whole box the limits allow,
     # free of any trajectory, reach only 7.2 (0.36)
     assert ex.condition_number(arm, q, qd, qdd) < 0.65 * ex.condition_number(arm, qr, qdr, qddr)
