@@ -1,7 +1,7 @@
 """All benchmarks in one command: tables (Markdown + CSV/JSON) and PNG charts in one folder.
 
     python -m bench [--quick] [--out DIR] [--only core,calls,lagrangian,accuracy,scaling,stability,robots,node,payload,
-                     observer,contact,jacobian,compile,signals,calibration] [--docs-img DIR]
+                     observer,contact,jacobian,compile,signals,calibration,excitation] [--docs-img DIR]
     make bench ARGS="--quick"
 
 Sections (each writes its own files into DIR, default bench/out/):
@@ -35,6 +35,8 @@ Sections (each writes its own files into DIR, default bench/out/):
   calibration identify_dynamics: held-out torque prediction error against effort noise, recording
               length and decimation, gated at 3 % with 2 % noise; the identify_dynamics command's
               run time on a 60 s, 1 kHz recording (bench/calibration.py)
+  excitation  calibration excitation: condition number of the optimised excitation against the
+              random one, bundled arm and UR5 at 10 and 20 s (bench/calibration_excitation.py)
 --quick shortens everything (a smoke test runs it); the full run takes a few minutes.
 --docs-img copies the PNG charts, palette-compressed, to DIR (docs/img: the copies docs/benchmarks.md shows).
 A failing section is reported and the others still run; the exit status is then 1.
@@ -49,7 +51,7 @@ import traceback
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 SECTIONS = ('core', 'calls', 'lagrangian', 'accuracy', 'scaling', 'stability', 'robots', 'node', 'payload', 'observer',
-            'contact', 'jacobian', 'compile', 'signals', 'calibration')
+            'contact', 'jacobian', 'compile', 'signals', 'calibration', 'excitation')
 
 
 def _core(quick, out):
@@ -137,6 +139,11 @@ def _calibration(quick, out):
         raise RuntimeError(status)
 
 
+def _excitation(quick, out):
+    from bench import calibration_excitation
+    calibration_excitation.run(quick=quick, out=out)
+
+
 def _small_copy(src, dst):
     """Copy a chart for committing: a 128-colour palette PNG is ~3x smaller and looks the same."""
     try:
@@ -152,7 +159,8 @@ def _small_copy(src, dst):
 RUNNERS = {'core': _core, 'calls': _calls, 'lagrangian': _lagrangian, 'accuracy': _accuracy, 'scaling': _scaling,
            'stability': _stability, 'robots': _robots, 'node': _node, 'payload': _payload,
            'observer': _observer, 'contact': _contact, 'jacobian': _jacobian,
-           'compile': _compile, 'signals': _signals, 'calibration': _calibration}
+           'compile': _compile, 'signals': _signals, 'calibration': _calibration,
+           'excitation': _excitation}
 
 
 def main(argv=None):

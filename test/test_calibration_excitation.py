@@ -1,4 +1,5 @@
 """The optimised excitation (lie_dynamics.calibration.excitation) and its console script."""
+import glob
 import os
 import subprocess
 import sys
@@ -12,6 +13,10 @@ from lie_dynamics.algorithms.identification import excitation_trajectory
 from lie_dynamics.calibration import excitation as ex
 from lie_dynamics.trajectory import read_csv
 
+_ERD = glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-packages', 'cmeel.prefix', 'share',
+                              'example-robot-data', 'robots', 'ur_description', 'urdf', 'ur5_robot.urdf'))
+UR5 = _ERD[0] if _ERD else None
+
 
 @pytest.fixture(scope='module')
 def arm():
@@ -20,7 +25,8 @@ def arm():
 
 @pytest.fixture(scope='module')
 def optimized(arm):
-    return excitation_trajectory(arm, duration=10.0, rate=100.0, optimize=True, seed=0)
+    # 100 L-BFGS-B iterations (the default is 300) keep the test near half a minute on a loaded machine
+    return excitation_trajectory(arm, duration=10.0, rate=100.0, optimize=True, seed=0, iterations=100)
 
 
 def test_within_its_limits_on_the_sampled_trajectory_and_at_rest_at_both_ends(arm, optimized):
@@ -44,8 +50,25 @@ def test_within_its_limits_on_the_sampled_trajectory_and_at_rest_at_both_ends(ar
 def test_better_conditioned_than_the_random_excitation(arm, optimized):
     _, q, qd, qdd = optimized
     _, qr, qdr, qddr = excitation_trajectory(arm, duration=10.0, rate=100.0, seed=0)
-    # measured: 11.3 against 20.1 (the issue's target, 1/5, is not reached)
+    # measured: 11.4 against 20.1 at 100 iterations, 9.3 (0.46) at the default 300 (bench/calibration_excitation.py);
+    # the issue's target, 1/5, is not reached: states drawn uniformly over the whole box the limits allow,
+    # free of any trajectory, reach only 7.2 (0.36)
     assert ex.condition_number(arm, q, qd, qdd) < 0.65 * ex.condition_number(arm, qr, qdr, qddr)
+
+
+def test_better_conditioned_than_the_random_excitation_on_the_ur5():
+    if UR5 is None:
+        pytest.skip('example-robot-data is not installed')
+    model = load_urdf(UR5)
+    _, q, qd, qdd = excitation_trajectory(model, duration=10.0, rate=50.0, optimize=True, seed=0, iterations=60)
+    _, qr, qdr, qddr = excitation_trajectory(model, duration=10.0, rate=50.0, seed=0)
+    span = model.position_upper - model.position_lower
+    assert np.all(q >= model.position_lower + 0.1 * span - 1e-12)
+    assert np.all(q <= model.position_upper - 0.1 * span + 1e-12)
+    assert np.all(np.abs(qd) <= 0.8 * model.velocity_limits + 1e-12) and np.all(np.abs(qdd) <= 5.0 + 1e-12)
+    assert np.all(np.abs(model.inverse_dynamics(q, qd, qdd)) <= 0.8 * model.effort_limits + 1e-9)
+    c, cr = ex.condition_number(model, q, qd, qdd), ex.condition_number(model, qr, qdr, qddr)
+    assert c < 0.7 * cr   # measured 7.47 against 11.2 (0.67) at 60 iterations
 
 
 def test_joints_home_and_infeasible_limits(arm):
@@ -58,6 +81,13 @@ def test_joints_home_and_infeasible_limits(arm):
         ex.optimized_excitation(arm, home=np.zeros(7), iterations=1)
     with pytest.raises(ValueError, match=r"effort limit of joint 'joint2': gravity alone at home needs"):
         ex.optimized_excitation(arm, home=[0, 1.2, 0, 1.5, 0, 1.6, 0], effort_fraction=0.1, iterations=1)
+    # bounds that leave no motion: the error names the binding limit and its joint
+    with pytest.raises(ValueError, match=r"no exciting motion: the acceleration bound of joint 'joint7' binds"):
+        ex.optimized_excitation(arm, duration=4.0, rate=20.0, acceleration=[5, 5, 5, 5, 5, 5, 1e-8], iterations=1)
+    with pytest.raises(ValueError, match=r"no exciting motion: the velocity limit of joint 'joint7' binds"):
+        ex.optimized_excitation(arm, duration=4.0, rate=20.0, velocity_fraction=1e-7, iterations=1)
+    with pytest.raises(ValueError, match=r"no exciting motion: the position limit of joint 'joint6' binds"):
+        ex.optimized_excitation(arm, duration=4.0, rate=20.0, margin=0.4999999, iterations=1)
     with pytest.raises(ValueError, match='velocity_fraction must be in'):
         ex.optimized_excitation(arm, velocity_fraction=0.0)
     with pytest.raises(ValueError, match='acceleration bound must be > 0'):

@@ -11,8 +11,9 @@ objective is log cond of the column-scaled base calibration regressor (the struc
 columns, regressor.structural_base) along the trajectory, plus a penalty on the limits
 (positions within a margin, a fraction of the velocity limits, an acceleration bound, a fraction
 of the effort limits predicted by the model's inverse dynamics); scipy's L-BFGS-B minimises it.
-The result is then checked on the sampled trajectory and, where a limit is still exceeded,
-shrunk towards home until none is.
+The start is the best conditioned of a few random series, each scaled up or down to the limits;
+the result is checked on the sampled trajectory and, where a limit is still exceeded, shrunk
+towards home until none is (the stiff penalty leaves little to shrink).
 """
 import numpy as np
 
@@ -110,17 +111,20 @@ LIMIT_NAMES = ('position limit', 'velocity limit', 'acceleration bound', 'effort
 
 def optimized_excitation(model, duration=10.0, rate=100.0, harmonics=5, home=None, joints=None, margin=0.1,
                          velocity_fraction=0.8, acceleration=5.0, effort_fraction=0.8, seed=0,
-                         eps=COULOMB_VELOCITY_EPSILON, iterations=100, samples=None):
+                         eps=COULOMB_VELOCITY_EPSILON, iterations=300, samples=None, starts=1):
     """(t, q, qd, qdd) of the optimised excitation (module docstring): q, qd, qdd (N, n).
 
     home: the pose it starts and ends at, at rest ((n,), default the middle of the position
     limits). joints: names of the joints that move (default all; the others stay at home).
     margin: fraction of each joint's range kept free at both ends. velocity_fraction,
     effort_fraction: of the URDF's limits; acceleration: rad/s^2 (m/s^2), one or per joint.
-    iterations: of L-BFGS-B; samples: grid of the optimisation (default 6 per period of the
-    highest harmonic, at least 60). The limits hold on the returned samples (checked);
-    ValueError names the binding limit where they cannot (home outside the limits, gravity at
-    home above the effort fraction, a bound that leaves no motion).
+    iterations: of L-BFGS-B (the condition number still falls between 100 and 400);
+    samples: grid of the optimisation (default 6 per period of the highest harmonic, at least
+    60); starts: random series tried as the start, each scaled to the limits, the best
+    conditioned kept; seed: theirs (fixed: the result is deterministic). The limits hold on the
+    returned samples (checked); ValueError names the binding limit where they cannot (home
+    outside the limits, gravity at home above the effort fraction, a bound that leaves no
+    motion: a moving joint sweeping less than 1e-3 of its range, with the joint).
     """
     from scipy.optimize import minimize   # scipy: imported where it is used
 
@@ -159,27 +163,51 @@ def optimized_excitation(model, duration=10.0, rate=100.0, harmonics=5, home=Non
         return s * p, s * v, s * a
 
     bases = _derivative_bases(opt, n)
-    penalty_weight = 1e3
+    limits = (lo, hi, vmax, amax, emax)
 
-    def cost(x, gradient=True):
+    def cost(x, weight=1e3, gradient=True):
         p, v, a = trajectory(opt, x)
-        return _objective(model, home, p, v, a, columns, eps, (lo, hi, vmax, amax, emax), penalty_weight,
-                          bases if gradient else None, mask)
+        return _objective(model, home, p, v, a, columns, eps, limits, weight, bases if gradient else None, mask)
 
+    # the start: the best conditioned of `starts` random series, each scaled up or down to the limits
     rng = np.random.default_rng(seed)
-    x0 = rng.normal(size=(n, 2, harmonics - 1)).reshape(-1)
-    x0 *= _shrink(model, home, lo, hi, vmax, amax, emax, lambda s: trajectory(opt, x0, s), 1.0)
+    best = None
+    for _ in range(max(1, starts)):
+        x0 = rng.normal(size=(n, 2, harmonics - 1)).reshape(-1)
+        x0 *= _shrink(model, home, lo, hi, vmax, amax, emax, lambda s, x0=x0: trajectory(opt, x0, s), 1e3)
+        c0 = cost(x0, 0.0, False)[0]
+        if best is None or c0 < best[0]:
+            best = (c0, x0)
+    x0 = best[1]
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
         res = minimize(cost, x0, jac=True, method='L-BFGS-B', options={'maxiter': iterations})
-    x = res.x if np.isfinite(res.fun) and res.fun <= cost(x0, False)[0] else x0
+    x = res.x if np.isfinite(res.fun) and res.fun <= cost(x0, gradient=False)[0] else x0
     s = _shrink(model, home, lo, hi, vmax, amax, emax, lambda s: trajectory(fine, x, s), 1.0)
     p, v, a = trajectory(fine, x, s)
     worst = [float(e.max()) for e in _violation(model, home, lo, hi, vmax, amax, emax, p, v, a)]
-    if max(worst) > 0 or s < 1e-3:
-        k = int(np.argmax(worst)) if max(worst) > 0 else 3
-        raise ValueError(f'the limits leave no exciting motion: the {LIMIT_NAMES[k]} binds')
+    if max(worst) > 0:
+        raise ValueError(f'the limits leave no exciting motion: the {LIMIT_NAMES[int(np.argmax(worst))]} binds')
+    _check_motion(model, home, lo, hi, vmax, amax, emax, p, v, a, moving)
     q = np.where(moving, home + p, home)
     return t, q, np.where(moving, v, 0.0), np.where(moving, a, 0.0)
+
+
+def _check_motion(model, home, lo, hi, vmax, amax, emax, p, v, a, moving, least=1e-3):
+    """ValueError when a moving joint sweeps less than `least` of its URDF range: the limits leave
+    no motion that excites anything. It names the limit the motion uses most (the binding one)."""
+    lo0 = np.where(np.isfinite(model.position_lower), model.position_lower, -np.pi)
+    hi0 = np.where(np.isfinite(model.position_upper), model.position_upper, np.pi)
+    still = [j for j in np.flatnonzero(moving) if np.ptp(p[:, j]) < least * (hi0[j] - lo0[j])]
+    if not still:
+        return
+    tau = model.inverse_dynamics(home + p, v, a)
+    room = np.maximum(np.minimum(hi - home, home - lo), 1e-300)
+    used = np.array([np.abs(p).max(axis=0) / room, np.abs(v).max(axis=0) / vmax, np.abs(a).max(axis=0) / amax,
+                     np.abs(tau).max(axis=0) / emax])[:, moving]
+    k, j = np.unravel_index(np.argmax(used), used.shape)
+    j = np.flatnonzero(moving)[j]
+    raise ValueError(f"the limits leave no exciting motion: the {LIMIT_NAMES[k]} of joint '{model.joint_names[j]}' "
+                     f"binds (joint '{model.joint_names[still[0]]}' sweeps {np.ptp(p[:, still[0]]):.3g} rad or m)")
 
 
 def _derivative_bases(series, n):
@@ -209,7 +237,12 @@ def _objective(model, home, p, v, a, columns, eps, limits, weight, bases, mask, 
         allst = np.concatenate(batch, axis=1)        # (3, m * (1 + 6 n), n)
     else:
         allst = np.stack(states)
-    Yall = creg.calibration_regressor(model, *allst, eps)[..., columns]
+    # the calibration regressor's two parts, each on its own base columns (a column order cond ignores):
+    # the same numbers as calibration_regressor(...)[..., columns], without building the unused columns
+    inertial = 10 * model.nb
+    Yall = np.concatenate([model.regressor(*allst)[..., columns[columns < inertial]],
+                           creg.joint_columns(allst[1], allst[2], eps)[..., columns[columns >= inertial] - inertial]],
+                          axis=2)
     tau_all = model.inverse_dynamics(*allst)
     Y = Yall[:m].reshape(m * n, -1)
     D = np.linalg.norm(Y, axis=0)
@@ -247,14 +280,19 @@ def _objective(model, home, p, v, a, columns, eps, limits, weight, bases, mask, 
 
 def _shrink(model, home, lo, hi, vmax, amax, emax, traj, s):
     """Largest scale in (0, s] of the motion about home with no limit exceeded (bisection; the
-    effort is not linear in the scale)."""
+    effort is not linear in the scale); ValueError naming the limit when there is none."""
     def ok(k):
         return all(float(e.max()) <= 0 for e in _violation(model, home, lo, hi, vmax, amax, emax, *traj(k)))
     if ok(s):
         return s
-    good, bad = 0.0, s
-    for _ in range(40):
-        mid = 0.5 * (good + bad)
+    good, bad = s * 1e-15, s            # geometric bisection: the scale may be many decades down
+    if not ok(good):                    # even a vanishing motion exceeds a limit: name it
+        excess = np.array([e.max(axis=0) for e in _violation(model, home, lo, hi, vmax, amax, emax, *traj(good))])
+        k, j = np.unravel_index(np.argmax(excess), excess.shape)
+        raise ValueError(f"the limits leave no exciting motion: the {LIMIT_NAMES[k]} of joint "
+                         f"'{model.joint_names[j]}' binds")
+    for _ in range(50):
+        mid = np.sqrt(good * bad)
         good, bad = (mid, bad) if ok(mid) else (good, mid)
     return good
 
