@@ -41,6 +41,8 @@ GAINS = (5.0, 10.0, 20.0, 50.0, 100.0, 200.0, 500.0, 1000.0)
 THRESHOLDS = (0.05, 0.1, 0.15, 0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 8.0, 10.0, 12.0)
 GAIN, HOLD = contact_demo.GAIN, contact_demo.HOLD
 PUSH = (1.5, 0.5)   # start, length (s)
+FLANGE = contact_demo.PUSHES[1]   # the demo's push on the flange, off the tool axis
+LINK, WRENCH = FLANGE[0], contact_demo.wrench_of(FLANGE)
 JOINTS = [f'joint{i}' for i in range(1, 8)]
 
 
@@ -50,7 +52,7 @@ def recording(seconds):
     model = load_urdf(default_urdf_path())
     friction = make_friction(model.damping, None, 0.05)
     sim = ArmSim(model, DT, q0=HOME)
-    sim.set_external(contact_demo.LINK, contact_demo.WRENCH, *PUSH)
+    sim.set_external(LINK, WRENCH, *PUSH)
     lim = effort_limits(model.effort_limits, 1.0)
     kp, kd = np.array(KP), np.array(KD)
     rows = []
@@ -208,7 +210,8 @@ def charts(gains, thresholds, out):
         ax.loglog(k, [r['free_max'] for r in rs], 's--', label=f'max |estimate|, free motion ({label})')
     ax.set_xlabel('observer gain K (1/s)')
     ax.set_ylabel('N m')
-    ax.set_title('external-torque estimate against J^T F (bundled arm, 30 N push)', fontsize=9)
+    ax.set_title(f'external-torque estimate against J^T F (bundled arm, {np.linalg.norm(WRENCH[3:]):.3g} N push)',
+                 fontsize=9)
     ax.grid(alpha=0.3, which='both')
     ax.legend(fontsize=7)
     fig.tight_layout()
@@ -231,7 +234,7 @@ def charts(gains, thresholds, out):
 
 def markdown(gains, thresholds, cost, update):
     lines = ['# External-torque observer', '',
-             f'Bundled arm, 1 kHz, feedforward + PD tracking, {abs(contact_demo.WRENCH[5]):g} N on the flange for '
+             f'Bundled arm, 1 kHz, feedforward + PD tracking, {np.linalg.norm(WRENCH[3:]):.3g} N on the flange for '
              f'{PUSH[1]:g} s (truth J^T F); efforts = motor torque + white noise.', '',
              '## Estimate error against gain', '',
              '| noise (N m) | gain (1/s) | 1/K (ms) | RMS error, whole run | RMS error, settled push | '
