@@ -103,6 +103,7 @@ class MomentumObserver:
         self._settings = _step_settings(self.gain, friction, model.n) if model.n else None
         n = model.n   # where the step kernel's outputs are: next state, estimate, p and beta
         self._parts = (slice(0, 3 * n + 1), slice(3 * n + 1, 4 * n + 1), 4 * n + 1)
+        self._kernel = (None, -1)   # (runtime.fast's step kernel, the model version it is for)
         self.reset()
 
     def reset(self):
@@ -178,8 +179,13 @@ class MomentumObserver:
                 return None
         z = self._state
         z[-1] = dt
-        out = runtime.fast(self.model, _STEP)(q, qd, tau_measured, z, settings)   # None: not finite, or declined
+        kernel, version = self._kernel
+        if version != self.model.version:   # runtime.fast's cache rule, without its lookup per sample
+            kernel = runtime.fast(self.model, _STEP)
+            self._kernel = (kernel, self.model.version)
+        out = kernel(q, qd, tau_measured, z, settings)   # None: not finite, or declined
         if out is None:
+            self._kernel = (None, -1)   # a kernel still being built declines: ask again next time
             return None
         state, estimate, first = self._parts
         self._state = out[state]   # the next state: where the next call reads it

@@ -18,7 +18,7 @@ _new = tuple.__new__   # the generated NamedTuple __new__ costs a Python call pe
 
 
 def _frozen(a):
-    a.flags.writeable = False
+    a.setflags(write=False)   # cheaper than a.flags.writeable (no flags object per call)
     return a
 
 
@@ -48,7 +48,7 @@ class SampleResult(NamedTuple):
 
     @classmethod
     def accept(cls, stamp, q, model, names, columns, velocity, effort):
-        q.flags.writeable = False
+        q.setflags(write=False)
         return _new(cls, (stamp, True, '', '', q, model, model.version, names, columns, velocity, effort, {}))
 
     @classmethod
@@ -59,8 +59,8 @@ class SampleResult(NamedTuple):
         m = self.memo
         out = m.get(key)
         if out is None:
-            n = len(self.q)
-            out = m[key] = _frozen(in_joint_order(values, self.columns) if len(values) else np.full(n, np.nan))
+            out = in_joint_order(values, self.columns) if len(values) else np.full(len(self.q), np.nan)
+            m[key] = _frozen(out)
         return out
 
     @property

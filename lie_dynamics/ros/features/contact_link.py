@@ -48,6 +48,9 @@ class Published(NamedTuple):
     link: Optional[str]         # for ~/contact/link when it changed, or None
 
 
+_NOTHING = Published(None, None, None)
+
+
 def check_wrench_frame(settings, model):
     """contact.wrench_frame against `model` (None: not loaded yet): ValueError with the close matches
     or the reason (contact.rcond's range is checked with the other parameters, params.py)."""
@@ -137,6 +140,9 @@ class ContactIsolation:
 
     def update(self, t, q, r, collision, threshold):
         """One observer sample: Published."""
+        if not (collision or self.up or self.frame or self.link or self._settled) and self.isolation is None:
+            self.flag, self.residual = False, r   # the flag down and nothing owed: nothing to decide
+            return _NOTHING
         st = self.settling
         if collision and self._settled and st.checked < t < st.checked + st.quarter:   # held (cost)
             return Published(None, self._held[1], None)

@@ -73,7 +73,8 @@ class ContactTopics(Feature):
     def on_sample(self, s):
         m = self.monitor
         out = m.on_sample(s)
-        self.isolation.flush()   # the monitor's lines; the collision line waits for the link
+        if self.isolation.inbox:
+            self.isolation.flush()   # the monitor's lines; the collision line waits for the link
         if out is None:
             if m.estimate is None:   # paused: isolation starts anew with the observer
                 self.isolation.reset()
