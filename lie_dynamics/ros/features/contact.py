@@ -29,6 +29,7 @@ import weakref
 import numpy as np
 
 from ...algorithms.observer import MomentumObserver
+from ...model.joint_names import in_joint_order
 from ..core.diagnostics import OK, WARN, clip, names_text
 from ..core.params import EFFORT_CONVENTIONS, PAYLOAD_KEYS, per_joint_values
 from ..core.timebase import TimeBase
@@ -232,7 +233,11 @@ class ContactMonitor:
     def on_sample(self, s, now=None):
         """One accepted joint_states message as the core made it (core.sample.SampleResult):
         on_state with its arrays in model order. Returns (estimate (n,), collision) or None."""
-        return self.on_state(s.q, s.velocity, s.effort if len(s.message_effort) else None, s.stamp, now)
+        v, e = s.message_velocity, s.message_effort
+        if len(v) and len(e):   # mapped here: cheaper than the memo of s.velocity and s.effort
+            cols = s.columns
+            return self.on_state(s.q, in_joint_order(v, cols), in_joint_order(e, cols), s.stamp, now)
+        return self.on_state(s.q, s.velocity, s.effort if len(e) else None, s.stamp, now)
 
     def on_state(self, q, velocity, effort, stamp=0, now=None):
         """One accepted joint_states message, in model order as a core.sample.SampleResult gives
@@ -297,8 +302,9 @@ class ContactMonitor:
             k = [abs(x) for x in rl].index(top)
             self._window_max, self._window_joint = top, self.layout[k] if self.layout else str(k)
         over = top > self._threshold_min and any(abs(x) > y for x, y in zip(rl, self._threshold_list, strict=True))
-        if self.debounce.update(over, t):
-            self.collision = self.debounce.state
+        d = self.debounce
+        if (over != d.state or d.since is not None) and d.update(over, t):   # else update changes nothing
+            self.collision = d.state
             if self.collision:
                 self.collision_events += 1
                 self._window_collisions += 1
