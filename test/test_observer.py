@@ -312,6 +312,27 @@ def test_one_step_equals_the_python_observer_and_pinocchio_to_1e12(name, backend
     assert kernel.builds() == builds and native.compile_count() == compiles
 
 
+def test_streaming_steps_follow_a_model_change_between_samples():
+    """The observer keeps its step kernel between samples (no lookup per sample): a payload and
+    a gravity set on the model between two samples are used by the next one, as by the
+    reference (momentum_terms, advance) on the same samples."""
+    model = load_urdf(default_urdf_path())
+    n = model.n
+    rng = np.random.default_rng(zlib.crc32(b'kept step kernel'))
+    friction = make_friction(model.damping, None, 0.05)
+    obs, ref = MomentumObserver(model, GAIN, friction), MomentumObserver(model, GAIN, friction)
+    for k in range(8):
+        if k == 3:
+            model.set_payload(model.body_link_names[-1], 2.0, (0.0, 0.01, 0.05))
+        if k == 5:
+            model.gravity_vector = (0.5, 0.0, -9.7)
+        q, qd, tau = rng.uniform(-1.0, 1.0, (3, n))
+        r = obs.update(DT * k, q, qd, tau)
+        expect = ref.advance(DT * k, *ref.momentum_terms(q, qd, tau))
+        assert np.abs(r - expect).max() <= 1e-12 * max(1.0, np.abs(expect).max()), k
+    assert np.abs(expect).max() > 1.0   # the steps after the changes estimate something
+
+
 def test_a_robot_without_joints_has_an_empty_observer():
     """A model without movable joints (a valid model: every algorithm returns empty results) has
     an observer that checks its arguments and estimates nothing, as the rest of the library."""
