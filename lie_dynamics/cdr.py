@@ -224,6 +224,20 @@ def joint_state_template(names, sizes=None):
     return t, stamp_at, [t.doubles(len(names) if sizes is None else k) for k in (sizes or range(3))]
 
 
+def multi_array_template(size, dims=()):
+    """(Template, [data slot]) of a std_msgs/Float64MultiArray of `size` doubles whose layout
+    has the rows `dims`, each (label, size, stride), and data_offset 0. The one writer of its
+    layout (the node's effort command: no dims; the dynamics topics' matrices)."""
+    t = Template()
+    t.uint32(len(dims))
+    for label, n, stride in dims:
+        t.string(label)
+        t.uint32(n)
+        t.uint32(stride)
+    t.uint32(0)   # data_offset
+    return t, [t.doubles(size)]
+
+
 class Writer:
     """Template.fill with the slots and stamp offset fixed, for a message published at every
     sample: the template cut into its constant pieces once, each message the pieces joined with

@@ -258,6 +258,17 @@ def test_log_line_bench_times_both_paths():
     assert len(rows) == 2 and rows[0].endswith('| 1.000× |')
 
 
+def test_command_publish_probe_times_every_path():
+    """bench.probes.command_publish runs (its own process: it starts rclpy) and reports its five paths."""
+    import subprocess
+    import sys
+    done = subprocess.run([sys.executable, '-m', 'bench.probes.command_publish', '--rounds', '1', '--joints', '3'],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    rows = [ln for ln in done.stdout.splitlines() if ln.startswith('| command') or ln.startswith('| echo')]
+    assert len(rows) == 5 and rows[0].endswith('| 1.00 |') and rows[2].endswith('| 1.00 |')
+
+
 def test_record_gaps_probe_runs():
     """bench.probes.record_gaps runs (its own process: it starts rclpy) and reports the three phases,
     the recording written."""

@@ -184,8 +184,16 @@ class Harness:
         assert cli.wait_for_service(timeout_sec=TIMEOUT)
         fut = cli.call_async(request)
         wait_until(fut.done, what=f'service {name}')
-        self.t.destroy_client(cli)
+        self.on_spin_thread(self.t.destroy_client, cli)
         return fut.result()
+
+    def on_spin_thread(self, fn, *args):
+        """Run fn(*args) on the executor's thread and return its result. Destroying an entity
+        from this thread races the wait set the executor is building: it then raises
+        InvalidHandle in the spin thread, and the tester stops receiving."""
+        task = self.ex.create_task(fn, *args)
+        wait_until(task.done, what=getattr(fn, '__name__', 'a task on the spin thread'))
+        return task.result()
 
     def close(self):
         self.closing = True
@@ -416,7 +424,7 @@ def test_no_model_publishes_nothing_and_parameter_validation(ros, chain):
     node = ros.start(wait_model=False, joints=ctrl, diagnostics_period=0.1)
     wait_until(lambda: any('volatile durability' in line and 'node_tester' in line for line in ros.logs),
                what='incompatible publisher warning')
-    ros.t.destroy_publisher(volatile)
+    ros.on_spin_thread(ros.t.destroy_publisher, volatile)
     q = np.zeros(len(ctrl))
     for _ in range(3):
         ros.publish_processed(ctrl, q)

@@ -38,7 +38,7 @@ def heavier(xml, factor):
 
 
 def slow_builds(node, gate=None, burn=0.0):
-    """Make the node's model builds slow: wait for `gate`, or burn `burn` s of CPU in Python
+    """Make the node's model builds slow: wait for `gate`, or burn `burn` s of this thread's CPU in Python
     (the interpreter lock is then shared with the control path, as in a real parse).
     Returns the list of builds started."""
     build, started = node.core.build_model, []
@@ -47,8 +47,8 @@ def slow_builds(node, gate=None, burn=0.0):
         started.append(time.monotonic())
         if gate is not None:
             gate.wait(TIMEOUT)
-        end = time.monotonic() + burn
-        while time.monotonic() < end:
+        end = time.thread_time() + burn   # CPU time: on a loaded machine the load stretches too
+        while time.thread_time() < end:
             sum(range(1000))
         return build(*args, **kwargs)
     node.core.build_model = slow
@@ -69,10 +69,13 @@ def test_model_swap_without_a_gap_in_replies(ros):
         rtts.append(time.monotonic() - t0)
         if node.core.model is old:
             during.append(tau)
+    load = time.monotonic() - started[0]   # 1.5 s of CPU or more: longer on a loaded machine
     assert len(during) >= 5, len(during)
     for tau in during:
         np.testing.assert_allclose(tau, g_old, atol=1e-9)
-    assert max(rtts) < 1.0, max(rtts)   # the load took 1.5 s or more
+    # no reply waits for the load: the longest gap is a fraction of it (a fixed bound in seconds
+    # failed on a machine loaded fifteen-fold)
+    assert max(rtts) < load / 2, (max(rtts), load)
     g_new = load_urdf(heavier(ARM, 2.0)).gravity(Q)
     np.testing.assert_allclose(ros.send(JOINTS, Q), g_new, atol=1e-9)
     assert node.core.count.rejected == 0 and node.core.count.accepted == len(ros.cmds)

@@ -13,9 +13,9 @@ import pytest
 
 from lie_dynamics import default_urdf_path, load_urdf
 from lie_dynamics.algorithms.observer import MomentumObserver, estimate_external_torques, generalized_momentum
-from lie_dynamics.codegen import runtime
+from lie_dynamics.codegen import kernel, native, runtime
 from lie_dynamics.codegen.traced import observer as observer_kernel
-from lie_dynamics.laws import make_friction
+from lie_dynamics.laws import friction_torque, make_friction
 from oracle import Oracle
 from robots import NAMED_CASES, named_urdf, with_payload
 
@@ -243,6 +243,92 @@ def test_step_kernel_equals_the_reference_step_by_step(name, backend):
         assert np.abs(r - expect).max() <= 1e-9 * scale, (k, np.abs(r - expect).max() / scale)
         assert np.abs(fast.estimate - ref.estimate).max() <= 1e-9 * scale
     assert np.abs(r).max() > 1.0   # the estimates compared are not all near zero
+
+
+def _pin_armature(oracle, arm):
+    """Pinocchio's armature per velocity: each controlled joint's value on its own column (a
+    mimic joint's column gets none: the master's value stands for the rotor of its column)."""
+    a = np.zeros(oracle.nv)
+    for k in range(oracle.n):
+        a[np.flatnonzero(oracle.E[:, k] == 1.0)[0]] = arm[k]
+    oracle.model.armature = a
+
+
+@pytest.mark.parametrize('backend', ['native', 'python'])
+@pytest.mark.parametrize('name', ['arm', 'tree20_mimic', 'ur_description/urdf/ur5_robot.urdf'])
+def test_one_step_equals_the_python_observer_and_pinocchio_to_1e12(name, backend):
+    """One call of the step kernel from a given observer state (p(0), the integral, beta + r,
+    dt) against the Python observer (momentum_terms, advance) from the same state and against
+    Pinocchio (p = M qd with the armature, tau + C^T qd - g less the friction law, the
+    trapezoid's r), to 1e-12 relative: with an armature, then a payload and another gravity
+    set on the same model, nothing traced or compiled again."""
+    model = step_model(name)
+    if backend == 'native':
+        if runtime.native(model, observer_kernel.OBSERVER_STEP) is None:
+            pytest.skip('no working C compiler')
+    else:
+        runtime.use_native(model, False)
+    xml = named_urdf(name) if name in NAMED_CASES else open(default_urdf_path() if name == 'arm'
+                                                            else os.path.join(REAL_ROOT, name)).read()
+    n = model.n
+    rng = np.random.default_rng(zlib.crc32(f'one step {name}'.encode()))
+    arm = rng.uniform(0.02, 0.4, n)
+    model.set_armature(arm)
+    friction = make_friction(rng.uniform(0.0, 2.0, n), rng.uniform(0.0, 1.0, n), 0.05)
+    gain = rng.uniform(5.0, 200.0, n)
+    settings = np.concatenate([gain, friction.viscous, friction.coulomb, [friction.eps]])
+    payload = (model.body_link_names[-1], 1.3, (0.02, -0.03, 0.05), (0.01, 0.001, 0.0, 0.02, 0.0, 0.015))
+    warm = MomentumObserver(model, gain, friction)   # every kernel of the step and of its reference, made
+    warm.momentum_terms(np.zeros(n), np.zeros(n), np.zeros(n))
+    assert warm.step(0.0, np.zeros(n), np.zeros(n), np.zeros(n)) is not None
+    builds, compiles = kernel.builds(), native.compile_count()
+    for phase in ('armature', 'payload and gravity'):
+        if phase == 'armature':
+            oracle = Oracle(xml, joints=model.joint_names)
+        else:
+            model.set_payload(*payload)
+            model.gravity_vector = (0.8, -1.5, -9.6)
+            oracle = Oracle(with_payload(xml, *payload), joints=model.joint_names, gravity=(0.8, -1.5, -9.6))
+        _pin_armature(oracle, arm)
+        for _ in range(10):
+            q, qd = rng.uniform(-2, 2, (2, n))
+            tau, p0, c0 = rng.normal(0.0, 5.0, (3, n))
+            dt = rng.uniform(0.5e-3, 1.5e-3)
+            z = np.concatenate([p0, np.zeros(n), c0, [dt]])   # runtime.fast: the kernel bound to today's parameters
+            out = runtime.fast(model, observer_kernel.OBSERVER_STEP)(q, qd, tau, z, settings)
+            r, p, beta = out[3 * n + 1:4 * n + 1], out[4 * n + 1:5 * n + 1], out[5 * n + 1:]
+            ref = MomentumObserver(model, gain, friction)
+            ref.advance(1.0, p0, c0)   # the state the kernel was given: p(0) = p0, integral 0, beta + r = c0
+            p_py, beta_py = ref.momentum_terms(q, qd, tau)
+            r_py = ref.advance(1.0 + dt, p_py, beta_py)
+            p_pin = oracle.crba(q) @ qd
+            beta_pin = tau + qd @ oracle.coriolis_matrix(q, qd) - oracle.gravity(q) - friction_torque(qd, *friction)
+            half = 0.5 * dt * gain
+            r_pin = gain * (p_pin - p0 - 0.5 * dt * (c0 + beta_pin)) / (1.0 + half)
+            for got, (py, pn) in ((p, (p_py, p_pin)), (beta, (beta_py, beta_pin)), (r, (r_py, r_pin))):
+                for expect in (py, pn):
+                    scale = max(1.0, np.abs(expect).max())
+                    assert np.abs(got - expect).max() <= 1e-12 * scale, (phase, np.abs(got - expect).max() / scale)
+    assert kernel.builds() == builds and native.compile_count() == compiles
+
+
+def test_a_robot_without_joints_has_an_empty_observer():
+    """A model without movable joints (a valid model: every algorithm returns empty results) has
+    an observer that checks its arguments and estimates nothing, as the rest of the library."""
+    model = load_urdf('<robot name="welded"><link name="base"/><link name="rotor"><inertial><mass value="1"/>'
+                      '<inertia ixx="0.1" iyy="0.1" izz="0.1" ixy="0" ixz="0" iyz="0"/></inertial></link>'
+                      '<joint name="fix" type="fixed"><parent link="base"/><child link="rotor"/></joint></robot>')
+    assert model.n == 0
+    obs, z = MomentumObserver(model, 50.0, make_friction([], [], 0.05)), np.zeros(0)
+    for t in (0.0, 1e-3, 2e-3):
+        assert obs.update(t, z, z, z).shape == (0,)
+    assert [a.shape for a in generalized_momentum(model, np.zeros((4, 0)), np.zeros((4, 0)))] == [(4, 0), (4, 0)]
+    assert estimate_external_torques(model, [0.0, 1e-3], np.zeros((2, 0)), np.zeros((2, 0)), np.zeros((2, 0)),
+                                     50.0).shape == (2, 0)
+    with pytest.raises(ValueError, match=r'q must have shape \(0,\)'):
+        obs.update(3e-3, [0.1], z, z)
+    with pytest.raises(ValueError, match='observer times must increase'):
+        obs.update(1e-3, z, z, z)
 
 
 def test_step_kernel_in_c_equals_its_python_floats():

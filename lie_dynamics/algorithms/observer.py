@@ -48,9 +48,11 @@ _STEP = observer_kernel.OBSERVER_STEP
 def generalized_momentum(model, q, qd):
     """(p, C^T qd) with p = M(q) qd and C the Christoffel-form Coriolis matrix (eqs 40-42), for
     one state (n,) or a batch (N, n): the generated kernel (trace_momentum) where the model
-    has one, else the matrices. Raises ValueError naming a bad argument."""
+    has one, else the matrices; empty for a robot without movable joints, as every algorithm.
+    Raises ValueError naming a bad argument."""
     n = model.n
-    out = runtime.fast(model, traced.MOMENTUM)(q, qd)   # the fast path: the result, or None
+    # the fast path: the result, or None (a jointless model has no kernel: runtime.call checks)
+    out = runtime.fast(model, traced.MOMENTUM)(q, qd) if n else None
     if out is None:
         out = runtime.call(model, _MOMENTUM, (q, qd))
     return out[..., :n], out[..., n:]
@@ -58,6 +60,8 @@ def generalized_momentum(model, q, qd):
 
 def _momentum(model, arrays):
     """(N, 2n): p then C^T qd, on validated (N, n) arrays."""
+    if not model.n:   # no movable joints: no kernel, nothing to compute (as Model's _jointless)
+        return np.zeros((len(arrays[0]), 0))
     out = runtime.run(model, traced.MOMENTUM, arrays)
     if out is None:
         q, qd = arrays
@@ -95,7 +99,8 @@ class MomentumObserver:
         self.gain = _gains(gain, model.n)
         self.gain.flags.writeable = False   # the step kernel holds a copy (its settings)
         self.friction = friction
-        self._settings = _step_settings(self.gain, friction, model.n)
+        # no step kernel without movable joints: update runs the reference, which returns zeros
+        self._settings = _step_settings(self.gain, friction, model.n) if model.n else None
         n = model.n   # where the step kernel's outputs are: next state, estimate, p and beta
         self._parts = (slice(0, 3 * n + 1), slice(3 * n + 1, 4 * n + 1), 4 * n + 1)
         self.reset()
@@ -113,14 +118,15 @@ class MomentumObserver:
         m, n = self.model, self.model.n
         q, qd, tau = (np.asarray(x, dtype=float) for x in (q, qd, tau_measured))
         pc = g = None
-        if q.shape == qd.shape == tau.shape == (n,) and np.count_nonzero(np.isfinite(tau)) == n:
+        if n and q.shape == qd.shape == tau.shape == (n,) and np.count_nonzero(np.isfinite(tau)) == n:
             # a node's hot path is one state: the fast paths check q and qd themselves
             pc = runtime.fast(m, traced.MOMENTUM)(q, qd)
             if pc is not None:
                 g = runtime.fast(m, traced.GRAVITY)(q)
         if g is None:   # validated once; then the functions that take validated arrays
             (q, qd, tau), single = m.validate(('q', 'qd', 'tau_measured'), (q, qd, tau))
-            pc, g = _momentum(m, [q, qd]), rnea.gravity_validated(m, [q])
+            pc = _momentum(m, [q, qd])
+            g = rnea.gravity_validated(m, [q]) if n else np.zeros_like(q)
             if single:
                 pc, g, tau = pc[0], g[0], tau[0]
         p, ctqd = pc[..., :n], pc[..., n:]
@@ -199,17 +205,18 @@ class MomentumObserver:
 
 
 def _step_settings(gain, friction, n):
-    """The step kernel's settings (K, b, fc, 1/eps) as one float64 array, or None when they are
-    not finite numbers (the reference then runs and reports)."""
+    """The step kernel's settings (K, b, fc, eps) as one float64 array, or None when they are
+    not finite numbers or eps is 0 (the reference then runs and reports). A term that is off is a
+    coefficient of 0 (and eps 1 without a Coulomb term)."""
     b, fc, eps = (None, None, 1.0) if friction is None else friction
     try:
         with np.errstate(all='ignore'):
             o = np.concatenate([gain, np.zeros(n) + (0.0 if b is None else np.asarray(b, dtype=float)),
                                 np.zeros(n) + (0.0 if fc is None else np.asarray(fc, dtype=float)),
-                                [1.0 / float(eps) if fc is not None else 0.0]])
-    except (ValueError, TypeError, ZeroDivisionError):
+                                [float(eps) if fc is not None else 1.0]])
+    except (ValueError, TypeError):
         return None
-    return o if o.shape == (3 * n + 1,) and np.all(np.isfinite(o)) else None
+    return o if o.shape == (3 * n + 1,) and np.all(np.isfinite(o)) and o[-1] != 0 else None
 
 
 def estimate_external_torques(model, t, q, qd, tau_measured, gain, friction=None):

@@ -40,9 +40,11 @@ def cache_dir():
 
 @functools.lru_cache(maxsize=1)
 def generator_hash():
-    """Hash of the source that determines the C kernels (the tracer, renderers, traced forms)."""
+    """Hash of the source that determines the C kernels (the tracer, renderers, traced forms, and
+    laws.py, whose friction law the observer's step traces)."""
     h = hashlib.sha256()
-    for path in sorted(glob.glob(os.path.join(HERE, '*.py')) + glob.glob(os.path.join(HERE, 'traced', '*.py'))):
+    for path in sorted(glob.glob(os.path.join(HERE, '*.py')) + glob.glob(os.path.join(HERE, 'traced', '*.py'))
+                       + [os.path.join(os.path.dirname(HERE), 'laws.py')]):
         with open(path, 'rb') as fh:
             h.update(os.path.basename(path).encode() + fh.read())
     h.update(f'{sys.version_info[:2]} {np.__version__}'.encode())

@@ -1,6 +1,7 @@
 """The tracer: an algorithm written on scalars, run on symbols, becomes an expression graph.
 
-Only +, -, *, unary minus, sin, cos, tanh, sqrt and 1/x are traced; no data-dependent branches.
+Only +, -, *, unary minus, sin, cos, tanh, sqrt and 1/x are traced (a / b is a * (1/b); np.tanh of
+a Sym is its tanh); no data-dependent branches.
 Constants fold as they meet (zeros and ones of the home poses, joint axes and masks drop
 out) and repeated subexpressions are shared; render.py turns the graph into source.
 """
@@ -55,6 +56,14 @@ class Sym:
 
     def __pos__(self):
         return self
+
+    def __truediv__(self, o):
+        # traced as a * (1/b): the tracer has 1/x, not a division (1 ulp from numpy's a / b)
+        return self.g.mul(self, self.g.inv(o))
+
+    def tanh(self):
+        # np.tanh of a Sym calls this: numpy code with tanh (laws.friction_torque) traces as is
+        return self.g.tanh(self)
 
 
 def _const(x):

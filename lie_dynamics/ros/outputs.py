@@ -1,18 +1,16 @@
 """The dynamics node's own outputs (rclpy): the command, ~/commanded_efforts, /diagnostics
 (interfaces.py has their types and QoS) and the writing of its log lines (which ones and when:
-core/log.py, through the node's one event queue). Messages are reused for every command (measured: -5 us
-per message, -12 us with publish_joint_state)."""
-import array
-
+core/log.py, through the node's one event queue). The command and ~/commanded_efforts are published
+serialized: their bytes written by a `cdr.Writer` (the message's constant bytes, made once per
+layout, joined with the stamp and the efforts), as the joint_states input is read serialized; rclpy
+then neither builds a message object nor converts and serializes it (`python -m bench.node_callback`)."""
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.duration import Duration
 from rclpy.impl.implementation_singleton import rclpy_implementation as rclpy_c
 from rclpy.logging import LoggingSeverity
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
 
 from . import interfaces
-from .core.cdr import stamp_parts
+from .core.cdr import joint_state_template, multi_array_template
 
 LEVELS = {'info': LoggingSeverity.INFO, 'warn': LoggingSeverity.WARN, 'error': LoggingSeverity.ERROR}
 
@@ -25,7 +23,8 @@ class Outputs:
         self._cmd_pub = interfaces.publisher(node, '<command_topic>', command_topic)
         self._js_pub = None
         self._diag_pub = interfaces.publisher(node, '/diagnostics')
-        self._cmd_msg, self._js_msg = Float64MultiArray(), JointState()
+        self._cmd_writer = self._js_writer = None   # cdr.Writers, made for the first command's layout
+        self._cmd_size, self._js_names = -1, None
         self._warned_publishers = set()   # robot_description publishers already named
 
     def joint_state(self, on):
@@ -38,20 +37,18 @@ class Outputs:
 
     def command(self, tau, names, stamp=None):
         """The command (names: the layout, the same list while it holds); stamp: the input's (ns), None: now."""
-        data = array.array('d', tau.tobytes())
-        out = self._cmd_msg
-        out.data = data
-        self._cmd_pub.publish(out)
+        n = len(tau)
+        if n != self._cmd_size:   # the command's bytes but for the efforts: once per size
+            t, slots = multi_array_template(n)
+            self._cmd_writer, self._cmd_size = t.writer(slots), n
+        self._cmd_pub.publish(self._cmd_writer.message((tau,)))
         if self._js_pub is not None:
-            js = self._js_msg
+            if names is not self._js_names:   # its names: once per layout (the same list while it holds)
+                t, stamp_at, slots = joint_state_template(names, (0, 0, len(names)))
+                self._js_writer, self._js_names = t.writer(slots[2:], stamp_at), names
             if stamp is None:
-                js.header.stamp = self.node.get_clock().now().to_msg()
-            else:
-                js.header.stamp.sec, js.header.stamp.nanosec = stamp_parts(stamp)
-            if js.name is not names:  # the setter checks every name: only when the layout changes
-                js.name = names
-            js.effort = data
-            self._js_pub.publish(js)
+                stamp = self.node.get_clock().now().nanoseconds
+            self._js_pub.publish(self._js_writer.message((tau,), stamp))
 
     def log_line(self, severity, text):
         """One line of the node's log (core/log.py decides which and when), through rclpy's C

@@ -2,7 +2,8 @@
 
 Per step of length dt (default: semi-implicit Euler):
     motor = clip(command, -effort_limit, effort_limit)       (what a drive reports as effort)
-    tau   = motor - damping * qd
+    tau   = motor - damping * qd - coulomb * tanh(qd / eps)   (laws.friction_torque; Coulomb off
+                                                              by default)
     qdd   = forward_dynamics(q, qd, tau, wrenches)            (+ J^T F of an external wrench)
     qd   += dt * qdd ;  q += dt * qd
 An external wrench F = (m, f) on a link, in the link frame, can act during a window of simulated
@@ -14,11 +15,14 @@ Semi-implicit Euler in (q, qd) is symplectic only for a constant mass matrix: wi
 drifts, in a 10 s undamped free fall of the bundled arm even faster than explicit Euler's (RK4 or
 the midpoint rule hold it; docs/benchmarks.md, bench/stability.py).
 Joint position limits act as hard stops (position clamped, velocity into the stop zeroed).
-Coulomb friction is not simulated (it would make "the arm holds" depend on stiction);
-URDF damping is, and can be switched off (damping=False) for energy checks.
+Coulomb friction is off by default (coulomb=None); when given it is the model's smooth form
+fc tanh(qd / eps), which has no stiction. URDF damping is on, and can be switched off
+(damping=False) for energy checks. The armature is the model's (Model.armature): forward
+dynamics includes it.
 """
 import numpy as np
 
+from ..laws import COULOMB_VELOCITY_EPSILON, friction_torque
 from .integrators import STEPPERS
 
 
@@ -26,7 +30,7 @@ class ArmSim:
     """State (q, qd, t) of a model integrated under held effort commands."""
 
     def __init__(self, model, dt=1e-3, q0=None, qd0=None, damping=True, limits=True,
-                 integrator='semi_implicit_euler'):
+                 integrator='semi_implicit_euler', coulomb=None, eps=COULOMB_VELOCITY_EPSILON):
         if not (np.isfinite(dt) and dt > 0):
             raise ValueError(f'dt must be a positive number, got {dt}')
         if integrator not in STEPPERS:
@@ -38,10 +42,17 @@ class ArmSim:
         self.qd = np.zeros(model.n) if qd0 is None else np.array(qd0, dtype=float).reshape(model.n)
         self.t = 0.0
         self.damping = model.damping.copy() if damping else np.zeros(model.n)
+        if coulomb is not None:
+            coulomb = np.broadcast_to(np.asarray(coulomb, dtype=float), (model.n,)).copy()
+            if not (np.all(np.isfinite(coulomb)) and np.all(coulomb >= 0) and np.isfinite(eps) and eps > 0):
+                raise ValueError(f'Coulomb friction must be finite and >= 0 with eps > 0, got {coulomb}, {eps}')
+            if integrator != 'semi_implicit_euler':
+                raise ValueError('Coulomb friction is simulated by the semi_implicit_euler integrator only')
+        self.coulomb, self.eps = coulomb, float(eps)
         self.limits = limits
         self.command = np.zeros(model.n)
         self.last_qdd = np.zeros(model.n)
-        self.applied = np.zeros(model.n)   # motor - damping * qd of the last step
+        self.applied = np.zeros(model.n)   # motor - friction of the last step
         self.motor = np.zeros(model.n)     # the clipped command of the last step
         self.external_torque = np.zeros(model.n)
         self._external = None              # (link, wrench (6,), start, stop)
@@ -83,7 +94,7 @@ class ArmSim:
         lim = m.effort_limits
         for _ in range(n):
             motor = np.clip(self.command, -lim, lim)
-            tau = motor - self.damping * self.qd
+            tau = motor - friction_torque(self.qd, self.damping, self.coulomb, self.eps)
             wrenches = self._wrenches()
             zero = np.zeros(m.n)
             # J^T F: what the wrench adds to the joint torques (inverse dynamics is linear in F)
@@ -114,3 +125,26 @@ class ArmSim:
     def energy(self):
         """Kinetic + potential energy of the current state."""
         return self.model.kinetic_energy(self.q, self.qd) + self.model.potential_energy(self.q)
+
+    @property
+    def held_torque(self):
+        """The clipped held command: the motor torque the next step applies at the current state."""
+        return np.clip(self.command, -self.model.effort_limits, self.model.effort_limits)
+
+
+class EffortSensor:
+    """What a drive's effort sensor reports: true effort + offset + Gaussian noise (std `noise`).
+    offset, noise: one value or one per joint. The noise comes from its own generator seeded with
+    `seed` (a fixed default: runs repeat)."""
+
+    def __init__(self, n, offset=0.0, noise=0.0, seed=0):
+        self.offset = np.broadcast_to(np.asarray(offset, dtype=float), (n,)).copy()
+        self.noise = np.broadcast_to(np.asarray(noise, dtype=float), (n,)).copy()
+        if not (np.all(np.isfinite(self.offset)) and np.all(np.isfinite(self.noise)) and np.all(self.noise >= 0)):
+            raise ValueError(f'effort offsets must be finite and noise finite and >= 0, got {offset}, {noise}')
+        self.rng = np.random.default_rng(int(seed))
+
+    def read(self, effort):
+        """One reading of the true effort (n,)."""
+        e = np.asarray(effort, dtype=float) + self.offset
+        return e + self.rng.standard_normal(len(e)) * self.noise if np.any(self.noise) else e

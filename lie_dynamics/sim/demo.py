@@ -16,6 +16,9 @@ and stops everything (SIGINT, then SIGKILL after a grace period; also on Ctrl-C)
   5. payload                feedforward tracking with a load the node does not know, then
                             ~/identify_payload: RMS error before and after, identified vs true
                             mass and CoM (payload_demo.py)
+  6. calibration           the simulated arm is not its URDF: hold, excitation recorded by the
+                            node, identify_dynamics, hold again and track a held-out motion with the
+                            calibration (calibration_demo.py; 2 x duration s of excitation)
 Prints a table and writes a PNG (joint angles and torques over time), a CSV of the metrics and
 the processes' logs (<out>/logs/<scenario>/).
 The simulator runs in lockstep with the controller (each step waits for the command answering
@@ -38,7 +41,7 @@ import numpy as np
 from .. import default_urdf_path
 from ..cli import ros_array
 from .domains import reserve_domains
-from . import contact_demo, payload_demo
+from . import calibration_demo, contact_demo, payload_demo
 from .trajectory_source import desired_state
 from ..model.urdf import load_urdf
 from ..ros.core.cdr import stamp_ns
@@ -372,8 +375,10 @@ scenarios: {names}
 output (in --out): demo_metrics.csv (scenario, samples, drift, rms_error, max_error; rad)
   and demo.png (joint angles and torques over simulated time); with the contact scenario also
   demo_contact.csv (estimate error, largest free-motion estimate and J^T F in N m, detection
-  delay in s, false alarms); logs/<scenario>/<process>.log, the output of every process
-  (sim_node, dynamics_node, trajectory_source). Nothing is left in the temp dir.
+  delay in s, false alarms); with the calibration scenario demo_calibration.csv and calibration/
+  (plant.yaml, excitation.csv, recordings/, calibration.yaml, report/);
+  logs/<scenario>/<process>.log, the output of every process (sim_node, dynamics_node,
+  trajectory_source). Nothing is left in the temp dir.
 examples:
   python -m lie_dynamics.demo                          # every scenario, 10 s each
   python -m lie_dynamics.demo --duration 3 --scenarios 'gravity compensation'
@@ -385,7 +390,7 @@ def main(argv=None):
     """Run the scenarios, print the table, write the PNG and the CSV; 0 on success, 2 on bad arguments."""
     from ..cli import CliParser, number, run_cli
 
-    names = list(scenarios())
+    names = list(scenarios()) + [calibration_demo.NAME]
     ap = CliParser('lie_dynamics.demo', description=__doc__.split('\n')[0],
                    epilog=EPILOG.format(names=', '.join(repr(n) for n in names)))
     ap.add_argument('--duration', type=number(low=0, what='> 0 seconds, or 0 to run until Ctrl-C'), default=10.0,
@@ -426,11 +431,15 @@ def _scenarios(args):
     status = StatusLine(sys.stdout)
     records = {}
     try:
-        for name in (['PD + feedforward'] if args.duration <= 0 else args.scenarios or list(scenarios())):
+        for name in (['PD + feedforward'] if args.duration <= 0 else
+                     args.scenarios or list(scenarios()) + [calibration_demo.NAME]):
             if args.duration > 0:
                 print(f'running: {name} ({args.duration:g} s simulated)', flush=True)
-            records[name] = run_scenario(name, max(args.duration, 0.0), args.rate, status=status,
-                                         log_dir=log_folder(args.out, name))
+            if name == calibration_demo.NAME:   # phases of its own, figures of its own
+                records[name] = calibration_demo.run(args.duration, args.rate, args.out, log_folder(args.out, name))
+            else:
+                records[name] = run_scenario(name, max(args.duration, 0.0), args.rate, status=status,
+                                             log_dir=log_folder(args.out, name))
             print()
             if records[name]['interrupted']:
                 raise KeyboardInterrupt
@@ -441,6 +450,7 @@ def _scenarios(args):
 
 def _report(args, records):
     """The table, the CSVs and the PNG."""
+    calibration = records.pop(calibration_demo.NAME, None)
     rows = [metrics(n, r) for n, r in records.items()]
     print(f"\n{'scenario':24s} {'samples':>8s} {'max drift (rad)':>16s} {'RMS error (rad)':>16s} "
           f"{'max error (rad)':>16s}")
@@ -462,6 +472,10 @@ def _report(args, records):
         print('\n'.join(payload))
         with open(os.path.join(args.out, 'demo_payload.csv'), 'w') as fh:
             fh.write('\n'.join(payload_demo.csv_lines(rows)) + '\n')
+    if calibration is not None:
+        print('\n'.join(calibration_demo.table(calibration)))
+        with open(os.path.join(args.out, 'demo_calibration.csv'), 'w') as fh:
+            fh.write('\n'.join(calibration_demo.csv_lines(calibration)) + '\n')
     if records:
         png = os.path.abspath(os.path.join(args.out, 'demo.png'))
         plot(records, png)

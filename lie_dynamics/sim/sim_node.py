@@ -4,8 +4,9 @@
     python -m lie_dynamics.sim.sim_node --ros-args -p rate:=1000.0
 
 Publishes   robot_description (std_msgs/String, reliable, transient local, depth 1),
-            joint_states (sensor_msgs/JointState: position, velocity, effort = the motor torque,
-            i.e. the clipped command, as a drive reports it; header.stamp = simulated time),
+            joint_states (sensor_msgs/JointState: position, velocity, effort = the motor torque
+            acting at that state, i.e. the clipped held command, as a drive reports it, plus the
+            sensor's offset and noise if set; header.stamp = simulated time),
             ~/external_torques_true (sensor_msgs/JointState, effort = J^T F of the external wrench,
             while external.duration > 0: the ground truth of external-torque estimates)
 Subscribes  <command_topic> (std_msgs/Float64MultiArray, ordered as `joints`), held until the
@@ -13,7 +14,14 @@ Subscribes  <command_topic> (std_msgs/Float64MultiArray, ordered as `joints`), h
             non-finite value is dropped with a log line (recent controllers drop them too).
 
 payload.*: a load the simulated arm carries that its robot_description does not show (what
-~/identify_payload of the dynamics node has to find).
+~/identify_payload of the dynamics node has to find). calibration_file: the simulated arm is the
+robot that file describes (its link inertias, armature, friction and effort offsets), not the
+URDF it publishes (what a calibration of the dynamics node has to find).
+
+The effort reported with a state is the torque acting at that state's instant: a step from a
+state applies the torque reported with it, and a command that arrives answering a state acts
+from the next state on (where it is reported), as on a drive that holds its command until the
+next one. Only the first command, releasing the held initial state, acts at once.
 
 Parameters: see PARAMETERS below, or `python -m lie_dynamics.sim.sim_node --help`. By default
 (hold_until_command) the simulator holds the initial state until the first command arrives, so
@@ -42,7 +50,9 @@ from .. import default_urdf_path
 from ..ros.run import node_parser, run
 from ..ros.core.cdr import stamp_parts
 from ..ros.core.settings import Values
-from .arm import ArmSim
+from ..calibration import load_calibration, with_calibration
+from ..laws import COULOMB_VELOCITY_EPSILON
+from .arm import ArmSim, EffortSensor
 from ..model.joint_names import broadcast_joints
 from ..model.urdf import load_urdf
 
@@ -78,11 +88,31 @@ PARAMETERS = (
     ('payload.com', [0.0, 0.0, 0.0], 'its centre of mass in the link frame, m'),
     ('payload.inertia', [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
      'its inertia about the CoM in link axes: ixx ixy ixz iyy iyz izz (zeros: a point mass)'),
+    # a plant that differs from the published description (calibration, docs/node.md)
+    ('calibration_file', '',
+     "calibration.yaml (load_calibration's format) the simulated arm follows: link inertias, armature, "
+     "viscous and Coulomb friction, effort offsets (empty: the URDF's arm)"),
+    ('coulomb_friction', False,
+     "simulate the model's Coulomb friction fc tanh(qd / eps) (the URDF's <dynamics friction>, or the "
+     "calibration's, with its eps)"),
+    ('effort_offset', [0.0], 'added to the reported effort, N m (N): one value or one per joint '
+                             "(on top of the calibration's offsets)"),
+    ('effort_noise', [0.0], 'std of Gaussian noise on the reported effort, N m (N), >= 0: one value or one per joint'),
+    ('noise_seed', 0, 'seed of the effort noise (fixed: runs repeat)'),
 )
 EXAMPLE = """
 ros2 run lie_dynamics sim_node --ros-args -p rate:=500.0 -p "initial_positions:=[0.0,-0.6,0.0,2.0,0.0,1.6,0.8]"
 python -m lie_dynamics.sim.sim_node --ros-args -p lockstep:=true -p max_steps:=5000
 """
+
+
+def plant_offsets(model, cal):
+    """(n,) effort offsets of calibration `cal` on the model's joints (0 where it has none)."""
+    out = np.zeros(model.n)
+    for j, name in enumerate(cal.joint_names):
+        if np.isfinite(cal.offset[j]):
+            out[model.joint_names.index(name)] = cal.offset[j]
+    return out
 
 
 class SimNode(Node):
@@ -124,9 +154,26 @@ class SimNode(Node):
         if q is None:
             raise ValueError(f'initial_positions needs {model.n} values, got {len(q0)} (or one for every joint)')
         q0 = q
+        offset, eps = np.zeros(model.n), COULOMB_VELOCITY_EPSILON
+        if v.calibration_file:  # simulated, never published
+            try:
+                cal = load_calibration(v.calibration_file)
+                model = with_calibration(model, cal)
+            except (OSError, ValueError) as exc:
+                raise ValueError(f'calibration_file {v.calibration_file!r}: {getattr(exc, "strerror", None) or exc}') \
+                    from None
+            offset = plant_offsets(model, cal)
+            eps = cal.eps
         if v.payload.link or v.payload.mass:  # simulated, never published: the controller must find it
             model.set_payload(v.payload.link, v.payload.mass, list(v.payload.com), list(v.payload.inertia))
-        self.sim = ArmSim(model, dt=1.0 / rate, q0=q0, damping=damping)
+        sensor = [broadcast_joints(list(v[k] or []), model.n) for k in ('effort_offset', 'effort_noise')]
+        if any(x is None for x in sensor):
+            raise ValueError(f'effort_offset and effort_noise need one value or {model.n}')
+        self.sensor = EffortSensor(model.n, offset + sensor[0], sensor[1], v.noise_seed)
+        self.sim = ArmSim(model, dt=1.0 / rate, q0=q0, damping=damping,
+                          coulomb=model.friction if v.coulomb_friction else None, eps=eps)
+        self.pending = None   # a command that acts from the next state on
+        self.effort = self.sensor.read(self.sim.held_torque)  # reported with the current state
         self.names = model.joint_names
         self.truth_pub = None
         if v.external.link and v.external.duration > 0:
@@ -168,7 +215,10 @@ class SimNode(Node):
             self.get_logger().warn(f'dropping command: need {len(self.names)} finite values, got {list(msg.data)}',
                                    throttle_duration_sec=2.0)
             return
-        self.sim.set_command(data)
+        if self.steps:
+            self.pending = data
+        else:  # releasing the held initial state (or the first step): it acts at once
+            self.sim.set_command(data)
         self.fresh_command = True
         if not self.lockstep:
             self.started = True  # hold_until_command: released; the timer steps from now on
@@ -190,7 +240,11 @@ class SimNode(Node):
         self.wait_ticks = 0
         self.fresh_command = False
         self.stamped = not (self.lockstep and self.stamped_topic)
-        self.sim.step()
+        self.sim.step()   # with the torque reported with the state it leaves
+        if self.pending is not None:
+            self.sim.set_command(self.pending)
+            self.pending = None
+        self.effort = self.sensor.read(self.sim.held_torque)
         self.steps += 1
         self._publish_state()
 
@@ -242,7 +296,7 @@ class SimNode(Node):
         msg.name = self.names
         msg.position = self.sim.q.tolist()
         msg.velocity = self.sim.qd.tolist()
-        msg.effort = self.sim.motor.tolist()
+        msg.effort = self.effort.tolist()
         self.state_pub.publish(msg)
         if self.truth_pub is not None:
             truth = JointState()

@@ -9,11 +9,12 @@ of the module docstring of algorithms/observer.py with the newest r implicit:
     r_k = K (p_k - p_0 - P_k) / (1 + K dt / 2),    I_k = P_k + dt/2 r_k,    c_k = beta_k + r_k
 
 Per-state arguments: Q, QD, TAU (the motor torque, model order), Z = (p_0, I, c, dt) (the
-observer's state, 3n + 1) and O = (K, b, fc, 1/eps) (its settings, 3n + 1: they belong to
+observer's state, 3n + 1) and O = (K, b, fc, eps) (its settings, 3n + 1: they belong to
 the observer, not to the model, so they are not bound with the model's parameters). Outputs, 6n + 1: the next
 state (p_0, I_k, c_k, a slot for the next dt), so that the next call reads it where this one
 wrote it, then r_k, p_k, beta_k (p and beta start the integral at the first sample).
 """
+from ...laws import friction_torque
 from ..kernel import Trace
 from ..runtime import Spec
 from ..tracer import Graph
@@ -41,7 +42,7 @@ def build_observer_step(fr):
     sym = {k: [g.input(nm) for nm in v] for k, v in lists.items()}
     tau, z, o = sym['TAU'], sym['Z'], sym['O']
     p0, integral, carry, dt = z[:n], z[n:2 * n], z[2 * n:3 * n], z[3 * n]
-    gain, visc, coul, inv_eps = o[:n], o[n:2 * n], o[2 * n:3 * n], o[3 * n]
+    gain, visc, coul, eps = o[:n], o[n:2 * n], o[2 * n:3 * n], o[3 * n]
     p_b, c_b = trace_momentum(fr, cs, co['x'], co['xd'], params)
     ararg, arm = fr.trace_armature(g)
     qd = [g.input(nm) for nm in co['args'][1][1]]
@@ -49,8 +50,8 @@ def build_observer_step(fr):
     half = 0.5 * dt
     r, i_k, c_k, beta = [], [], [], []
     for j in range(n):
-        friction = visc[j] * qd[j] + coul[j] * g.tanh(qd[j] * inv_eps)
-        b = tau[j] + ctqd[j] - grav[j] - friction
+        # the one friction law, traced (qd / eps becomes qd * (1 / eps): one reciprocal, shared)
+        b = tau[j] + ctqd[j] - grav[j] - friction_torque(qd[j], visc[j], coul[j], eps)
         partial = integral[j] + half * (carry[j] + b)
         rj = gain[j] * (p[j] - p0[j] - partial) * g.inv(1.0 + half * gain[j])
         r.append(rj)

@@ -14,11 +14,11 @@ from typing import NamedTuple
 import numpy as np
 
 from ...cdr import (Buffer, JointStateDecoder, JointStateSample, Template, Unsupported, Writer, align,
-                    joint_state_template, stamp_ns, stamp_parts, truncated)
+                    joint_state_template, multi_array_template, stamp_ns, stamp_parts, truncated)
 
 __all__ = ['Buffer', 'JointStateDecoder', 'JointStateSample', 'Point', 'Template', 'Unsupported', 'Writer',
-           'align', 'joint_state_template', 'read_joint_trajectory', 'sample_of', 'stamp_ns', 'stamp_parts',
-           'truncated']
+           'align', 'joint_state_template', 'multi_array_template', 'read_joint_trajectory', 'sample_of', 'stamp_ns',
+           'stamp_parts', 'truncated']
 
 
 def sample_of(msg):

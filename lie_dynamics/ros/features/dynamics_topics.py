@@ -28,7 +28,7 @@ import numpy as np
 
 from .. import interfaces
 from ...algorithms import jacobian
-from ..core.cdr import Template, joint_state_template
+from ..core.cdr import joint_state_template, multi_array_template
 from ..core.timebase import TimeBase
 from ..core.diagnostics import clip
 from ..loading.models import at_rest, jacobian_at_rest, tip_link
@@ -57,14 +57,7 @@ def check_link(settings, model):
 
 def matrix_template(rows_label, cols_label, rows, cols):
     """(Template, [data slot]) of a std_msgs/Float64MultiArray of rows x cols, row-major."""
-    t = Template()
-    t.uint32(2)
-    for label, size, stride in ((rows_label, rows, rows * cols), (cols_label, cols, cols)):
-        t.string(label)
-        t.uint32(size)
-        t.uint32(stride)
-    t.uint32(0)   # data_offset
-    return t, [t.doubles(rows * cols)]
+    return multi_array_template(rows * cols, ((rows_label, rows, rows * cols), (cols_label, cols, cols)))
 
 
 class RateGate:
@@ -104,7 +97,7 @@ class DynamicsTopics(Feature):
         self.published = {t: 0 for t in TOPICS}
         self.skipped = 0
         self._names = None
-        self._templates = {}
+        self._writers = {}
 
     def check(self, settings, model):
         check_link(settings, model)
@@ -138,16 +131,21 @@ class DynamicsTopics(Feature):
         self._names = None  # labels and names are set again on the next sample
 
     def _label(self, names):
-        """The messages' serialized templates for this joint order (published as bytes, cdr.Template)."""
+        """The messages' writers for this joint order (published as bytes: a cdr.Writer per term,
+        the template's constant pieces joined with the stamp and the arrays)."""
         self._names = names
         joined = ','.join(names)
         n = len(names)
-        js = joint_state_template(names)
-        self._templates = {
-            'gravity': js, 'coriolis': js,
-            'mass_matrix': matrix_template(f'rows: {joined}', f'cols: {joined}', n, n),
-            'jacobian': matrix_template(f"rows: {','.join(ROWS)}; frame: {self.frame}; link: {self.link}",
-                                        f'cols: {joined}', 6, n)}
+        writers = {}
+        for term in ('gravity', 'coriolis'):
+            t, stamp_at, slots = joint_state_template(names)
+            writers[term] = t.writer(slots, stamp_at)
+        for term, (t, slots) in (
+                ('mass_matrix', matrix_template(f'rows: {joined}', f'cols: {joined}', n, n)),
+                ('jacobian', matrix_template(f"rows: {','.join(ROWS)}; frame: {self.frame}; link: {self.link}",
+                                             f'cols: {joined}', 6, n))):
+            writers[term] = t.writer(slots)
+        self._writers = writers
 
     def on_sample(self, s):
         t = self.time.seconds(s.stamp)
@@ -181,11 +179,9 @@ class DynamicsTopics(Feature):
 
     def _publish(self, term, value, s):
         if term in ('gravity', 'coriolis'):
-            t, stamp_at, slots = self._templates[term]
-            data = t.fill(slots, (s.q, s.qd, value), stamp_at, s.stamp)
+            data = self._writers[term].message((s.q, s.qd, value), s.stamp)
         else:
-            t, slots = self._templates[term]
-            data = t.fill(slots, (value,))
+            data = self._writers[term].message((value,))
         self._pubs[term].publish(data)
         self.published[term] += 1
 
