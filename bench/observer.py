@@ -13,9 +13,10 @@ with the node's friction model (the URDF damping, as the simulator applies it).
   * threshold sweep (gain GAIN, hold HOLD): detection delay (first flag after the push starts)
     and false alarms (flags rising in free motion);
   * cost: `DynamicsNode.on_joint_state` in-process (real rclpy publishers, no DDS transport)
-    for the same messages, interleaved rounds: observer off (the peer), on with `total` and with
-    `gravity_removed` efforts; per-message medians and percentiles, and per-round ratios of the
-    medians to the peer. Also the observer update alone against gravity(q) (the node's default law).
+    for the same states, interleaved rounds: observer off (the peer), on with `total` and with
+    `gravity_removed` efforts (there the motor torque less g(q), as such a driver reports it);
+    per-message medians and percentiles, and per-round ratios of the medians to the peer.
+    Also the observer update alone against gravity(q) (the node's default law).
 This is a benchmark, not a test: the times depend on the machine and its load; read the ratios.
 Writes observer.md/.csv/.json, observer_gain.png and observer_threshold.png to --out.
 """
@@ -120,12 +121,15 @@ def threshold_sweep(rec, noise, seed=0):
     return rows
 
 
-def _messages(rec, n):
+def _messages(rec, n, convention='total'):
+    """The recording's first n samples as joint_states messages, efforts under `convention`
+    (gravity_removed: the motor torque less g(q), as such a driver reports it)."""
     from sensor_msgs.msg import JointState
-    _, _, t, q, qd, motor, _ = rec
+    model, _, t, q, qd, motor, _ = rec
     msgs = []
     for i in range(min(n, len(t))):
-        m = JointState(name=JOINTS, position=q[i].tolist(), velocity=qd[i].tolist(), effort=motor[i].tolist())
+        effort = motor[i] - model.gravity(q[i]) if convention == 'gravity_removed' else motor[i]
+        m = JointState(name=JOINTS, position=q[i].tolist(), velocity=qd[i].tolist(), effort=effort.tolist())
         ns = 1_000_000_000 + int(round(t[i] * 1e9))
         m.header.stamp.sec, m.header.stamp.nanosec = ns // 1_000_000_000, ns % 1_000_000_000
         msgs.append(m)
@@ -150,13 +154,13 @@ def node_cost(rec, rounds, per_round):
                       'friction.coulomb': [0.0], 'stale_timeout': 60.0, **extra}
             nodes[name] = DynamicsNode(f'observer_bench_{k}', context=ctx,
                                        parameter_overrides=[Parameter(p, value=v) for p, v in params.items()])
-        msgs = _messages(rec, rounds * per_round)
+        msgs = {name: _messages(rec, rounds * per_round, extra.get('measured_effort', 'total'))
+                for name, extra in cases.items()}
         times = {name: [] for name in cases}
         for r in range(rounds):
-            batch = msgs[r * per_round:(r + 1) * per_round]
             for name, node in nodes.items():   # interleaved: a slow phase of the machine hits all alike
                 out = []
-                for m in batch:
+                for m in msgs[name][r * per_round:(r + 1) * per_round]:
                     t0 = time.perf_counter()
                     node.on_joint_state(m)
                     out.append(time.perf_counter() - t0)
