@@ -74,7 +74,6 @@ def effort_offset(model):
     return cached[1]
 
 
-_F8 = np.dtype(float)   # a message array of this type in model order is read as it is
 _OFFSETS = weakref.WeakKeyDictionary()   # model -> (its calibration, the offsets effort_offset gave)
 
 
@@ -154,7 +153,6 @@ class ContactMonitor:
         self.settings = self.model = self.friction = None
         self.layout = []
         self.observer = None
-        self._columns, self._in_order = None, False   # the last layout's columns; the identity?
         self.convention = 'none'
         self.threshold = None
         self._threshold_list, self._threshold_min = [], math.inf   # the thresholds as floats (per sample)
@@ -238,10 +236,6 @@ class ContactMonitor:
         v, e = s.message_velocity, s.message_effort
         if len(v) and len(e):   # mapped here: cheaper than the memo of s.velocity and s.effort
             cols = s.columns
-            if cols is not self._columns:   # once per layout (the core keeps the object while it holds)
-                self._columns, self._in_order = cols, bool(np.array_equal(cols, np.arange(len(v))))
-            if self._in_order and v.dtype is _F8 and e.dtype is _F8:   # the message is in model order: as is
-                return self.on_state(s.q, v, e, s.stamp, now)
             return self.on_state(s.q, in_joint_order(v, cols), in_joint_order(e, cols), s.stamp, now)
         return self.on_state(s.q, s.velocity, s.effort if len(e) else None, s.stamp, now)
 
