@@ -333,6 +333,32 @@ def test_streaming_steps_follow_a_model_change_between_samples():
     assert np.abs(expect).max() > 1.0   # the steps after the changes estimate something
 
 
+def test_one_state_through_the_validating_path_stays_one_state_with_friction():
+    """Arguments the fast paths decline (misaligned float64 views, as a serialized message's
+    arrays) are validated; with friction the terms and the estimate stay (n,) and equal those
+    of the same state given as plain arrays."""
+    model = load_urdf(default_urdf_path())
+    n = model.n
+    rng = np.random.default_rng(zlib.crc32(b'misaligned one state'))
+    friction = make_friction(model.damping, rng.uniform(0.0, 1.0, n), 0.05)
+    plain = rng.uniform(-1.0, 1.0, (2, 3, n))
+
+    def misaligned(x):
+        return np.frombuffer(b'\0\0\0\0' + x.tobytes(), dtype=float, offset=4)
+    assert not misaligned(plain[0, 0]).flags.aligned
+    ref, obs = MomentumObserver(model, GAIN, friction), MomentumObserver(model, GAIN, friction)
+    for k in range(2):
+        q, qd, tau = plain[k]
+        p, beta = obs.momentum_terms(*(misaligned(x) for x in plain[k]))
+        p_ref, beta_ref = ref.momentum_terms(q, qd, tau)
+        assert p.shape == beta.shape == (n,)
+        np.testing.assert_allclose(np.concatenate([p, beta]), np.concatenate([p_ref, beta_ref]), rtol=1e-12, atol=1e-12)
+        r = obs.update(DT * k, *(misaligned(x) for x in plain[k]))
+        r_ref = ref.update(DT * k, q, qd, tau)
+        assert r.shape == (n,)
+        np.testing.assert_allclose(r, r_ref, rtol=1e-12, atol=1e-12)
+
+
 def test_a_robot_without_joints_has_an_empty_observer():
     """A model without movable joints (a valid model: every algorithm returns empty results) has
     an observer that checks its arguments and estimates nothing, as the rest of the library."""

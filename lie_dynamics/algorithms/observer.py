@@ -128,8 +128,8 @@ class MomentumObserver:
             (q, qd, tau), single = m.validate(('q', 'qd', 'tau_measured'), (q, qd, tau))
             pc = _momentum(m, [q, qd])
             g = rnea.gravity_validated(m, [q]) if n else np.zeros_like(q)
-            if single:
-                pc, g, tau = pc[0], g[0], tau[0]
+            if single:   # qd too: the friction below is per state
+                pc, g, tau, qd = pc[0], g[0], tau[0], qd[0]
         p, ctqd = pc[..., :n], pc[..., n:]
         beta = tau + ctqd - g
         if self.friction is not None:
