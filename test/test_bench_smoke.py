@@ -92,8 +92,8 @@ def test_contact_section_pushes_each_robot_and_times_the_node(tmp_path):
     iso, ident, tool, cost = contact.run(quick=True, out=str(tmp_path), pushes=3)
     robots = {name for name, _, _ in contact.robots()}
     assert {r['robot'] for r in iso} == robots and {r['robot'] for r in tool} == robots
-    assert all(r['pushes'] >= 1 and 0 <= r['literal_right_pct'] <= 100 for r in iso)
-    assert all(r['strict_wrong_pct'] <= r['literal_wrong_pct'] for r in iso)   # strict only adds 'ambiguous'
+    assert all(r['pushes'] >= 1 and 0 <= r['default_right_pct'] <= 100 for r in iso)
+    assert all(r['strict_wrong_pct'] <= r['default_wrong_pct'] for r in iso)   # strict only adds 'ambiguous'
     # exact efforts: the tool wrench is the pushed one (lag only)
     assert all(r['force_error_median_pct'] < 2 for r in tool if r['noise'] == 0)
     assert {(r['flag'], r['case']) for r in cost} >= {('up', 'isolation on'), ('down', 'isolation on')}
