@@ -2,13 +2,14 @@
 
     python -m bench.scaling [--quick] [--out DIR]
 
-Random revolute robots (bench/common.py: robot_urdf) of 2 to 100 joints, as serial chains
+Random revolute robots (bench/common.py: robot_urdf) of 2 to 200 joints, as serial chains
 (depth n) and binary trees (depth log2 n), single state unless marked batched. The slope is
 a least-squares fit of log(time) against log(n) over the larger half of the sizes, where
 fixed per-call costs no longer dominate: ~1 for O(n), ~2 for O(n^2). The library switches
 implementation with size (generated kernels up to a size, vectorised numpy above), which
 shows as kinks. Kernel compile times (once per robot structure) are listed, not timed in.
-Writes scaling.{md,csv,json,png}.
+Each family is also given as a ratio to its Pinocchio counterpart (RATIOS; medians of per-round
+ratios, same process). Writes scaling.{md,csv,json,png} and scaling_ratio.png.
 """
 import os
 import time
@@ -17,15 +18,23 @@ import numpy as np
 
 from bench import common
 
-SIZES = (2, 4, 8, 16, 32, 64, 100)
+SIZES = (2, 4, 6, 8, 16, 32, 64, 100, 200)
 SIZES_QUICK = (2, 8, 16)
 ALGOS = ('RNEA', 'RNEA batched (per state)', 'gravity', 'M CRBA', 'M closed form', 'C Christoffel',
-         'FD Cholesky', 'FD ABA', 'ID derivatives', 'Pinocchio rnea', 'Pinocchio crba', 'Pinocchio aba',
-         'Pinocchio derivatives')
+         'FD Cholesky', 'FD ABA', 'ID derivatives', 'C recursive', 'FD derivatives', 'regressor',
+         'Pinocchio rnea', 'Pinocchio crba', 'Pinocchio aba', 'Pinocchio derivatives', 'Pinocchio gravity',
+         'Pinocchio coriolis', 'Pinocchio aba derivatives', 'Pinocchio regressor')
+# each family of ours against Pinocchio's counterpart (the ratio chart)
+RATIOS = {'RNEA': 'Pinocchio rnea', 'gravity': 'Pinocchio gravity', 'M CRBA': 'Pinocchio crba',
+          'FD Cholesky': 'Pinocchio aba', 'FD ABA': 'Pinocchio aba', 'ID derivatives': 'Pinocchio derivatives',
+          'C recursive': 'Pinocchio coriolis', 'FD derivatives': 'Pinocchio aba derivatives',
+          'regressor': 'Pinocchio regressor'}
 NB = 256
 # Pinocchio's counterparts share the colour of ours (dashed)
-COLORS = dict(zip(ALGOS[:9], (f'C{k}' for k in range(9))))
-COLORS.update({'Pinocchio rnea': 'C0', 'Pinocchio crba': 'C3', 'Pinocchio aba': 'C7', 'Pinocchio derivatives': 'C8'})
+COLORS = dict(zip(ALGOS[:12], ('C0', 'C1', 'C2', 'C3', 'C4', 'C5', 'C6', 'C7', 'C8', 'C9', 'navy', 'k')))
+COLORS.update({'Pinocchio rnea': 'C0', 'Pinocchio crba': 'C3', 'Pinocchio aba': 'C7', 'Pinocchio derivatives': 'C8',
+               'Pinocchio gravity': 'C2', 'Pinocchio coriolis': 'C9', 'Pinocchio aba derivatives': 'navy',
+               'Pinocchio regressor': 'k'})
 
 
 def _fns(model, xml, rng):
@@ -44,10 +53,17 @@ def _fns(model, xml, rng):
         'FD Cholesky': (lambda: model.forward_dynamics(q, qd, tau), 1),
         'FD ABA': (lambda: model.forward_dynamics(q, qd, tau, method='aba'), 1),
         'ID derivatives': (lambda: model.inverse_dynamics_derivatives(q, qd, qdd), 1),
+        'C recursive': (lambda: model.coriolis_matrix(q, qd, method='recursive'), 1),
+        'FD derivatives': (lambda: model.forward_dynamics_derivatives(q, qd, tau), 1),
+        'regressor': (lambda: model.regressor(q, qd, qdd), 1),
         'Pinocchio rnea': (lambda: pin.rnea(pm, pd, q, qd, qdd), 1),
         'Pinocchio crba': (lambda: pin.crba(pm, pd, q), 1),
         'Pinocchio aba': (lambda: pin.aba(pm, pd, q, qd, tau), 1),
         'Pinocchio derivatives': (lambda: pin.computeRNEADerivatives(pm, pd, q, qd, qdd), 1),
+        'Pinocchio gravity': (lambda: pin.computeGeneralizedGravity(pm, pd, q), 1),
+        'Pinocchio coriolis': (lambda: pin.computeCoriolisMatrix(pm, pd, q, qd), 1),
+        'Pinocchio aba derivatives': (lambda: pin.computeABADerivatives(pm, pd, q, qd, tau), 1),
+        'Pinocchio regressor': (lambda: pin.computeJointTorqueRegressor(pm, pd, q, qd, qdd), 1),
     }
 
 
@@ -72,7 +88,10 @@ def run(quick=False, out=None, seed=0):
     # in that round, and the median over rounds drops it (timing size by size bent the slopes)
     secs = common.time_interleaved({k: f for k, (f, _) in fns.items()}, rounds, target)
     for (kind, n, k), (_, per) in fns.items():
-        rows.append(dict(kind=kind, n=n, algorithm=k, us=float(np.median(secs[(kind, n, k)]) / per * 1e6)))
+        peer = RATIOS.get(k)
+        ratio = float(np.median(secs[(kind, n, k)] / secs[(kind, n, peer)])) if peer else None
+        rows.append(dict(kind=kind, n=n, algorithm=k, us=float(np.median(secs[(kind, n, k)]) / per * 1e6),
+                         ratio=ratio))
     slopes = {}
     for kind in ('chain', 'tree'):
         for a in ALGOS:
@@ -98,6 +117,13 @@ def markdown(res):
             L.append(f'| {a} | ' + ' | '.join(f'{by[(kind, n, a)]:.3g}' for n in sizes) +
                      f" | {res['slopes'][f'{kind}/{a}']:.2f} |")
         L.append('')
+    ratio = {(r['kind'], r['n'], r['algorithm']): r.get('ratio') for r in res['rows']}
+    for kind in ('chain', 'tree'):
+        L += [f'## {kind}s: ours / Pinocchio (median of per-round ratios)', '',
+              '| algorithm | ' + ' | '.join(f'n={n}' for n in sizes) + ' |', '|---|' + '---:|' * len(sizes)]
+        L += [f'| {a} / {p} | ' + ' | '.join(f'{ratio[(kind, n, a)]:.2f}' for n in sizes) + ' |'
+              for a, p in RATIOS.items()]
+        L.append('')
     L.append('First-call time (kernel compilation, all algorithms): ' +
              ', '.join(f"{c['kind']} n={c['n']}: {c['seconds']:.2f} s" for c in res['compile_s']))
     return '\n'.join(L) + '\n'
@@ -122,10 +148,28 @@ def chart(res, path):
     common.savefig(fig, path)
 
 
+def ratio_chart(res, path):
+    plt = common.setup_matplotlib()
+    fig, axes = plt.subplots(1, 2, figsize=(14, 5.5), sharey=True)
+    for ax, kind in zip(axes, ('chain', 'tree')):
+        for a, p in RATIOS.items():
+            pts = sorted((r['n'], r['ratio']) for r in res['rows'] if r['kind'] == kind and r['algorithm'] == a)
+            ax.loglog(*zip(*pts), '-', marker='o', ms=3, color=COLORS[a], label=f'{a} / {p}')
+        ax.axhline(1.0, color='grey', lw=1)
+        ax.set_xlabel('joints n')
+        ax.set_title(f"{kind}s: time per call / Pinocchio's, one state", fontsize=10)
+        ax.grid(True, which='both', alpha=0.3)
+        ax.legend(fontsize=7, ncol=2)
+    axes[0].set_ylabel('ours / Pinocchio (median of per-round ratios)')
+    fig.tight_layout()
+    common.savefig(fig, path)
+
+
 def write(res, out):
     rows = [dict(r, slope=res['slopes'][f"{r['kind']}/{r['algorithm']}"]) for r in res['rows']]
-    common.write_tables(out, 'scaling', markdown(res), res, rows, ['kind', 'n', 'algorithm', 'us', 'slope'])
+    common.write_tables(out, 'scaling', markdown(res), res, rows, ['kind', 'n', 'algorithm', 'us', 'ratio', 'slope'])
     chart(res, os.path.join(out, 'scaling.png'))
+    ratio_chart(res, os.path.join(out, 'scaling_ratio.png'))
 
 
 def main(argv=None):

@@ -16,11 +16,11 @@ PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
 CSV_COLUMNS = {
     'accuracy.csv': ['robot', 'dof', 'op', 'method', 'impl', 'mode', 'us', 'ratio_to_pinocchio', 'err_max',
                      'err_median', 'states'],
-    'scaling.csv': ['kind', 'n', 'algorithm', 'us', 'slope'],
+    'scaling.csv': ['kind', 'n', 'algorithm', 'us', 'ratio', 'slope'],
     'stability.csv': ['scan', 'method', 'x_name', 'x', 'error', 'status'],
 }
-PNGS = ['accuracy_arm7.png', 'accuracy_chain12.png', 'scaling.png', 'stability_explog.png', 'stability_chain.png',
-        'stability_forward_dynamics.png', 'stability_fd_step.png', 'stability_energy.png']
+PNGS = ['accuracy_arm7.png', 'accuracy_chain12.png', 'scaling.png', 'scaling_ratio.png', 'stability_explog.png',
+        'stability_chain.png', 'stability_forward_dynamics.png', 'stability_fd_step.png', 'stability_energy.png']
 
 
 @pytest.fixture(scope='module')

@@ -139,14 +139,26 @@ def frames(model):
     return s.frames
 
 
+def native_max(limits):
+    """The size cap of a THRESHOLDS entry's native kernels (its compile_max unless set)."""
+    return limits.compile_max if limits.native_max is None else limits.native_max
+
+
+def python_sized(model, spec):
+    """Whether spec's Python forms may be built for this model (its size within compile_max;
+    above it, up to native_max, the kernel exists for its C form only)."""
+    return size(model, THRESHOLDS[spec.limits]) <= THRESHOLDS[spec.limits].compile_max
+
+
 def entry(model, spec):
     """spec's Kernel of this model's structure (created, not traced: kernel.Kernel), or None:
-    too large for THRESHOLDS, spec.supports(model) false, or screws other than unit revolute
-    / prismatic axes."""
+    too large for THRESHOLDS (compile_max, or native_max where the native backend is wanted),
+    spec.supports(model) false, or screws other than unit revolute / prismatic axes."""
     s = slot(model)
     k = s.kernels.get(spec.name)
     if k is None:
-        if size(model, THRESHOLDS[spec.limits]) > THRESHOLDS[spec.limits].compile_max \
+        t = THRESHOLDS[spec.limits]
+        if size(model, t) > (max(t.compile_max, native_max(t)) if native_on(model) else t.compile_max) \
                 or (spec.supports is not None and not spec.supports(model)) or not frames(model).supported:
             k = False
         else:
@@ -168,6 +180,7 @@ def use_native(model, on=True):
     s.structure['native_off'] = not on
     s.natives, s.fast, s.values = {}, {}, {}   # values: derived entries that hold a bound native kernel
     _native.invalidate()
+    s.kernels = {}   # which kernels exist depends on the backend (THRESHOLDS native_max)
 
 
 # ---------------------------------------------------------------------------- deferred builds
@@ -206,7 +219,7 @@ def later(model, spec, python=True):
     if request is None:
         return False
     k = entry(model, spec)
-    if k is None or k.built(native_on(model), python):
+    if k is None or k.built(native_on(model), python and python_sized(model, spec)):
         return False
     request(model, spec)
     return True
@@ -216,5 +229,5 @@ def build(model, spec):
     """Build spec's kernel code for this model (what a deferred call requested): its C library
     where the native backend works, else its Python forms."""
     k = entry(model, spec)
-    if k is not None and not (native_on(model) and k.native()):
+    if k is not None and not (native_on(model) and k.native()) and python_sized(model, spec):
         k.python()

@@ -9,7 +9,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .cache import derived, entry, frames, slot
+from .cache import derived, entry, frames, python_sized, slot
 from ..validation import finite
 
 
@@ -112,10 +112,10 @@ def as_rows(values):
 # ---------------------------------------------------------------------------- kernels
 def kernel(model, spec):
     """spec's Kernel for this model with its Python forms built, or None: too large for
-    THRESHOLDS, screws other than unit revolute / prismatic axes, or spec.supports(model)
-    false."""
+    THRESHOLDS (compile_max), screws other than unit revolute / prismatic axes, or
+    spec.supports(model) false."""
     k = entry(model, spec)
-    return k if k is not None and k.python() else None
+    return k if k is not None and python_sized(model, spec) and k.python() else None
 
 
 class Bound:

@@ -15,13 +15,14 @@ PD_RTOL = 1e-12
 class Limits(NamedTuple):
     """When a kernel runs, by model size (`size`: bodies, or (body, ancestor-or-self) pairs,
     the sum of the body depths) and by the number of states N of a call."""
-    compile_max: int          # no kernel above this size (compile time grows with the source)
+    compile_max: int          # no Python kernel above this size (compile time grows with the source)
     float_max: int            # above: one state and small batches take the vectorised reference
     loop_below: int           # N below this: the float kernel, state by state
     rows_from: int            # N from this: the kernel on numpy rows; in between: vectorised
     size: str = 'bodies'
     large: int = None         # above this size, rows from rows_from_large states
     rows_from_large: int = None
+    native_max: int = None    # no native kernel above this size (None: compile_max)
 
 
 # Every size threshold of the algorithms, with the measurement that chose it (timings on the
@@ -44,27 +45,43 @@ THRESHOLDS = {
     'gravity': Limits(256, 256, 32, 32),
     # CRBA: the O(n^2) source takes long to compile above 24 bodies; the float loop beats the
     # vectorised form up to ~40 states on the arm, where the in-place rows take over.
-    'mass_matrix': Limits(24, 24, 40, 40),
+    # native_max (every native_max: `python -m bench.native_sizes`, machine load 7-18; and
+    # native_nodes): on Baxter, PR2, Talos reduced, random trees of 32-64 bodies and a 32-body
+    # chain the native M (2,500-18,000 nodes) compiles in 0.3-3.1 s of compiler CPU and runs
+    # 0.1-1.2x Pinocchio's crba; a 64-body chain has 66,000 nodes.
+    'mass_matrix': Limits(24, 24, 40, 40, native_max=64),
     # Cholesky forward dynamics (CRBA + RNEA bias + factorisation, O(n^2) source, the CRBA's
     # cap); the float loop beats the rows up to ~48 states on the arm, and the kernel beats
     # the composed numpy path at every batch size.
-    'forward_dynamics': Limits(24, 24, 48, 48),
+    # Native: 6,000-51,000 nodes on the same robots, 0.5-4 s of compiler CPU, 0.05-1.15x
+    # Pinocchio's aba; a 64-body chain (178,000 nodes) is above native_nodes.
+    'forward_dynamics': Limits(24, 24, 48, 48, native_max=64),
     # ABA (O(n) source): build time grows ~12 ms per body (0.3 s at 24, 1.2 s at 120) while
     # the kernel stays ~10x faster than the vectorised form; loop/rows crossovers 28-48
     # states for 2-24 bodies, the vectorised form never clearly faster in between.
     'aba': Limits(128, 128, 32, 32),
     # Derivatives of inverse dynamics (and C = 1/2 dtau/dqd): above 16 bodies one state is
     # faster through the vectorised form; crossovers 4 (loop) and 128 (rows) on 7-20 bodies.
-    'inverse_dynamics_derivatives': Limits(16, 16, 4, 128),
+    # Native (and the Coriolis kernel): 8,000-59,000 nodes on the same robots, 0.8-9.4 s of
+    # compiler CPU (the 64-body tree's 59,000 nodes), 0.1-0.4x Pinocchio's computeRNEADerivatives
+    # (computeCoriolisMatrix 0.1-0.2x, 1.4x in a load spike); a 64-body chain (160,000 nodes) is
+    # above native_nodes.
+    'inverse_dynamics_derivatives': Limits(16, 16, 4, 128, native_max=64),
     # Derivatives of forward dynamics (the derivative kernel's cap); crossovers on the arm
     # ~8 (loop) and ~80 (rows).
-    'forward_dynamics_derivatives': Limits(16, 16, 8, 80),
+    # Native: O(n^3) source (M^-1 times the RNEA derivatives): 25,000-85,000 nodes on Baxter, PR2,
+    # Talos reduced and a 32-body tree (2.4-8 s of compiler CPU, the largest family), 0.15-0.4x
+    # Pinocchio's computeABADerivatives; a 32-body chain has 262,000 nodes (traced in ~5 s, then
+    # above native_nodes), a 64-body tree 456,000: 32 bodies bounds the wasted trace.
+    'forward_dynamics_derivatives': Limits(16, 16, 8, 80, native_max=32),
     # Regressor, sized in pairs: 300 pairs (a 24-body chain) compile in ~0.5-0.8 s. The
     # float kernel (~22 ns per operation, 60-95 per pair) beats the vectorised form for one
     # state up to ~130-160 pairs. Loop below ~7 states on the arm (3-5 on 10-12-body robots
     # with general axes); rows from ~80 states on the arm and 20-100 up to 64 pairs, 40-280
     # for 100-300 pairs (later for chains, earlier for branched trees).
-    'regressor': Limits(300, 128, 6, 80, size='pairs', large=64, rows_from_large=192),
+    # Native: 5,000-51,000 nodes up to 528 pairs (a 32-body chain), 0.9-8.2 s of compiler CPU,
+    # 0.1-0.6x Pinocchio's computeJointTorqueRegressor; a 64-body chain (2,080 pairs) has 200,000.
+    'regressor': Limits(300, 128, 6, 80, size='pairs', large=64, rows_from_large=192, native_max=600),
     # Frame Jacobians and J̇q̇ (one kernel per kind, frame and body, O(depth) source): on random
     # chains (tip link) the float kernel beats the vectorised form for one state up to ~96 bodies,
     # 1.3-1.6x at 64 where a build takes 0.1-0.2 s (0.3 s at 128); on the arm the loop/rows
@@ -89,14 +106,16 @@ THRESHOLDS = {
     # function. `python -m bench.compile --parts 500,250,1000,none --robots arm7,talos_arm`.
     'native_part': 500,
     # Above this many graph nodes a kernel stays Python. Cut into parts, compile time grows
-    # linearly: ~0.08 s of compiler CPU per 1,000 nodes (derivative kernels of random chains of
-    # 8-16 joints, 6,400-49,000 nodes; before the cut 12,000 nodes took 4.6 s, 46,000 57 s),
-    # about half of it in wall time on 2 cores; the native kernel beats the Python kernels at
-    # every batch size (16-joint chain, forward-dynamics derivatives: 22-26 us per state against
-    # 91 us at N = 1,000 and 1.7 ms at N = 1). 50,000 lets every derivative kernel within its
-    # compile_max go native (a 16-joint chain: 49,000 nodes, ~4 s of CPU, ~2 s on 2 quiet
-    # cores). `python -m bench.compile --chains 8,12,16`.
-    'native_nodes': 50000,
+    # linearly: ~0.08-0.1 s of compiler CPU per 1,000 nodes (derivative kernels of random chains
+    # of 8-16 joints, 6,400-49,000 nodes, `python -m bench.compile --chains 8,12,16`; every family
+    # of PR2, Baxter, Talos reduced and random trees and chains of 32-64 bodies, 460-85,000
+    # nodes, `python -m bench.native_sizes`), about half of it in wall time on 2 cores; the
+    # native kernel beats the Python kernels at every batch size. 100,000 lets every family of
+    # those robots go native (the largest, forward-dynamics derivatives of a 32-body tree,
+    # 85,000 nodes, ~8 s of CPU, ~4 s on 2 quiet cores, once: the disk cache keeps it) but
+    # the O(n^2) and O(n^3) families of long chains (64 bodies: 160,000-1,700,000 nodes): there the
+    # vectorised reference runs (a looped native rendering would take over: docs/architecture.md).
+    'native_nodes': 100000,
     # Native batches release the GIL from this many states (below, the release costs more
     # than other threads gain).
     'native_gil_rows': 64,
