@@ -36,7 +36,7 @@ Sections (each writes its own files into DIR, default bench/out/):
               length and decimation, gated at 3 % with 2 % noise; the identify_dynamics command's
               run time on a 60 s, 1 kHz recording (bench/calibration.py)
   excitation  calibration excitation: condition number of the optimised excitation against the
-              random one, bundled arm and UR5 at 10 and 20 s (bench/calibration_excitation.py)
+              random one, bundled arm and UR5 at 10, 20 and 60 s (bench/calibration_excitation.py)
 --quick shortens everything (a smoke test runs it); the full run takes a few minutes.
 --docs-img copies the PNG charts, palette-compressed, to DIR (docs/img: the copies docs/benchmarks.md shows).
 A failing section is reported and the others still run; the exit status is then 1.

@@ -33,7 +33,7 @@ from lie_dynamics.algorithms.identification import excitation_trajectory
 from lie_dynamics.calibration.excitation import condition_number
 
 RATE = 100.0
-DURATIONS = (10.0, 20.0)
+DURATIONS = (10.0, 20.0, 60.0)
 DURATIONS_QUICK = (4.0,)
 LIMITS = dict(margin=0.1, velocity_fraction=0.8, acceleration=5.0, effort_fraction=0.8)
 TARGET = 0.2
