@@ -13,7 +13,6 @@ import gc
 import os
 import signal
 import sys
-import threading
 
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
@@ -115,9 +114,16 @@ def run(make_node, name, args=None, done=None, on_stop=None, parser=None):
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     except RuntimeError as exc:  # e.g. an invalid ROS_DOMAIN_ID
         return _refuse(name, 'error', exc)
-    stop = threading.Event()
+    stop = []
+
+    def on_stop_signal(*_):
+        # Ignore further requests first, then note this one in a list (no lock): a flood of
+        # signals otherwise nests this handler until RecursionError, and an Event's set()
+        # interrupted by its own handler waits on its own lock.
+        _stopping()
+        stop.append(True)
     for sig in STOP_SIGNALS:
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, on_stop_signal)
     executor = None
     try:
         executor, kind = make_executor()
@@ -136,7 +142,7 @@ def run(make_node, name, args=None, done=None, on_stop=None, parser=None):
     gc.collect()
     gc.freeze()
     try:
-        while not stop.is_set() and rclpy.ok() and not (done and done(node)):
+        while not stop and rclpy.ok() and not (done and done(node)):
             executor.spin_once(timeout_sec=0.1)
         _stopping()
         if on_stop is not None:
