@@ -1,6 +1,7 @@
 """Shared robots, random states and comparison helpers for the Lagrangian/derivative tests."""
 import functools
 import os
+import warnings
 
 import numpy as np
 
@@ -57,3 +58,16 @@ def pin_body_permutation(model, oracle):
     """Column permutation from Pinocchio's dynamic parameters to ours."""
     names = oracle.body_names()
     return np.concatenate([np.arange(10) + 10 * names.index(b) for b in model.body_joint_names])
+
+
+def quiet_load(xml, **kw):
+    """load_urdf without its warnings (vendor inertias are warned about)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore')
+        return load_urdf(xml, **kw)
+
+
+def rel_max(a, b):
+    """max |a - b| over every entry, relative to max(1, max |b|)."""
+    a, b = np.asarray(a), np.asarray(b)
+    return float(np.max(np.abs(a - b)) / max(1.0, float(np.max(np.abs(b)))))

@@ -9,12 +9,10 @@ import sys
 import textwrap
 import threading
 import time
-import warnings
 
 import numpy as np
 import pytest
 
-from lie_dynamics import load_urdf
 from lie_dynamics.algorithms import jacobian as jac
 from lie_dynamics.codegen import native, runtime
 from lie_dynamics.codegen.traced import aba as t_aba
@@ -24,6 +22,7 @@ from lie_dynamics.codegen.traced import derivatives as t_der
 from lie_dynamics.codegen.traced import jacobian as t_jac
 from lie_dynamics.codegen.traced import regressor as t_reg
 from lie_dynamics.codegen.traced import rnea as t_rnea
+from dyn_cases import quiet_load as _load, rel_max as _rel
 from oracle import Oracle
 from robots import named_urdf
 
@@ -51,17 +50,6 @@ def _xml(name):
         return named_urdf(name)
     with open(path, encoding='utf-8') as fh:
         return fh.read()
-
-
-def _load(xml, **kw):
-    with warnings.catch_warnings():
-        warnings.simplefilter('ignore')   # vendor inertias are warned about
-        return load_urdf(xml, **kw)
-
-
-def _rel(a, b):
-    a, b = np.asarray(a), np.asarray(b)
-    return float(np.max(np.abs(a - b)) / max(1.0, float(np.max(np.abs(b)))))
 
 
 def _states(model, N, seed=0):

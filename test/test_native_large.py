@@ -6,12 +6,10 @@ per robot: each kernel is compiled once for the whole file."""
 import glob
 import os
 import sys
-import warnings
 
 import numpy as np
 import pytest
 
-from lie_dynamics import load_urdf
 from lie_dynamics.codegen import native, runtime
 from lie_dynamics.codegen.traced import aba as t_aba
 from lie_dynamics.codegen.traced import cholesky as t_chol
@@ -19,6 +17,7 @@ from lie_dynamics.codegen.traced import crba as t_crba
 from lie_dynamics.codegen.traced import derivatives as t_der
 from lie_dynamics.codegen.traced import regressor as t_reg
 from lie_dynamics.codegen.traced import rnea as t_rnea
+from dyn_cases import quiet_load as _load, rel_max as _rel
 from oracle import Oracle
 from robots import random_urdf
 
@@ -40,17 +39,6 @@ def _xml(name):
             return fh.read()
     n = int(name[len('tree'):])
     return random_urdf(100 + n, n, tree=True)
-
-
-def _load(xml, **kw):
-    with warnings.catch_warnings():
-        warnings.simplefilter('ignore')   # vendor inertias are warned about
-        return load_urdf(xml, **kw)
-
-
-def _rel(a, b):
-    a, b = np.asarray(a), np.asarray(b)
-    return float(np.max(np.abs(a - b)) / max(1.0, float(np.max(np.abs(b)))))
 
 
 # Forward dynamics is a solve with M: two correct algorithms differ by up to ~eps cond(M) (the

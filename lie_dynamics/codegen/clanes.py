@@ -22,6 +22,7 @@ Instruction sets: on x86-64 under GCC or Clang the function is compiled twice
 loader picks by the CPU it runs on; the cached library is then right on any x86-64 machine it
 is copied to. Elsewhere the compiler's baseline vectors.
 """
+from .crender import literal, node_text
 from .render import form_text
 
 LANES = 4
@@ -56,10 +57,6 @@ static inline void lie_vsincos(lie_v a, lie_v *s, lie_v *c) {{ *s = lie_vsin(a);
 static inline lie_v lie_bc(double x) {{ lie_v r = {{{', '.join(['x'] * LANES)}}}; return r; }}
 '''
 
-
-def _literal(c):
-    s = repr(float(c))
-    return s if any(ch in s for ch in '.en') else s + '.0'
 
 
 def emit_lanes(g, fname, arg_lists, roles, outputs, index=None, size=None):
@@ -102,24 +99,17 @@ def emit_lanes(g, fname, arg_lists, roles, outputs, index=None, size=None):
                 si, ci = both[data]['sin'], both[data]['cos']
                 lines.append(f'  lie_v t{si}, t{ci}; lie_vsincos({ref(data, 0)}, &t{si}, &t{ci});')
             continue
-        if op == 'mul':
-            s = f'{ref(data[0], 3)}*{ref(data[1], 3)}'
-        elif op == 'inv':
-            s = f'1.0/{ref(data, 3)}'
-        elif op == 'lin':
-            s = form_text(data[0], data[1], ref, _literal)[0]
-        else:
-            s = f'lie_v{op}({ref(data, 0)})' if vec[i] else f'{op}({ref(data, 0)})'
+        s = node_text(op, data, ref, f'lie_v{op}' if vec[i] else op)
         lines.append(f'  const {"lie_v" if vec[i] else "double"} t{i} = {s};')
     if index is not None:
         lines.append(f'  memset(out, 0, {int(size) * LANES} * sizeof(double));')
     for k, o in enumerate(outputs):
         if hasattr(o, 'terms'):
-            txt = form_text(tuple(o.terms.items()), o.const, ref, _literal)[0]
+            txt = form_text(tuple(o.terms.items()), o.const, ref, literal)[0]
             if not any(vec[a] for a in o.terms):
                 txt = f'lie_bc({txt})'
         else:
-            txt = f'lie_bc({_literal(o)})'
+            txt = f'lie_bc({literal(o)})'
         slot = k if index is None else int(index[k])
         lines.append(f'  *(lie_v *)(out + {LANES * slot}) = {txt};')
     fns = sorted({g.nodes[i][0] for i in live if vec[i]} - {'in', 'mul', 'inv', 'lin', 'sin', 'cos'})

@@ -18,9 +18,8 @@ parts of 500 nodes: 0.6 s, on both cores). A value a later part reads passes thr
 of one local array (a slot is reused once its last reader has run); storing a double and
 loading it back changes no bit, so the parts compute what one function computes. The last
 part writes the outputs, after every read of the inputs. emit_c joins the parts as separate
-translation units (native.UNIT between them), for compiling them in parallel.
+translation units (UNIT between them), for compiling them in parallel.
 """
-from .native import UNIT
 from .render import form_text
 from .thresholds import THRESHOLDS
 from .tracer import Sym
@@ -29,9 +28,28 @@ _INCLUDES = ['#include <math.h>', '#include <string.h>']
 _PART_ATTR = '__attribute__((noinline, visibility("hidden")))'
 
 
-def _literal(c):
+# Between translation units in one C text (emit_c; the whole text is valid C as well):
+# native._build compiles the units in parallel and links them once.
+UNIT = '/* lie_dynamics: translation unit */\n'
+
+
+def literal(c):
+    """A C double literal of c (repr keeps every bit)."""
     s = repr(float(c))
     return s if any(ch in s for ch in '.en') else s + '.0'
+
+
+def node_text(op, data, ref, call=None):
+    """C text of one graph node's value: a product, a reciprocal, a linear form, or a function of
+    one argument (`call`: the C function's name, default the op's). ref(arg, need) names an
+    argument. The one text of a node for the one-state and the across-states renderings."""
+    if op == 'mul':
+        return f'{ref(data[0], 3)}*{ref(data[1], 3)}'
+    if op == 'inv':
+        return f'1.0/{ref(data, 3)}'
+    if op == 'lin':
+        return form_text(data[0], data[1], ref, literal)[0]
+    return f'{call or op}({ref(data, 0)})'
 
 
 def emit_c(g, fname, arg_lists, roles, outputs, index=None, size=None, part='auto'):
@@ -96,15 +114,7 @@ def emit_c_units(g, fname, arg_lists, roles, outputs, index=None, size=None, par
         lines = []
         for i in groups[p]:
             op, data = g.nodes[i]
-            if op == 'mul':
-                s = f'{ref(data[0], 3)}*{ref(data[1], 3)}'
-            elif op == 'inv':
-                s = f'1.0/{ref(data, 3)}'
-            elif op == 'lin':
-                s = form_text(data[0], data[1], ref, _literal)[0]
-            else:
-                s = f'{op}({ref(data, 0)})'
-            lines.append(f'  const double t{i} = {s};')
+            lines.append(f'  const double t{i} = {node_text(op, data, ref)};')
             if i in slots:
                 lines.append(f'  s[{slots[i]}] = t{i};')
         if p < n_parts - 1:
@@ -112,7 +122,7 @@ def emit_c_units(g, fname, arg_lists, roles, outputs, index=None, size=None, par
         if index is not None:
             lines.append(f'  memset(out, 0, {int(size)} * sizeof(double));')
         for k, o in enumerate(outputs):   # after every read of the inputs, as `out` may alias them
-            txt = form_text(tuple(o.terms.items()), o.const, ref, _literal)[0] if isinstance(o, Sym) else _literal(o)
+            txt = form_text(tuple(o.terms.items()), o.const, ref, literal)[0] if isinstance(o, Sym) else literal(o)
             lines.append(f'  out[{k if index is None else int(index[k])}] = {txt};')
         return lines
 

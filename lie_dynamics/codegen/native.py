@@ -36,6 +36,7 @@ from . import disk_cache
 from .disk_cache import (CACHE_MAX_MB, MAGIC, STALE_BUILD_S, cache_dir, cache_max_bytes, evict,  # noqa: F401
                          generator_hash)
 from .clanes import LANES
+from .crender import UNIT   # _build compiles a text's units in parallel and links them once
 from .thresholds import THRESHOLDS
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -44,9 +45,6 @@ FLAGS = ('-O2', '-ffp-contract=off', '-fno-math-errno', '-fPIC', '-shared', '-pi
 # in 0.92-1.0x the time (no scheduling passes lengthening live ranges; every family on the arm
 # and the Talos arm, interleaved rounds: python -m bench.compile --parts 500,500:-O2).
 KERNEL_FLAGS = ('-O1',) + FLAGS[1:]
-# Between translation units in one C text (crender.emit_c; the whole text is valid C as well):
-# _build compiles the units in parallel and links them once.
-UNIT = '/* lie_dynamics: translation unit */\n'
 _LOCK = threading.Lock()
 _STATE = {'module': None, 'error': None, 'warned': False, 'compiles': 0, 'seconds': 0.0, 'jobs': None}
 
