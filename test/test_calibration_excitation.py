@@ -60,7 +60,7 @@ def test_better_conditioned_than_the_random_excitation_on_the_ur5():
     if UR5 is None:
         pytest.skip('example-robot-data is not installed')
     model = load_urdf(UR5)
-    _, q, qd, qdd = excitation_trajectory(model, duration=10.0, rate=50.0, optimize=True, seed=0, iterations=60)
+    _, q, qd, qdd = excitation_trajectory(model, duration=10.0, rate=50.0, optimize=True, seed=0, iterations=200)
     _, qr, qdr, qddr = excitation_trajectory(model, duration=10.0, rate=50.0, seed=0)
     span = model.position_upper - model.position_lower
     assert np.all(q >= model.position_lower + 0.1 * span - 1e-12)
@@ -68,7 +68,9 @@ def test_better_conditioned_than_the_random_excitation_on_the_ur5():
     assert np.all(np.abs(qd) <= 0.8 * model.velocity_limits + 1e-12) and np.all(np.abs(qdd) <= 5.0 + 1e-12)
     assert np.all(np.abs(model.inverse_dynamics(q, qd, qdd)) <= 0.8 * model.effort_limits + 1e-9)
     c, cr = ex.condition_number(model, q, qd, qdd), ex.condition_number(model, qr, qdr, qddr)
-    assert c < 0.7 * cr   # measured 7.47 against 11.2 (0.67) at 60 iterations
+    # measured 0.56 (numpy 2.4) and 0.60 (numpy 1.26) at 200 iterations; at 60 the optimiser's path
+    # depended on the numpy build's last bits: 0.67 and 0.73
+    assert c < 0.7 * cr
 
 
 def test_joints_home_and_infeasible_limits(arm):
