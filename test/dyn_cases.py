@@ -1,11 +1,14 @@
 """Shared robots, random states and comparison helpers for the Lagrangian/derivative tests."""
 import functools
+import glob
 import os
+import sys
 import warnings
 
 import numpy as np
+import pytest
 
-from lie_dynamics import load_urdf
+from lie_dynamics import default_urdf_path, load_urdf
 from oracle import Oracle
 from robots import NAMED_CASES, named_urdf
 
@@ -71,3 +74,23 @@ def rel_max(a, b):
     """max |a - b| over every entry, relative to max(1, max |b|)."""
     a, b = np.asarray(a), np.asarray(b)
     return float(np.max(np.abs(a - b)) / max(1.0, float(np.max(np.abs(b)))))
+
+
+# example-robot-data's robots folder in this environment (its cmeel prefix), or None
+ERD_ROBOTS = next(iter(glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-packages', 'cmeel.prefix',
+                                              'share', 'example-robot-data', 'robots'))), None)
+
+
+def case_urdf(name):
+    """The URDF text of a test robot: 'arm7' (the bundled arm), a path below example-robot-data's
+    robots folder (skipped when it is not installed), else a named case of robots.named_urdf."""
+    if name == 'arm7':
+        path = default_urdf_path()
+    elif '/' in name:
+        if ERD_ROBOTS is None:
+            pytest.skip('example-robot-data is not installed')
+        path = os.path.join(ERD_ROBOTS, name)
+    else:
+        return named_urdf(name)
+    with open(path, encoding='utf-8') as fh:
+        return fh.read()

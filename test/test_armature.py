@@ -4,7 +4,6 @@ armature * a, crba and aba put it on M's diagonal). Every evaluation path: the n
 Python kernels (float loop and numpy rows) and the vectorised references; one state and batches;
 a chain, a tree, a tree with mimic joints and a vendor robot."""
 import copy
-import glob
 import json
 import os
 import pickle
@@ -24,31 +23,16 @@ from lie_dynamics.codegen import kernel, native, runtime
 from lie_dynamics.codegen.traced import aba as traced_aba
 from lie_dynamics.codegen.traced import observer as observer_kernel
 from lie_dynamics.codegen.traced import rnea as traced_rnea
+from dyn_cases import case_urdf as _xml
 from oracle import Oracle
-from robots import named_urdf
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ARM = os.path.join(HERE, '..', 'lie_dynamics', 'data', 'arm7.urdf')
-ROOT = next(iter(glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-packages', 'cmeel.prefix', 'share',
-                                        'example-robot-data', 'robots'))), None)
 UR5 = 'ur_description/urdf/ur5_robot.urdf'
 ROBOTS = ['arm7', 'tree12', 'mixed_types', 'tree20_mimic', UR5]
 RTOL = 1e-10
 NATIVE = native.module() is not None
 BACKENDS = ['native', 'python'] if NATIVE else ['python']
-
-
-def _xml(name):
-    if name == 'arm7':
-        path = ARM
-    elif name == UR5:
-        if ROOT is None:
-            pytest.skip('example-robot-data is not installed')
-        path = os.path.join(ROOT, name)
-    else:
-        return named_urdf(name)
-    with open(path, encoding='utf-8') as fh:
-        return fh.read()
 
 
 def _rel(a, b):

@@ -2,7 +2,6 @@
 every kernel family; run-time parameters without recompiling; the switch and the fallback; the
 disk cache (corrupted files, concurrent compilers); the GIL released in batches; out= buffers;
 the frame Jacobians and J̇q̇ (X, the link frame and point, given per state)."""
-import glob
 import os
 import subprocess
 import sys
@@ -22,14 +21,11 @@ from lie_dynamics.codegen.traced import derivatives as t_der
 from lie_dynamics.codegen.traced import jacobian as t_jac
 from lie_dynamics.codegen.traced import regressor as t_reg
 from lie_dynamics.codegen.traced import rnea as t_rnea
-from dyn_cases import quiet_load as _load, rel_max as _rel
+from dyn_cases import case_urdf as _xml, quiet_load as _load, rel_max as _rel
 from oracle import Oracle
-from robots import named_urdf
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ARM = os.path.join(HERE, '..', 'lie_dynamics', 'data', 'arm7.urdf')
-ROOT = next(iter(glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-packages', 'cmeel.prefix', 'share',
-                                        'example-robot-data', 'robots'))), None)
 REAL = ['ur_description/urdf/ur5_robot.urdf', 'talos_data/robots/talos_left_arm.urdf']
 TOL = 1e-12
 SPECS = [t_rnea.INVERSE_DYNAMICS, t_rnea.GRAVITY, t_rnea.MOMENTUM, t_crba.MASS_MATRIX, t_chol.FORWARD_DYNAMICS,
@@ -37,19 +33,6 @@ SPECS = [t_rnea.INVERSE_DYNAMICS, t_rnea.GRAVITY, t_rnea.MOMENTUM, t_crba.MASS_M
          t_der.FORWARD_DYNAMICS_DERIVATIVES, t_reg.REGRESSOR]
 
 pytestmark = pytest.mark.skipif(native.module() is None, reason='no working C compiler')
-
-
-def _xml(name):
-    if name == 'arm7':
-        path = ARM
-    elif name in REAL:
-        if ROOT is None:
-            pytest.skip('example-robot-data is not installed')
-        path = os.path.join(ROOT, name)
-    else:
-        return named_urdf(name)
-    with open(path, encoding='utf-8') as fh:
-        return fh.read()
 
 
 def _states(model, N, seed=0):
