@@ -23,6 +23,8 @@ class Limits(NamedTuple):
     large: int = None         # above this size, rows from rows_from_large states
     rows_from_large: int = None
     native_max: int = None    # no native kernel above this size (None: compile_max)
+    looped_from: int = None   # from this size the looped native form (codegen/looped.py) replaces the
+    #                           straight-line one, at any size (None: no looped form)
 
 
 # Every size threshold of the algorithms, with the measurement that chose it (timings on the
@@ -49,7 +51,7 @@ THRESHOLDS = {
     # native_nodes): on Baxter, PR2, Talos reduced, random trees of 32-64 bodies and a 32-body
     # chain the native M (2,500-18,000 nodes) compiles in 0.3-3.1 s of compiler CPU and runs
     # 0.1-1.2x Pinocchio's crba; a 64-body chain has 66,000 nodes.
-    'mass_matrix': Limits(24, 24, 40, 40, native_max=64),
+    'mass_matrix': Limits(24, 24, 40, 40, native_max=64, looped_from=48),
     # Cholesky forward dynamics (CRBA + RNEA bias + factorisation, O(n^2) source, the CRBA's
     # cap); the float loop beats the rows up to ~48 states on the arm, and the kernel beats
     # the composed numpy path at every batch size.
