@@ -61,7 +61,7 @@ THRESHOLDS = {
     # ABA (O(n) source): build time grows ~12 ms per body (0.3 s at 24, 1.2 s at 120) while
     # the kernel stays ~10x faster than the vectorised form; loop/rows crossovers 28-48
     # states for 2-24 bodies, the vectorised form never clearly faster in between.
-    'aba': Limits(128, 128, 32, 32),
+    'aba': Limits(128, 128, 32, 32, looped_from=48),
     # Derivatives of inverse dynamics (and C = 1/2 dtau/dqd): above 16 bodies one state is
     # faster through the vectorised form; crossovers 4 (loop) and 128 (rows) on 7-20 bodies.
     # Native (and the Coriolis kernel): 8,000-59,000 nodes on the same robots, 0.8-9.4 s of
