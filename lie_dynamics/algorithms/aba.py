@@ -5,7 +5,11 @@ bias h = inverse_dynamics(q, qd, 0, wrenches) from the RNEA, then M = L L^T and 
 triangular solves (cholesky.py; M is never inverted). A mass matrix that is not
 numerically positive definite (a massless body with nothing beyond it, a massless chain)
 raises ValueError. Without wrenches, a generated kernel runs all of it (CRBA, RNEA bias,
-Cholesky, solves) as straight-line code (codegen/traced/cholesky.py).
+Cholesky, solves) as straight-line code (codegen/traced/cholesky.py); from
+THRESHOLDS['aba'].looped_from bodies, where the native backend runs the ABA's looped kernel
+(codegen/looped.py; not with mimic joints), that kernel answers instead (`_spec`): the same qdd to
+rounding in O(n), where the Cholesky kernel's source is O(n^3). The Cholesky reference still
+reports a mass matrix that is not positive definite.
 
 method='aba': the articulated body algorithm in the Lie-group form of Ploen & Park, in
 body frames with X_i = Ad_{f_{i-1,i}^-1} (f_{i-1,i} = M_i e^{[S_i] x_i}, eq 17):

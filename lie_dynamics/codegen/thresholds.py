@@ -51,6 +51,11 @@ THRESHOLDS = {
     # native_nodes): on Baxter, PR2, Talos reduced, random trees of 32-64 bodies and a 32-body
     # chain the native M (2,500-18,000 nodes) compiles in 0.3-3.1 s of compiler CPU and runs
     # 0.1-1.2x Pinocchio's crba; a 64-body chain has 66,000 nodes.
+    # looped_from (the looped form, codegen/looped.py, at any size from there; `python -m
+    # bench.looped`, load 3.4-5.3, one state, looped / straight-line, medians of per-round
+    # ratios): chains of 16-32 bodies 1.6-2.1, 48 1.26, 64 0.72; a 32-body tree 0.93. First use
+    # 0.1-0.15 s looped, against 0.7-3 s straight-line up to 32 bodies, 5.8 s at 48, 21 s at 64
+    # (loaded). The looped M runs 0.4-0.8x Pinocchio's crba on chains of 64-200 bodies.
     'mass_matrix': Limits(24, 24, 40, 40, native_max=64, looped_from=48),
     # Cholesky forward dynamics (CRBA + RNEA bias + factorisation, O(n^2) source, the CRBA's
     # cap); the float loop beats the rows up to ~48 states on the arm, and the kernel beats
@@ -61,7 +66,13 @@ THRESHOLDS = {
     # ABA (O(n) source): build time grows ~12 ms per body (0.3 s at 24, 1.2 s at 120) while
     # the kernel stays ~10x faster than the vectorised form; loop/rows crossovers 28-48
     # states for 2-24 bodies, the vectorised form never clearly faster in between.
-    'aba': Limits(128, 128, 32, 32, looped_from=48),
+    # looped_from (`python -m bench.looped`, as the mass matrix's): the looped ABA runs 0.9-1.1x
+    # the straight-line one on chains of 8-16 bodies and trees of 32 (single rounds swing 0.6-4x
+    # at 32-64 under that load), 0.3x Pinocchio's aba from 24 bodies (0.3x on chains of 100 and
+    # 200); first use 0.2-0.4 s against 0.5-5 s. Forward dynamics (method='cholesky') takes it
+    # from here too (algorithms/aba.py): 0.44-0.8x the straight-line Cholesky kernel on chains of
+    # 8-32 and a 32-body tree, and O(n) where that kernel's O(n^3) source stops at native_nodes.
+    'aba': Limits(128, 128, 32, 32, looped_from=24),
     # Derivatives of inverse dynamics (and C = 1/2 dtau/dqd): above 16 bodies one state is
     # faster through the vectorised form; crossovers 4 (loop) and 128 (rows) on 7-20 bodies.
     # Native (and the Coriolis kernel): 8,000-59,000 nodes on the same robots, 0.8-9.4 s of
