@@ -561,15 +561,16 @@ def looped_aba(fr, armature=True):
     acc_call = sw('acc', 'K0 + 12 * b, JT + 2 * b, PAR[b] >= 0 ? ACC + 6 * up : A0, C + 6 * b, UD + 8 * b, '
                          'ACC + 6 * b, &xdd')
     ar = 'JNT[b] >= 0 ? AR[JNT[b]] : 0.0' if armature else '0.0'
+    decl, free = looped.work([(a, w * nb) for a, w in (('JT', 2), ('V', 6), ('C', 6), ('IA', 21), ('PA', 6), ('UD', 8),
+                                                       ('ACC', 6))] + [('OUT', 3 * n)], 3 * n)
     src.append(f'''
 void lie_kernel(const double *const *in, const double *const *par, double *out)
 {{
   const double *q = in[0], *qd = in[1], *tau = in[2], *P = par[0], *A0 = par[1], *E0 = par[2];
   {'const double *AR = par[3];' if armature else ''}
-  double JT[2 * NB], V[6 * NB], C[6 * NB], IA[21 * NB], PA[6 * NB], UD[8 * NB], ACC[6 * NB], OUT[3 * NJ];
-  (void)E0;
-  memset(IA, 0, sizeof IA);
-  memset(PA, 0, sizeof PA);
+{decl}  (void)E0;
+  memset(IA, 0, 21 * NB * sizeof(double));
+  memset(PA, 0, 6 * NB * sizeof(double));
   for (int b = 0; b < NB; b++) {{
     const int up = PAR[b] >= 0 ? PAR[b] : 0;
     const double x = X_OF(q, E0, b), xd = JNT[b] >= 0 ? qd[JNT[b]] : 0.0;
@@ -588,8 +589,8 @@ void lie_kernel(const double *const *in, const double *const *par, double *out)
     {acc_call}
     if (JNT[b] >= 0) OUT[JNT[b]] = xdd;
   }}
-  memcpy(out, OUT, sizeof OUT);   /* after every read of the inputs: out may alias them */
-}}
+  memcpy(out, OUT, 3 * NJ * sizeof(double));   /* after every read of the inputs: out may alias them */
+{free}}}
 ''')
     pars = (10 * nb, 3, sum(fr.offset)) + ((n,) if armature else ())
     return looped.rendered(''.join(src), (n, n, n), pars, 3 * n)

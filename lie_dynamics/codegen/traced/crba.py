@@ -112,13 +112,14 @@ def looped_mass_matrix(fr):
     src.append(looped.step('pair', lambda g, F, X: [_F_flat(la.wrench_to_parent((F[:3], F[3:]), *_X(X)))], (6, 12)))
     xform = looped.switch('SIG[b]', [f'xform{i}' for i in range(len(kinds))], '&x, K0 + 12 * b, X + 12 * b')
     column = looped.switch('SIG[b]', [f'column{i}' for i in range(len(kinds))], 'IC + 10 * b, F')
+    decl, free = looped.work([('X', 12 * fr.nb), ('IC', 10 * fr.nb)], fr.n * fr.n)
     src.append(f'''
 void lie_kernel(const double *const *in, const double *const *par, double *out)
 {{
   const double *q = in[0], *P = par[0], *E0 = par[1], *AR = par[2];
-  double X[12 * NB], IC[10 * NB], F[6];
+{decl}  double F[6];
   (void)E0;
-  memcpy(IC, P, sizeof IC);
+  memcpy(IC, P, 10 * NB * sizeof(double));
   for (int b = 0; b < NB; b++) {{
     const double x = X_OF(q, E0, b);
     {xform}
@@ -137,7 +138,7 @@ void lie_kernel(const double *const *in, const double *const *par, double *out)
       if (JNT[j] >= 0) out[JNT[j] * NJ + jb] = out[jb * NJ + JNT[j]] = F[AX[j]];
     }}
   }}
-}}
+{free}}}
 ''')
     return looped.rendered(''.join(src), (fr.n,), (10 * fr.nb, sum(fr.offset), fr.n), fr.n * fr.n)
 
