@@ -91,7 +91,13 @@ def _spec(model, method):
     if method == 'aba':
         return traced_aba.spec(model)
     t = runtime.THRESHOLDS['aba'].looped_from
-    if t is not None and model.nb >= t and traced_aba.supports(model):
+    if t is None or model.nb < t:
+        return traced_cholesky.FORWARD_DYNAMICS
+    return runtime.derived(model, 'cholesky_spec', lambda: _looped_aba(model))   # one lookup per call
+
+
+def _looped_aba(model):
+    if traced_aba.supports(model):
         s = traced_aba.spec(model)
         if runtime.looped(model, s):
             return s
