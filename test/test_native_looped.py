@@ -7,7 +7,7 @@ locked-joint changes, and without recompiling for parameter changes."""
 import numpy as np
 import pytest
 
-from lie_dynamics.codegen import native, runtime
+from lie_dynamics.codegen import kernel, native, runtime
 from lie_dynamics.codegen.traced import aba as t_aba
 from lie_dynamics.codegen.traced import crba as t_crba
 from dyn_cases import quiet_load as _load, rel_max as _rel
@@ -201,3 +201,17 @@ def test_mimic_joints_keep_todays_routes(looped_everywhere):
     q = _states(m, 1, seed=7)[0][0]
     assert _rel(m.mass_matrix(q), ref.mass_matrix(q)) <= TOL
     assert _rel(m.mass_matrix(q), Oracle(xml, joints=m.joint_names).crba(q)) <= TOL
+
+
+def test_looped_kernels_load_from_the_disk_cache(looped_everywhere):
+    """A second process (here: the runtime cleared) loads the looped library without compiling or
+    rendering it again; its key differs from the straight-line kernel's (another name)."""
+    xml = random_urdf(36, 5)
+    q = _states(_load(xml), 1, seed=8)[0][0]
+    first = _load(xml).mass_matrix(q)
+    runtime.clear()
+    compiled, rendered = native.compile_count(), kernel.builds()
+    m = _load(xml)
+    assert np.array_equal(m.mass_matrix(q), first)
+    assert native.compile_count() == compiled and kernel.builds() == rendered
+    assert runtime.looped(m, t_crba.MASS_MATRIX)
