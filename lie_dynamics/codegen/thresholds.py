@@ -127,7 +127,8 @@ THRESHOLDS = {
     # those robots go native (the largest, forward-dynamics derivatives of a 32-body tree,
     # 85,000 nodes, ~8 s of CPU, ~4 s on 2 quiet cores, once: the disk cache keeps it) but
     # the O(n^2) and O(n^3) families of long chains (64 bodies: 160,000-1,700,000 nodes): there the
-    # vectorised reference runs (a looped native rendering would take over: docs/architecture.md).
+    # looped form runs where a family has one (looped_from: M, ABA, forward dynamics), else the
+    # vectorised reference (docs/architecture.md, "Looped native kernels").
     'native_nodes': 100000,
     # Native batches release the GIL from this many states (below, the release costs more
     # than other threads gain).
