@@ -174,9 +174,10 @@ class Kernel:
             with self._native_lock:
                 lib = self.native_state
                 if lib is NativeState.UNTRIED:
-                    name, render = ((self.name + ':looped', self._render_looped) if self.looped is not None
-                                    else (self.name, self._render_c))
-                    lib = _native.library(self.structure, name, render) or NativeState.UNAVAILABLE
+                    name, render, flags = ((self.name + ':looped', self._render_looped, _native.LOOPED_FLAGS)
+                                           if self.looped is not None
+                                           else (self.name, self._render_c, _native.KERNEL_FLAGS))
+                    lib = _native.library(self.structure, name, render, flags) or NativeState.UNAVAILABLE
                     self.native_state = lib
                     self._trace = None   # rendered (or loaded without a trace): the Python forms retrace
         return None if lib is NativeState.UNAVAILABLE else lib
