@@ -215,3 +215,23 @@ def test_looped_kernels_load_from_the_disk_cache(looped_everywhere):
     assert np.array_equal(m.mass_matrix(q), first)
     assert native.compile_count() == compiled and kernel.builds() == rendered
     assert runtime.looped(m, t_crba.MASS_MATRIX)
+
+
+def test_looped_from_counts_pairs_and_takes_over_above_the_caps():
+    """The mass matrix's looped_from counts (body, ancestor) pairs; above the straight-line caps
+    the looped form runs whatever looped_from says."""
+    T = runtime.THRESHOLDS
+    saved = T['mass_matrix']
+    xml = random_urdf(37, 5)   # a chain: 15 pairs
+    try:
+        for limits, want in ((saved._replace(looped_from=15), True), (saved._replace(looped_from=16), False),
+                             (saved._replace(looped_from=10 ** 6, compile_max=2, native_max=4), True)):
+            T['mass_matrix'] = limits
+            m = _load(xml)
+            assert runtime.pairs(m) == 15
+            assert runtime.looped(m, t_crba.MASS_MATRIX) == want, limits
+            q = _states(m, 1, seed=9)[0][0]
+            assert _rel(m.mass_matrix(q), Oracle(xml, joints=m.joint_names).crba(q)) <= TOL
+    finally:
+        T['mass_matrix'] = saved
+        runtime.clear()

@@ -174,10 +174,14 @@ def entry(model, spec):
 
 def looped(model, spec):
     """Whether spec's kernel for this model is its looped native form (codegen/looped.py): the
-    native backend on, the model's size from THRESHOLDS[spec.limits].looped_from, a model the
+    native backend on, the model's size (counted as THRESHOLDS[spec.limits].looped_size) from its
+    looped_from or above the straight-line kernel's caps (compile_max, native_max), a model the
     looped drivers take (each joint one body, no mimic joints: looped.joints_of)."""
     t = THRESHOLDS[spec.limits]
-    if spec.looped is None or t.looped_from is None or size(model, t) < t.looped_from or not native_on(model):
+    if spec.looped is None or t.looped_from is None or not native_on(model):
+        return False
+    sized = size(model, t._replace(size=t.looped_size or t.size)) >= t.looped_from
+    if not sized and size(model, t) <= max(t.compile_max, native_max(t)):
         return False
     fr = frames(model)
     return fr.supported and structural(model, 'looped_joints', lambda: _looped.joints_of(fr) is not None)
