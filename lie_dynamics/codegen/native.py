@@ -6,10 +6,9 @@ error line). Under 'auto' a failing or missing compiler gives one warning per pr
 the Python kernels, whose results are the same to rounding.
 
 Compiler: $CC, else the compiler Python was built with, else `cc`; flags FLAGS for the call
-path and the looped kernels (LOOPED_FLAGS), KERNEL_FLAGS for the others (no -ffast-math,
+path, KERNEL_FLAGS for the kernels (LOOPED_FLAGS for the looped ones; no -ffast-math,
 -ffp-contract=off: the C kernels compute what the Python kernels compute, operation for
-operation). A kernel's C text of several
-translation units (crender.py) is compiled on every usable core and linked once. No -march:
+operation). A kernel's C text of several translation units (crender.py) is compiled on every usable core and linked once. No -march:
 the cache is per machine, but a home folder (and its cache) may move to another CPU; the
 kernels across states (clanes.py) get their AVX2 form through `target_clones`, which the
 loader picks by the CPU it runs on, with the baseline beside it.
@@ -46,10 +45,11 @@ FLAGS = ('-O2', '-ffp-contract=off', '-fno-math-errno', '-fPIC', '-shared', '-pi
 # in 0.92-1.0x the time (no scheduling passes lengthening live ranges; every family on the arm
 # and the Talos arm, interleaved rounds: python -m bench.compile --parts 500,500:-O2).
 KERNEL_FLAGS = ('-O1',) + FLAGS[1:]
-# The looped kernels (looped.py: a few hundred lines at any size, compiled in ~0.1 s): -O2 runs
-# them in 0.6x (the mass matrix of a 48-body chain) and 0.8x (the ABA of a 100-body chain) the
-# time of -O1 (loaded machine, interleaved rounds; -O3 0.74x on the mass matrix).
-LOOPED_FLAGS = FLAGS
+# The looped kernels (looped.py): the kernels' -O1. -O2 ran the mass matrix of a 200-body chain
+# and the ABA of a 100-body one in 0.75-0.9x the time, but the ABA of a 16-body chain in 7-9x
+# and the mass matrix of a 16-body chain in 3.4x (loaded machine, interleaved rounds, not
+# explained yet): kept at -O1.
+LOOPED_FLAGS = KERNEL_FLAGS
 _LOCK = threading.Lock()
 _STATE = {'module': None, 'error': None, 'warned': False, 'compiles': 0, 'seconds': 0.0, 'jobs': None}
 

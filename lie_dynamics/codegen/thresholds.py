@@ -55,9 +55,8 @@ THRESHOLDS = {
     # looped_from, counted in (body, ancestor) pairs, the straight-line M's size (`python -m
     # bench.looped`, load 3-9, one state, looped / straight-line at -O1, medians of per-round
     # ratios): chains of 16-32 bodies (136-528 pairs) 1.6-2.1, 48 (1,176) 1.3, 64 (2,080) 0.7;
-    # binary trees of 16-32 bodies (~50-130 pairs) 1-5; -O2 (native.LOOPED_FLAGS) takes the looped
-    # time to 0.6x. First use 0.1-0.3 s looped, against 0.7-3 s straight-line up to 32 bodies,
-    # 6-16 s at 48 and 21 s at 64 (loaded). Hence looped from 1,000 pairs (a 45-body chain), and
+    # binary trees of 16-32 bodies (~50-130 pairs) 1-5. First use 0.1-0.3 s looped, against
+    # 0.7-3 s straight-line up to 32 bodies, 6-16 s at 48 and 21 s at 64 (loaded). Hence looped from 1,000 pairs (a 45-body chain), and
     # above native_max (trees of 100-200 bodies) whatever the pairs. The looped M runs 0.2-0.85x
     # Pinocchio's crba on chains of 100-200 bodies.
     'mass_matrix': Limits(24, 24, 40, 40, native_max=64, looped_from=1000, looped_size='pairs'),
