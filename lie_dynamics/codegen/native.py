@@ -8,7 +8,8 @@ the Python kernels, whose results are the same to rounding.
 Compiler: $CC, else the compiler Python was built with, else `cc`; flags FLAGS for the call
 path, KERNEL_FLAGS for the kernels (LOOPED_FLAGS for the looped ones; no -ffast-math,
 -ffp-contract=off: the C kernels compute what the Python kernels compute, operation for
-operation). A kernel's C text of several translation units (crender.py) is compiled on every usable core and linked once. No -march:
+operation). A kernel's C text of several translation units (crender.py) is compiled on every
+usable core and linked once. No -march:
 the cache is per machine, but a home folder (and its cache) may move to another CPU; the
 kernels across states (clanes.py) get their AVX2 form through `target_clones`, which the
 loader picks by the CPU it runs on, with the baseline beside it.

@@ -52,13 +52,12 @@ THRESHOLDS = {
     # native_nodes): on Baxter, PR2, Talos reduced, random trees of 32-64 bodies and a 32-body
     # chain the native M (2,500-18,000 nodes) compiles in 0.3-3.1 s of compiler CPU and runs
     # 0.1-1.2x Pinocchio's crba; a 64-body chain has 66,000 nodes.
-    # looped_from, counted in (body, ancestor) pairs, the straight-line M's size (`python -m
-    # bench.looped`, load 3-9, one state, looped / straight-line at -O1, medians of per-round
-    # ratios): chains of 16-32 bodies (136-528 pairs) 1.6-2.1, 48 (1,176) 1.3, 64 (2,080) 0.7;
-    # binary trees of 16-32 bodies (~50-130 pairs) 1-5. First use 0.1-0.3 s looped, against
-    # 0.7-3 s straight-line up to 32 bodies, 6-16 s at 48 and 21 s at 64 (loaded). Hence looped from 1,000 pairs (a 45-body chain), and
-    # above native_max (trees of 100-200 bodies) whatever the pairs. The looped M runs 0.2-0.85x
-    # Pinocchio's crba on chains of 100-200 bodies.
+    # looped_from, counted in (body, ancestor) pairs, the straight-line M's size (`python -m bench.looped`, load
+    # 3-9, one state, looped / straight-line at -O1, medians of per-round ratios): chains of 16-32 bodies (136-528
+    # pairs) 1.6-2.1, 48 (1,176) 1.3, 64 (2,080) 0.7; binary trees of 16-32 bodies (~50-130 pairs) 1-5. First use
+    # 0.1-0.3 s looped, against 0.7-3 s straight-line up to 32 bodies, 6-16 s at 48 and 21 s at 64 (loaded). Hence
+    # looped from 1,000 pairs (a 45-body chain), and above native_max (trees of 100-200 bodies) whatever the pairs.
+    # The looped M runs 0.2-0.85x Pinocchio's crba on chains of 100-200 bodies.
     'mass_matrix': Limits(24, 24, 40, 40, native_max=64, looped_from=1000, looped_size='pairs'),
     # Cholesky forward dynamics (CRBA + RNEA bias + factorisation, O(n^2) source, the CRBA's
     # cap); the float loop beats the rows up to ~48 states on the arm, and the kernel beats
