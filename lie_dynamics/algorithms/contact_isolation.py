@@ -70,6 +70,17 @@ TOLERANCE = 0.05
 RADIUS = 0.1
 # Settling: every joint changed by at most this fraction of max(|r_j|, th_j) over one time constant.
 SETTLE_TOLERANCE = 0.05
+# With the residual's measured noise (std of r as given, per joint): tol_j = NOISE_SIGMAS x noise_j,
+# within [NOISE_FLOOR x, 1 x] tolerance x th_j (the floor: model and integration error, which no
+# average removes; the ceiling: the fixed tolerance). At 6 sigma a quiet joint reads as felt about
+# once in 5e8 samples of Gaussian noise.
+NOISE_SIGMAS = 6.0
+NOISE_FLOOR = 0.2
+# A joint further out than the named link that felt more than DOUBT x tol_j, but not tol_j, may
+# carry a contact whose line passes near its axis: ambiguous rather than a guess (2 sigma of
+# noise at DOUBT x NOISE_SIGMAS: a quiet joint lands there in 5 % of decisions; the node decides
+# an ambiguous answer anew as its mean grows and the noise falls).
+DOUBT = 1.0 / 3.0
 
 
 class WrenchEstimate(NamedTuple):
@@ -181,11 +192,25 @@ def line_of_action(wrench, tol=1e-9):
     return np.cross(f, m) / ff, f / math.sqrt(ff), float(m @ f) / ff
 
 
-def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RCOND, strict=False):
+def tolerances(threshold, tolerance=TOLERANCE, noise=None):
+    """(n,) tol_j of isolation: tolerance x th_j, or with the residual's measured noise (std per
+    joint of the r that is decided on) NOISE_SIGMAS x noise_j kept within [NOISE_FLOOR, 1] x that."""
+    th = np.asarray(threshold, dtype=float)
+    tol = tolerance * th
+    if noise is None:
+        return tol
+    sig = np.asarray(noise, dtype=float)
+    if sig.shape != th.shape or not np.all(np.isfinite(sig)) or np.any(sig < 0):
+        raise ValueError(f'noise must be {th.size} finite values >= 0 (one per controlled joint), got {noise!r}')
+    return np.clip(NOISE_SIGMAS * sig, NOISE_FLOOR * tol, tol)
+
+
+def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RCOND, strict=False, noise=None):
     """Isolation of the contact link from a settled residual r (n,) at the state q with the
     per-joint thresholds `threshold` (one value or n): the rule of the module docstring, with
-    consistency within tolerance x threshold_j on each joint and point contacts within `radius`
-    (m) of a link's skeleton. Returns an Isolation; the wrench of an isolated link comes with it."""
+    consistency within tol_j (`tolerances`: tolerance x threshold_j, or from `noise`, the measured
+    std of r per joint) on each joint and point contacts within `radius` (m) of a link's skeleton.
+    Returns an Isolation; the wrench of an isolated link comes with it."""
     n = model.n
     r = _vector('r', r, n)
     th = broadcast_joints(threshold, n)
@@ -201,7 +226,7 @@ def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RC
     if not over.any():
         return Isolation('none', '', (), (), '', None)
     t = tree(model)
-    tol = tolerance * th
+    tol = tolerances(th, tolerance, noise)
 
     def ambiguous(bodies, reason):
         return Isolation('ambiguous', '', tuple(links[b] for b in bodies), over_names, reason, None)
@@ -231,7 +256,16 @@ def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RC
         return ambiguous(least, 'the joints move these links alike (a mimic coupling)' if alike else
                          'a wrench on any of these links gives these external torques')
     k = least[0]
-    # step 5 (strict): no point contact further out gives r with its own joints quiet
+    # step 5: the joints further out than k (of bodies that explain r) felt nothing: no more than
+    # DOUBT x tol_j, else a contact there, its line near their axes, fits as well as one on k
+    further_joints = t.support[whole].any(axis=0) & ~t.support[k]
+    doubt = further_joints & (np.abs(r) > DOUBT * tol)
+    if doubt.any():
+        bodies = [b for b in whole if b != k and (t.own[b] & doubt).any()]
+        j = int(np.flatnonzero(doubt)[0])
+        return ambiguous([k] + bodies, f"joint '{names[j]}' felt {abs(r[j]):.3g}, near its tolerance "
+                                       f'{tol[j]:.3g}: a contact further out, its line near that axis, fits too')
+    # step 6 (strict): no point contact further out gives r with its own joints quiet
     further = [b for b in whole if b != k and _point_force(model, q, r, tol, b, radius)] if strict else []
     if further:
         return ambiguous([k] + further, f"a point contact on link '{links[further[0]]}' would load its own joints "

@@ -36,7 +36,17 @@ from .contact import REINIT_KEYS
 ZERO = np.zeros(6)
 # The wrenches read the mean residual of the last MEAN_WINDOWS time constants while it is settled:
 # the effort noise averaged out (the observer alone averages over about two), the rise's tail gone.
-MEAN_WINDOWS = 5.0
+MEAN_WINDOWS = 20.0
+# Isolation waits until the settled stretch spans this many time constants: the mean's noise then
+# is about 0.55 of one sample's (`_noise`), and it falls as the stretch grows.
+DECIDE_WINDOWS = 5.0
+# The residual's noise with the flag down: a running mean square over FREE_WINDOWS time constants
+# (checkpoints every quarter), used once it has FREE_MIN checkpoints, FREE_WAIT time constants
+# after the flag falls (the decay of the contact's residual is no noise).
+FREE_WINDOWS, FREE_MIN, FREE_WAIT = 50.0, 16, 5.0
+# The mean keeps the checkpoints whose joints lie within MOVE_RAD (rad or m) of the current ones:
+# J^T F of a fixed wrench changes by about that fraction of itself.
+MOVE_RAD = 2e-3
 # A fit serves while the joints move less than this (rad or m) from where it was made: the
 # Jacobian's change stays below about 1e-4 of the wrench (no new SVD while the arm is held).
 REFIT_RAD = 1e-4
@@ -88,6 +98,11 @@ class ContactIsolation:
         self._fits = {}             # 'link' / 'tool' -> (link, time, WrenchEstimate) of the last fit
         self.residual = None        # the r of the last wrenches: the mean over a settled stretch, else the sample's
         self._mean, self._sum = collections.deque(), None   # (t, r) of the settled stretch, their sum
+        self._sq = None             # their sum of squares (the noise of the mean)
+        self._decided = False       # the settled stretch's decision is made
+        self._start = 0.0           # the time the settled stretch began
+        self._gain = 1.0            # the observer's gain K (1/s, one or per joint)
+        self._free_ms, self._free_n, self._free_next = None, 0, -np.inf   # the flag-down noise (_free)
         self._mean_span = 0.0
         self._held = None           # (link wrench, tool wrench, mean r) of the last checkpoint
 
@@ -110,9 +125,11 @@ class ContactIsolation:
         if model is not None:
             gain = np.atleast_1d(np.asarray(settings.observer.gain, dtype=float))
             self.settling = ci.Settling(1.0 / float(gain.min()))
+            self._gain = gain
             self._mean_span = MEAN_WINDOWS * self.settling.window
         if reinit:
             self.reset()
+            self._free_ms, self._free_n, self._free_next = None, 0, -np.inf
 
     def reset(self):
         """Forget the history and the decision (the observer starts anew); a zero wrench stays owed."""
@@ -140,6 +157,11 @@ class ContactIsolation:
 
     def update(self, t, q, r, collision, threshold):
         """One observer sample: Published."""
+        if not collision:
+            if self.flag:   # the flag fell: the contact residual's decay is no noise
+                self._free_next = t + FREE_WAIT * self.settling.window
+            elif t >= self._free_next:
+                self._free(t, r)
         if not (collision or self.up or self.frame or self.link or self._settled) and self.isolation is None:
             self.flag, self.residual = False, r   # the flag down and nothing owed: nothing to decide
             return _NOTHING
@@ -181,32 +203,69 @@ class ContactIsolation:
         return Published(wrench, tool, changed)
 
     def _checkpoint(self, t, q, r, threshold):
-        """A checkpoint of a settled stretch (every quarter time constant): the decision at its
-        first, the mean residual of the last MEAN_WINDOWS time constants' checkpoints (samples
-        closer than a time constant carry little more: the observer's filter), and the wrenches
-        of that mean, held until the next checkpoint."""
-        if not self._settled:   # decided once per settled stretch (cost)
-            iso = ci.isolate(self.model, q, r, threshold, self.tolerance, self.radius, self.rcond, self.strict)
+        """A checkpoint of a settled stretch (every quarter time constant): the mean residual of
+        the last MEAN_WINDOWS time constants' checkpoints (samples closer than a time constant
+        carry little more: the observer's filter) and its noise (`_noise`); the decision once the
+        stretch spans DECIDE_WINDOWS time constants, on that mean with that noise (an ambiguous
+        one decided anew at later checkpoints, the mean longer); the wrenches of the mean, held
+        until the next checkpoint."""
+        m = self._mean
+        if not self._settled or (m and np.any(np.abs(r - self._sum / len(m)) > ci.SETTLE_TOLERANCE * np.maximum(
+                np.abs(self._sum / len(m)), threshold))):   # a new stretch, or a drift the mean would lag
+            m.clear()
+            self._sum, self._sq = np.zeros_like(r), np.zeros_like(r)
+            self._decided, self._start = False, t
+        q = np.array(q, dtype=float)
+        m.append((t, r, q))
+        self._sum += r
+        self._sq += r * r
+        # the mean is of one configuration: J^T F changes as the arm yields to the push
+        while t - m[0][0] > self._mean_span or np.abs(q - m[0][2]).max() > MOVE_RAD:
+            old = m.popleft()[1]
+            self._sum -= old
+            self._sq -= old * old
+        span = t - m[0][0]
+        plain = mean = self._sum / len(m)
+        if span > 0:   # the observer lags: mean tau_ext over the stretch = mean r + (r_end - r_start) / (K T)
+            mean = plain + (r - m[0][1]) / (self._gain * span)
+        if not self._decided and t - self._start >= DECIDE_WINDOWS * self.settling.window - 1e-9:
+            # on the plain mean: its lag scales every joint alike, and it is the less noisy
+            iso = ci.isolate(self.model, q, plain, threshold, self.tolerance, self.radius, self.rcond, self.strict,
+                             noise=self._noise(plain, span))
             if self.isolation is None or iso.status != self.isolation.status or iso.link != self.isolation.link:
                 self._log(iso)
             self.isolation = iso
+            # an ambiguous answer is decided anew while the mean grows (its noise falls)
+            self._decided = iso.status != 'ambiguous' or t - self._start >= self._mean_span - self.settling.quarter
             if iso.link:
                 self._fit('link', t, q, iso.link, iso.wrench)
-            self._mean.clear()
-            self._sum = np.zeros_like(r)
-        m = self._mean
-        m.append((t, r))
-        self._sum += r
-        while t - m[0][0] > self._mean_span:
-            self._sum -= m.popleft()[1]
-        mean = self._sum / len(m)
-        link = self.isolation.link
+        link = self.isolation.link if self.isolation is not None else ''
         if link:
             self.wrench = self._fit('link', t, q, link)
         if self.frame:
             self.tool = self._fit('tool', t, q, self.frame)
         self._held = (self.wrench.inverse @ mean if link else None,
                       self.tool.inverse @ mean if self.frame else None, mean)
+
+    def _free(self, t, r):
+        """Every quarter time constant with the flag down: the residual's mean square per joint,
+        a running mean over the last FREE_WINDOWS time constants (noise and free-motion model
+        error, what a quiet joint reads)."""
+        self._free_next = t + self.settling.quarter
+        self._free_n += 1
+        a = max(1.0 / self._free_n, 0.25 / FREE_WINDOWS)
+        self._free_ms = (1 - a) * self._free_ms + a * (r * r) if self._free_ms is not None else r * r
+
+    def _noise(self, plain, span):
+        """(n,) the std of the plain mean residual per joint, from the checkpoints' scatter about it
+        or the flag-down mean square (`_free`), whichever is larger: the
+        observer's output is a first-order (Ornstein-Uhlenbeck) process of time constant tau, whose
+        mean over T has variance var 2 (tau/T)^2 (T/tau - 1 + exp(-T/tau)). A drift counts as noise."""
+        var = np.maximum(self._sq / len(self._mean) - plain * plain, 0.0)
+        if self._free_ms is not None and self._free_n >= FREE_MIN:   # a longer record: fewer chance lows
+            var = np.maximum(var, self._free_ms)
+        x = max(span + self.settling.quarter, self.settling.quarter) / self.settling.window
+        return np.sqrt(var * min(1.0, 2.0 / (x * x) * (x - 1.0 + np.exp(-x))))
 
     def flush(self):
         """Pass the observer's lines on to `events`, the collision line once the link is decided
