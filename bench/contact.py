@@ -86,9 +86,16 @@ def random_state(model, rng):
 
 
 def hold_gains(model, q0):
-    """(kp, kd) of the hold: kp = HOLD_KP x effort limit, kd critical with the mass matrix diagonal."""
+    """(kp (n,), Kd (n, n)) of the hold: kp = HOLD_KP x effort limit, Kd critically damping every mode
+    of M(q0) under kp (2 M^1/2 (M^-1/2 Kp M^-1/2)^1/2 M^1/2). A diagonal kd from M's diagonal
+    left coupled modes (parallel axes) with dt x eig(M^-1 Kd) above 2 in some states: the
+    explicit damping of the 1 ms step went unstable, the arm swung and the drives saturated."""
     kp = HOLD_KP * model.effort_limits
-    return kp, 2.0 * np.sqrt(kp * np.diag(model.mass_matrix(q0)))
+    w, V = np.linalg.eigh(model.mass_matrix(q0))
+    half = (V * np.sqrt(w)) @ V.T
+    inv_half = (V / np.sqrt(w)) @ V.T
+    w2, V2 = np.linalg.eigh(inv_half @ (kp[:, None] * inv_half))
+    return kp, 2.0 * half @ ((V2 * np.sqrt(np.maximum(w2, 0.0))) @ V2.T) @ half
 
 
 def body_link(model, link):
@@ -131,7 +138,7 @@ def simulate(model, settings, q0, link, wrench_mf, rng, noise, tool=''):
                         named[m].add(pub.link)
                 last = (sim.q.copy(), isos['default'].residual.copy(), {m: iso.isolation for m, iso in isos.items()},
                         pubs['default'].tool)
-        sim.set_command(model.gravity(sim.q) + kp * (q0 - sim.q) - kd * sim.qd)
+        sim.set_command(model.gravity(sim.q) + kp * (q0 - sim.q) - kd @ sim.qd)
         sim.step()
     return {'named': named, 'flagged': flagged, 'last': last}
 
@@ -270,7 +277,7 @@ def _cost_messages(model, n, push):
                        effort=(sim.motor + rng.normal(0, NOISE, model.n) * th).tolist())
         m.header.stamp.sec, m.header.stamp.nanosec = divmod(1_000_000_000 + k * 1_000_000, 1_000_000_000)
         msgs.append(m)
-        sim.set_command(model.gravity(sim.q) + kp * (q0 - sim.q) - kd * sim.qd)
+        sim.set_command(model.gravity(sim.q) + kp * (q0 - sim.q) - kd @ sim.qd)
         sim.step()
     return msgs
 
