@@ -212,12 +212,15 @@ def test_two_contacts_are_ambiguous_never_guessed():
     assert ci.isolate(model, q, r, th).link == 'link4'
     r[5] = 0.7
     assert ci.isolate(model, q, r, th).link == 'link6'   # a wrench on link6 (rank 6) gives exactly this r
-    r[5] = 0.2 * ci.TOLERANCE
-    assert ci.isolate(model, q, r, th).link == 'link4'   # within DOUBT x the tolerance: quiet
-    r[5] = 0.5 * ci.TOLERANCE   # under the tolerance, over DOUBT x it: a contact further out may load it so
+    r[5] = 0.5 * ci.TOLERANCE   # within the tolerance, and not the next joint out: quiet
+    assert ci.isolate(model, q, r, th).link == 'link4'
+    r[5] = 0.0
+    r[4] = 0.2 * ci.TOLERANCE   # the next joint out, within DOUBT x the tolerance: quiet
+    assert ci.isolate(model, q, r, th).link == 'link4'
+    r[4] = 0.5 * ci.TOLERANCE   # under the tolerance, over DOUBT x it: a contact on link5 may load it so
     res = ci.isolate(model, q, r, th)
-    assert res.status == 'ambiguous' and res.candidates[0] == 'link4' and 'link6' in res.candidates, res
-    assert "joint 'joint6'" in res.reason and 'near its tolerance' in res.reason
+    assert res.status == 'ambiguous' and res.candidates == ('link4', 'link5'), res
+    assert "joint 'joint5'" in res.reason and 'near its tolerance' in res.reason
     assert ci.isolate(model, q, np.zeros(7), 1.0).status == 'none'
 
 

@@ -256,12 +256,19 @@ def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RC
         return ambiguous(least, 'the joints move these links alike (a mimic coupling)' if alike else
                          'a wrench on any of these links gives these external torques')
     k = least[0]
-    # step 5: the joints further out than k (of bodies that explain r) felt nothing: no more than
-    # DOUBT x tol_j, else a contact there, its line near their axes, fits as well as one on k
-    further_joints = t.support[whole].any(axis=0) & ~t.support[k]
-    doubt = further_joints & (np.abs(r) > DOUBT * tol)
+    # step 5: the joints of the next bodies out (candidates one joint group beyond k) felt
+    # nothing: no more than DOUBT x tol_j, else a contact there, its line near their axes, may fit
+    # as well as one on k (candidates, not only step 3's: a body with more joints than its rank may
+    # fail step 3 by the residual's noise alone). Only the next joints: each joint checked is one
+    # more chance for noise to land in the band.
+    beyond = t.support & ~t.support[k]   # per body, its joints that do not move k
+    nxt = [c for c in cand if beyond[c].any() and not (t.support[k] & ~t.support[c]).any()
+           and not (beyond[c] & ~t.own[c]).any()]
+    doubt = np.zeros(n, dtype=bool)
+    for c in nxt:
+        doubt |= t.own[c] & (np.abs(r) > DOUBT * tol)
     if doubt.any():
-        bodies = [b for b in whole if b != k and (t.own[b] & doubt).any()]
+        bodies = [c for c in nxt if (t.own[c] & doubt).any()]
         j = int(np.flatnonzero(doubt)[0])
         return ambiguous([k] + bodies, f"joint '{names[j]}' felt {abs(r[j]):.3g}, near its tolerance "
                                        f'{tol[j]:.3g}: a contact further out, its line near that axis, fits too')

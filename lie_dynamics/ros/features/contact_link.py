@@ -100,6 +100,7 @@ class ContactIsolation:
         self._mean, self._sum = collections.deque(), None   # (t, r) of the settled stretch, their sum
         self._sq = None             # their sum of squares (the noise of the mean)
         self._decided = False       # the settled stretch's decision is made
+        self._all = None            # [count, sum, sum of squares] of the whole stretch's checkpoints
         self._start = 0.0           # the time the settled stretch began
         self._gain = 1.0            # the observer's gain K (1/s, one or per joint)
         self._free_ms, self._free_n, self._free_next = None, 0, -np.inf   # the flag-down noise (_free)
@@ -215,10 +216,15 @@ class ContactIsolation:
             m.clear()
             self._sum, self._sq = np.zeros_like(r), np.zeros_like(r)
             self._decided, self._start = False, t
+            self._all = [0, np.zeros_like(r), np.zeros_like(r)]
         q = np.array(q, dtype=float)
         m.append((t, r, q))
         self._sum += r
         self._sq += r * r
+        a = self._all   # the whole stretch (isolation: which joints feel r does not change as the arm yields)
+        a[0] += 1
+        a[1] += r
+        a[2] += r * r
         # the mean is of one configuration: J^T F changes as the arm yields to the push
         while t - m[0][0] > self._mean_span or np.abs(q - m[0][2]).max() > MOVE_RAD:
             old = m.popleft()[1]
@@ -229,9 +235,11 @@ class ContactIsolation:
         if span > 0:   # the observer lags: mean tau_ext over the stretch = mean r + (r_end - r_start) / (K T)
             mean = plain + (r - m[0][1]) / (self._gain * span)
         if not self._decided and t - self._start >= DECIDE_WINDOWS * self.settling.window - 1e-9:
-            # on the plain mean: its lag scales every joint alike, and it is the less noisy
-            iso = ci.isolate(self.model, q, plain, threshold, self.tolerance, self.radius, self.rcond, self.strict,
-                             noise=self._noise(plain, span))
+            # on the plain mean of the whole stretch: its lag scales every joint alike, and a joint
+            # a contact does not load stays unloaded as the arm yields; the least noisy mean
+            whole = a[1] / a[0]
+            iso = ci.isolate(self.model, q, whole, threshold, self.tolerance, self.radius, self.rcond, self.strict,
+                             noise=self._noise(whole, a[2] / a[0], t - self._start))
             if self.isolation is None or iso.status != self.isolation.status or iso.link != self.isolation.link:
                 self._log(iso)
             self.isolation = iso
@@ -256,12 +264,13 @@ class ContactIsolation:
         a = max(1.0 / self._free_n, 0.25 / FREE_WINDOWS)
         self._free_ms = (1 - a) * self._free_ms + a * (r * r) if self._free_ms is not None else r * r
 
-    def _noise(self, plain, span):
-        """(n,) the std of the plain mean residual per joint, from the checkpoints' scatter about it
-        or the flag-down mean square (`_free`), whichever is larger: the
-        observer's output is a first-order (Ornstein-Uhlenbeck) process of time constant tau, whose
-        mean over T has variance var 2 (tau/T)^2 (T/tau - 1 + exp(-T/tau)). A drift counts as noise."""
-        var = np.maximum(self._sq / len(self._mean) - plain * plain, 0.0)
+    def _noise(self, mean, square, span):
+        """(n,) the std of a mean residual over `span` s per joint (mean and mean square of its
+        checkpoints), from the checkpoints' scatter about it or the flag-down mean square (`_free`),
+        whichever is larger: the observer's output is a first-order (Ornstein-Uhlenbeck) process of
+        time constant tau, whose mean over T has variance var 2 (tau/T)^2 (T/tau - 1 + exp(-T/tau)).
+        A drift counts as noise."""
+        var = np.maximum(square - mean * mean, 0.0)
         if self._free_ms is not None and self._free_n >= FREE_MIN:   # a longer record: fewer chance lows
             var = np.maximum(var, self._free_ms)
         x = max(span + self.settling.quarter, self.settling.quarter) / self.settling.window
