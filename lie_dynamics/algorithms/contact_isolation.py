@@ -9,7 +9,9 @@ not support k, and the support grows from the root outwards: every joint over it
 supports the contact link.
 
 Isolation (`isolate`), on a settled residual (`Settling`), per-joint thresholds th and a
-tolerance tol_j = TOLERANCE x th_j (above the residual's noise and model error):
+tolerance tol_j = TOLERANCE x th_j (above the residual's noise and model error), or, given the
+residual's measured noise sigma_j (the std of the r decided on), NOISE_SIGMAS x sigma_j within
+[NOISE_FLOOR, 1] x TOLERANCE x th_j (`tolerances`):
   1. over = {j : |r_j| > th_j}; none: no contact.
   2. The candidate bodies are those that every felt joint (|r_j| > tol_j) moves, one per rigid
      group: bodies behind locked joints are rigid with their parent, and the named link (the
@@ -23,12 +25,17 @@ tolerance tol_j = TOLERANCE x th_j (above the residual's noise and model error):
      further out always explains r too when it has 6 joints or fewer (a wrench on it that leaves
      its own joints quiet), but only if its own joints stay within tol_j: for a contact there
      that is a force whose line passes (nearly) through those joints' axes.
-  5. strict: the named link only if no pure force whose line passes within `radius` of a body
+  5. The next bodies out (one joint group beyond the named one) must have felt nothing: a joint
+     of theirs over DOUBT x tol_j (but under tol_j) makes the answer ambiguous, for a contact
+     there with its line near that axis gives such an r as well as one on the named link.
+  6. strict: the named link only if no pure force whose line passes within `radius` of a body
      further out that explains r gives r within tol_j (`_point_force`: the segments from the
      body's origin to its frames and next joints, no meshes); else ambiguous. With fewer than 6
      joints on the named link such a force usually exists, so strict is right far less often.
   That is the limit of isolation: joint torques alone cannot tell a contact whose own joints feel
-  less than the tolerance from one on the link before (docs/benchmarks.md measures how often).
+  less than DOUBT x the tolerance from one on the link before (docs/benchmarks.md measures how
+  often); the measured noise lowers the tolerance, and with it that band, as far as the noise
+  and the model allow.
 An ambiguous answer names its candidate links and the reason; it never picks one.
 
 Identification (`link_wrench`): J_k^T w = r in least squares through the SVD of J_k^T (n x 6),

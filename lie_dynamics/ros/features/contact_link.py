@@ -8,17 +8,22 @@ ContactMonitor: the estimate r, its time t in s, the debounced flag), returns wh
   * the wrench of the isolated link (link name, (fx fy fz mx my mz) at its origin in its axes)
     while the flag is up and a link is isolated: at every sample while the residual changes, and
     while it is settled at every checkpoint (a quarter time constant), the wrench of its mean over
-    the last MEAN_WINDOWS time constants (the effort noise averaged out; unchanged in between, so
-    not sent again); one zero wrench (the last link's, '' if none was) when the flag falls;
+    the last MEAN_WINDOWS time constants at the current configuration (MOVE_RAD), corrected for
+    the observer's lag (the effort noise averaged out; unchanged in between, so not sent again);
+    one zero wrench (the last link's, '' if none was) when the flag falls;
   * the tool wrench (`contact.wrench_frame`, all contact at that link) at every sample, when set
     (of the same mean while settled);
   * the isolated link when it changes: '' while nothing is in contact, while the residual
     settles, and when the answer is ambiguous.
 
 Isolation is decided on a settled residual only (contact_isolation.Settling, window one observer
-time constant 1 / min(observer.gain)), once each time it settles: after the flag rises the link
-stays '' until the residual has stopped changing, and while it changes again (the push grows or
-moves) the last decision holds until it settles anew. The Jacobians and the isolation run only
+time constant 1 / min(observer.gain)), once each time it settles, DECIDE_WINDOWS time constants
+into the settled stretch, on the stretch's mean with its measured noise (`_noise`: the scatter of
+the stretch's checkpoints, or the residual's mean square with the flag down, `_free`, whichever is
+larger), so the tolerances are NOISE_SIGMAS x that noise where it allows; an ambiguous answer is
+decided anew at each checkpoint while the stretch grows (its noise falls). After the flag rises
+the link stays '' until then, and while the residual changes again (the push grows or moves) the
+last decision holds until it settles anew. The Jacobians and the isolation run only
 while the flag is up, except the tool wrench's; a fit (Jacobian and SVD) serves while it is
 younger than one time constant or the joints have not moved (REFIT_RAD) since: w = inverse r.
 A model, gravity, payload or observer change (contact.REINIT_KEYS) and a paused observer start
