@@ -103,7 +103,6 @@ class ContactIsolation:
         self._fits = {}             # 'link' / 'tool' -> (link, time, WrenchEstimate) of the last fit
         self.residual = None        # the r of the last wrenches: the mean over a settled stretch, else the sample's
         self._mean, self._sum = collections.deque(), None   # (t, r) of the settled stretch, their sum
-        self._sq = None             # their sum of squares (the noise of the mean)
         self._decided = False       # the settled stretch's decision is made
         self._all = None            # [count, sum, sum of squares] of the whole stretch's checkpoints
         self._start = 0.0           # the time the settled stretch began
@@ -209,36 +208,36 @@ class ContactIsolation:
         return Published(wrench, tool, changed)
 
     def _checkpoint(self, t, q, r, threshold):
-        """A checkpoint of a settled stretch (every quarter time constant): the mean residual of
-        the last MEAN_WINDOWS time constants' checkpoints (samples closer than a time constant
-        carry little more: the observer's filter) and its noise (`_noise`); the decision once the
-        stretch spans DECIDE_WINDOWS time constants, on that mean with that noise (an ambiguous
-        one decided anew at later checkpoints, the mean longer); the wrenches of the mean, held
+        """A checkpoint of a settled stretch (every quarter time constant; samples closer than a
+        time constant carry little more: the observer's filter). The decision once the stretch
+        spans DECIDE_WINDOWS time constants, on the mean of its checkpoints with that mean's noise
+        (`_noise`; an ambiguous one decided anew at later checkpoints, the mean longer). The
+        wrenches of the external torque's time mean over the checkpoints of the last MEAN_WINDOWS
+        time constants within MOVE_RAD of the current joints (the observer's lag corrected), held
         until the next checkpoint."""
         m = self._mean
         if not self._settled or (m and np.any(np.abs(r - self._sum / len(m)) > ci.SETTLE_TOLERANCE * np.maximum(
                 np.abs(self._sum / len(m)), threshold))):   # a new stretch, or a drift the mean would lag
             m.clear()
-            self._sum, self._sq = np.zeros_like(r), np.zeros_like(r)
+            self._sum = np.zeros_like(r)
             self._decided, self._start = False, t
             self._all = [0, np.zeros_like(r), np.zeros_like(r)]
         q = np.array(q, dtype=float)
-        m.append((t, r, q))
+        # the trapezoid integral of r from the stretch's start (the lag correction needs the time mean)
+        area = m[-1][3] + 0.5 * (t - m[-1][0]) * (r + m[-1][1]) if m else np.zeros_like(r)
+        m.append((t, r, q, area))
         self._sum += r
-        self._sq += r * r
         a = self._all   # the whole stretch (isolation: which joints feel r does not change as the arm yields)
         a[0] += 1
         a[1] += r
         a[2] += r * r
         # the mean is of one configuration: J^T F changes as the arm yields to the push
         while t - m[0][0] > self._mean_span or np.abs(q - m[0][2]).max() > MOVE_RAD:
-            old = m.popleft()[1]
-            self._sum -= old
-            self._sq -= old * old
+            self._sum -= m.popleft()[1]
         span = t - m[0][0]
-        plain = mean = self._sum / len(m)
-        if span > 0:   # the observer lags: mean tau_ext over the stretch = mean r + (r_end - r_start) / (K T)
-            mean = plain + (r - m[0][1]) / (self._gain * span)
+        mean = self._sum / len(m)
+        if span > 0:   # the observer lags: mean tau_ext over [t0, t] = (integral of r + (r(t) - r(t0)) / K) / T
+            mean = (area - m[0][3] + (r - m[0][1]) / self._gain) / span
         if not self._decided and t - self._start >= DECIDE_WINDOWS * self.settling.window - 1e-9:
             # on the plain mean of the whole stretch: its lag scales every joint alike, and a joint
             # a contact does not load stays unloaded as the arm yields; the least noisy mean
