@@ -46,8 +46,9 @@ MEAN_WINDOWS = 20.0
 # is about 0.55 of one sample's (`_noise`), and it falls as the stretch grows.
 DECIDE_WINDOWS = 5.0
 # The residual's noise with the flag down: a running mean square over FREE_WINDOWS time constants
-# (checkpoints every quarter), used once it has FREE_MIN checkpoints, FREE_WAIT time constants
-# after the flag falls (the decay of the contact's residual is no noise).
+# (checkpoints every quarter), used once it has FREE_MIN checkpoints, from FREE_WAIT time constants
+# after the flag falls or the observer starts (the decay of a contact's residual, the observer's
+# start, are no noise).
 FREE_WINDOWS, FREE_MIN, FREE_WAIT = 50.0, 16, 5.0
 # The mean keeps the checkpoints whose joints lie within MOVE_RAD (rad or m) of the current ones:
 # J^T F of a fixed wrench changes by about that fraction of itself.
@@ -107,7 +108,7 @@ class ContactIsolation:
         self._all = None            # [count, sum, sum of squares] of the whole stretch's checkpoints
         self._start = 0.0           # the time the settled stretch began
         self._gain = 1.0            # the observer's gain K (1/s, one or per joint)
-        self._free_ms, self._free_n, self._free_next = None, 0, -np.inf   # the flag-down noise (_free)
+        self._free_ms, self._free_n, self._free_next = None, 0, None   # the flag-down noise (_free)
         self._mean_span = 0.0
         self._held = None           # (link wrench, tool wrench, mean r) of the last checkpoint
 
@@ -134,7 +135,7 @@ class ContactIsolation:
             self._mean_span = MEAN_WINDOWS * self.settling.window
         if reinit:
             self.reset()
-            self._free_ms, self._free_n, self._free_next = None, 0, -np.inf
+            self._free_ms, self._free_n, self._free_next = None, 0, None
 
     def reset(self):
         """Forget the history and the decision (the observer starts anew); a zero wrench stays owed."""
@@ -143,6 +144,7 @@ class ContactIsolation:
         self.isolation = None
         self._settled = False
         self._fits = {}
+        self._free_next = None   # the noise record waits out the observer's new start
 
     def _fit(self, kind, t, q, link, est=None):
         """The fit (WrenchEstimate: its inverse maps r to the wrench) on `link` at q: est, or the
@@ -163,7 +165,7 @@ class ContactIsolation:
     def update(self, t, q, r, collision, threshold):
         """One observer sample: Published."""
         if not collision:
-            if self.flag:   # the flag fell: the contact residual's decay is no noise
+            if self.flag or self._free_next is None:   # the flag fell, the observer (re)started: no noise
                 self._free_next = t + FREE_WAIT * self.settling.window
             elif t >= self._free_next:
                 self._free(t, r)
