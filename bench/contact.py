@@ -5,8 +5,10 @@ isolation beside without it.
     .venv/bin/python -m bench.contact [--quick] [--pushes 150] [--out DIR]
 
 Plant: the robot (lie_dynamics.sim.arm, the library's forward dynamics at 1 kHz, URDF damping)
-held at a random state q0 within its joint limits by gravity compensation + PD (HOLD_KP); the efforts the
-observer reads are the motor torques, exact and with white noise of NOISE x each joint's threshold. The
+held at a random state q0 within its joint limits by gravity compensation + PD (HOLD_KP, a damping
+matrix that damps every mode of M(q0) critically: hold_gains); the efforts the observer reads are
+the motor torques (before the first step the hold's, g(q0)), exact and with white noise of NOISE x
+each joint's threshold. The arm runs free for START s first: the node measures the residual's noise. The
 thresholds are scaled with the effort limits (THRESHOLD_SCALE x limit). Each push: a random link
 that a controlled joint moves, a random point within +-5 cm of its origin (link axes), a random
 direction, a pure force of 1x to 5x its threshold equivalent force (the force at which the most
