@@ -2,9 +2,10 @@
 
 Two processes that pick the same ROS_DOMAIN_ID exchange topics: a test run's simulated arm can
 then be commanded by another run's controller. A domain is reserved by holding an exclusive
-lock on a file named after it in the temp dir, for as long as the process lives; the demo, the
-benchmarks and the tests all reserve their domains this way. At exit the files are removed
-(under the lock, so no other process can hold a lock on a removed file: see `_lock`).
+lock on a file named after it in /tmp (machine-wide, as the domains are), for as long as the
+process lives; the demo, the benchmarks and the tests all reserve their domains this way. At exit
+the files are removed (under the lock, so no other process can hold a lock on a removed file:
+see `_lock`).
 (No rclpy import: usable before rclpy.init.)
 """
 import atexit
@@ -16,9 +17,25 @@ DOMAINS = 232  # Fast DDS: ports 7400 + 250 * domain must stay below 65536
 _HELD = []     # (path, fd) of the reserved domains, locked until release_domains or exit
 
 
+# DDS domains are machine-wide, so their locks must be too: in the system's /tmp whatever
+# TMPDIR says (two runs with their own TMPDIR once reserved the same domain and saw each other's
+# topics); the process's temp dir only where /tmp cannot be written.
+LOCK_DIR = '/tmp'
+LOCK_DIR_ENV = 'LIE_DYNAMICS_DOMAIN_LOCK_DIR'   # another folder (tests isolate themselves with it)
+
+
+def lock_dir():
+    """Where the domains' lock files live: $LIE_DYNAMICS_DOMAIN_LOCK_DIR, else /tmp, else the
+    temp dir."""
+    folder = os.environ.get(LOCK_DIR_ENV)
+    if folder:
+        return folder
+    return LOCK_DIR if os.access(LOCK_DIR, os.W_OK | os.X_OK) else tempfile.gettempdir()
+
+
 def lock_path(domain):
     """The lock file of a domain."""
-    return os.path.join(tempfile.gettempdir(), f'lie_dynamics_dds_domain_{domain}.lock')
+    return os.path.join(lock_dir(), f'lie_dynamics_dds_domain_{domain}.lock')
 
 
 def _lock(path):
