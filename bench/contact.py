@@ -5,8 +5,10 @@ isolation beside without it.
     .venv/bin/python -m bench.contact [--quick] [--pushes 150] [--out DIR]
 
 Plant: the robot (lie_dynamics.sim.arm, the library's forward dynamics at 1 kHz, URDF damping)
-held at a random state q0 within its joint limits by gravity compensation + PD (HOLD_KP); the efforts the
-observer reads are the motor torques, exact and with white noise of NOISE x each joint's threshold. The
+held at a random state q0 within its joint limits by gravity compensation + PD (HOLD_KP, a damping
+matrix that damps every mode of M(q0) critically: hold_gains); the efforts the observer reads are
+the motor torques (before the first step the hold's, g(q0)), exact and with white noise of NOISE x
+each joint's threshold. The arm runs free for START s first: the node measures the residual's noise. The
 thresholds are scaled with the effort limits (THRESHOLD_SCALE x limit). Each push: a random link
 that a controlled joint moves, a random point within +-5 cm of its origin (link axes), a random
 direction, a pure force of 1x to 5x its threshold equivalent force (the force at which the most
@@ -50,7 +52,7 @@ from lie_dynamics.sim.arm import ArmSim
 DT = 1e-3
 THRESHOLD_SCALE = 0.03     # threshold_j = this x effort limit_j
 NOISE = 0.05               # effort noise, x threshold_j
-START, PUSH_S, AFTER_S = 0.1, 0.4, 0.1
+START, PUSH_S, AFTER_S = 0.5, 0.4, 0.1   # free 0.5 s first: the node measures the residual's noise
 MODES = ('default', 'strict')   # contact.strict_isolation false, true
 HOLD_KP = 3.0              # the hold's stiffness, N m/rad per N m of effort limit (critically damped)
 ERD = next(iter(glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-packages', 'cmeel.prefix', 'share',
@@ -86,9 +88,16 @@ def random_state(model, rng):
 
 
 def hold_gains(model, q0):
-    """(kp, kd) of the hold: kp = HOLD_KP x effort limit, kd critical with the mass matrix diagonal."""
+    """(kp (n,), Kd (n, n)) of the hold: kp = HOLD_KP x effort limit, Kd critically damping every mode
+    of M(q0) under kp (2 M^1/2 (M^-1/2 Kp M^-1/2)^1/2 M^1/2). A diagonal kd from M's diagonal
+    left coupled modes (parallel axes) with dt x eig(M^-1 Kd) above 2 in some states: the
+    explicit damping of the 1 ms step went unstable, the arm swung and the drives saturated."""
     kp = HOLD_KP * model.effort_limits
-    return kp, 2.0 * np.sqrt(kp * np.diag(model.mass_matrix(q0)))
+    w, V = np.linalg.eigh(model.mass_matrix(q0))
+    half = (V * np.sqrt(w)) @ V.T
+    inv_half = (V / np.sqrt(w)) @ V.T
+    w2, V2 = np.linalg.eigh(inv_half @ (kp[:, None] * inv_half))
+    return kp, 2.0 * half @ ((V2 * np.sqrt(np.maximum(w2, 0.0))) @ V2.T) @ half
 
 
 def body_link(model, link):
@@ -114,6 +123,7 @@ def simulate(model, settings, q0, link, wrench_mf, rng, noise, tool=''):
         isos[mode].adopt(s.replace({'contact.strict_isolation': mode == 'strict',
                                     'contact.wrench_frame': tool if mode == 'default' else ''}), model)
     sim = ArmSim(model, DT, q0=q0, limits=False)   # no stops: their impulses would be contact too
+    sim.motor = model.gravity(q0)   # the drive's effort before the first step: the hold (not 0, a jolt)
     sim.set_external(link, wrench_mf, START, PUSH_S)
     kp, kd = hold_gains(model, q0)
     named, flagged, last = {m: set() for m in MODES}, False, None
@@ -130,7 +140,7 @@ def simulate(model, settings, q0, link, wrench_mf, rng, noise, tool=''):
                         named[m].add(pub.link)
                 last = (sim.q.copy(), isos['default'].residual.copy(), {m: iso.isolation for m, iso in isos.items()},
                         pubs['default'].tool)
-        sim.set_command(model.gravity(sim.q) + kp * (q0 - sim.q) - kd * sim.qd)
+        sim.set_command(model.gravity(sim.q) + kp * (q0 - sim.q) - kd @ sim.qd)
         sim.step()
     return {'named': named, 'flagged': flagged, 'last': last}
 
@@ -258,6 +268,7 @@ def _cost_messages(model, n, push):
     q0 = np.array([0.0, -0.6, 0.0, 2.0, 0.0, 1.6, 0.8])
     th = np.asarray(settings_for(model).collision.threshold)
     sim = ArmSim(model, DT, q0=q0)
+    sim.motor = model.gravity(q0)
     if push:
         f = np.array([12.0, -20.0, 8.0])    # at (4, 3, 2) cm in tool0: isolated at link7 (test_node_contact_link.py)
         sim.set_external('tool0', np.concatenate([np.cross([0.04, 0.03, 0.02], f), f]), 0.05, 100.0)
@@ -268,7 +279,7 @@ def _cost_messages(model, n, push):
                        effort=(sim.motor + rng.normal(0, NOISE, model.n) * th).tolist())
         m.header.stamp.sec, m.header.stamp.nanosec = divmod(1_000_000_000 + k * 1_000_000, 1_000_000_000)
         msgs.append(m)
-        sim.set_command(model.gravity(sim.q) + kp * (q0 - sim.q) - kd * sim.qd)
+        sim.set_command(model.gravity(sim.q) + kp * (q0 - sim.q) - kd @ sim.qd)
         sim.step()
     return msgs
 

@@ -178,6 +178,23 @@ def test_compile_section_measures_every_family_of_the_arm(tmp_path):
     assert all(f'| arm7 | {fam} |' in table for fam in compile_bench.FAMILIES)
 
 
+def test_looped_section_measures_both_forms(tmp_path):
+    """bench.looped on an 8-body chain: a row per family with the straight-line and the looped
+    kernel's first use and ratios to Pinocchio, a table written; THRESHOLDS as before."""
+    from bench import looped as looped_bench
+    from lie_dynamics.codegen import runtime
+    if native.module() is None:
+        pytest.skip('no working C compiler')
+    before = dict(runtime.THRESHOLDS)
+    rows = looped_bench.measure(['chain8'], list(looped_bench.FAMILIES), rounds=1)
+    assert runtime.THRESHOLDS == before
+    assert [r['family'] for r in rows] == list(looped_bench.FAMILIES)
+    for r in rows:
+        assert r['looped_first_s'] > 0 and r['looped_ratio'] > 0 and r['straight_ratio'] > 0, r
+    assert looped_bench.main(['--robots', 'chain8', '--families', 'aba', '--rounds', '1', '--out', str(tmp_path)]) == 0
+    assert '| chain8 | aba |' in (tmp_path / 'looped.md').read_text(encoding='utf-8')
+
+
 def test_node_loads_trace_reports_the_node_side(tmp_path):
     """bench.node_loads --trace: the traced node writes its callbacks and log lines, and each
     event row gets the window's longest callback with its CPU and wait."""

@@ -25,8 +25,9 @@ def arm():
 
 @pytest.fixture(scope='module')
 def optimized(arm):
-    # 100 L-BFGS-B iterations (the default is 300) keep the test near half a minute on a loaded machine
-    return excitation_trajectory(arm, duration=10.0, rate=100.0, optimize=True, seed=0, iterations=100)
+    # 100 L-BFGS-B iterations on a 60-sample grid (the defaults are 400 and 100) keep the test near
+    # 20 s on a loaded machine
+    return excitation_trajectory(arm, duration=10.0, rate=100.0, optimize=True, seed=0, iterations=100, samples=60)
 
 
 def test_within_its_limits_on_the_sampled_trajectory_and_at_rest_at_both_ends(arm, optimized):
@@ -50,27 +51,28 @@ def test_within_its_limits_on_the_sampled_trajectory_and_at_rest_at_both_ends(ar
 def test_better_conditioned_than_the_random_excitation(arm, optimized):
     _, q, qd, qdd = optimized
     _, qr, qdr, qddr = excitation_trajectory(arm, duration=10.0, rate=100.0, seed=0)
-    # measured: 11.4 against 20.1 at 100 iterations, 9.3 (0.46) at the default 300 (bench/calibration_excitation.py);
-    # the target, 1/5, is not reached: states drawn uniformly over the whole box the limits allow,
-    # free of any trajectory, reach only 7.2 (0.36)
+    # measured: 12.1 and 12.2 (numpy 1.26 and 2.4) against 20.1 here; 8.9 (0.44) with the defaults
+    # (bench/calibration_excitation.py). The target, 1/5 of the random excitation held to the same
+    # limits, is not reached on this arm (docs/benchmarks.md, "Excitation: condition number")
     assert ex.condition_number(arm, q, qd, qdd) < 0.65 * ex.condition_number(arm, qr, qdr, qddr)
 
 
-def test_better_conditioned_than_the_random_excitation_on_the_ur5():
+def test_the_target_on_the_ur5_at_60_s():
+    # the target: <= 1/5 of the condition number of the random excitation at the same duration and
+    # limits (shrunk into them: bench/calibration_excitation.py's 'random in limits'), every limit met on
+    # the samples; 60 s sampled at 20 Hz and 120 iterations to stay quick (the bench: 0.14 at 100 Hz and
+    # the default 400). Not reached on the bundled arm (docs/benchmarks.md)
     if UR5 is None:
         pytest.skip('example-robot-data is not installed')
+    from bench.calibration_excitation import excess, within_limits
     model = load_urdf(UR5)
-    _, q, qd, qdd = excitation_trajectory(model, duration=10.0, rate=50.0, optimize=True, seed=0, iterations=200)
-    _, qr, qdr, qddr = excitation_trajectory(model, duration=10.0, rate=50.0, seed=0)
-    span = model.position_upper - model.position_lower
-    assert np.all(q >= model.position_lower + 0.1 * span - 1e-12)
-    assert np.all(q <= model.position_upper - 0.1 * span + 1e-12)
-    assert np.all(np.abs(qd) <= 0.8 * model.velocity_limits + 1e-12) and np.all(np.abs(qdd) <= 5.0 + 1e-12)
-    assert np.all(np.abs(model.inverse_dynamics(q, qd, qdd)) <= 0.8 * model.effort_limits + 1e-9)
-    c, cr = ex.condition_number(model, q, qd, qdd), ex.condition_number(model, qr, qdr, qddr)
-    # measured 0.56 (numpy 2.4) and 0.60 (numpy 1.26) at 200 iterations; at 60 the optimiser's path
-    # depended on the numpy build's last bits: 0.67 and 0.73
-    assert c < 0.7 * cr
+    _, q, qd, qdd = excitation_trajectory(model, duration=60.0, rate=20.0, optimize=True, seed=0, iterations=120)
+    _, qr, qdr, qddr = excitation_trajectory(model, duration=60.0, rate=20.0, seed=0)
+    random = within_limits(model, qr, qdr, qddr)
+    assert excess(model, q, qd, qdd) <= 0 and excess(model, *random) <= 0
+    # measured 0.149 (numpy 2.4) and 0.151 (numpy 1.26): the optimiser's path depends on the numpy build's
+    # last bits (an earlier gate at 60 iterations measured 0.67 and 0.73), hence the margin
+    assert ex.condition_number(model, q, qd, qdd) <= 0.2 * ex.condition_number(model, *random)
 
 
 def test_joints_home_and_infeasible_limits(arm):

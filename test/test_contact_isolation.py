@@ -212,8 +212,15 @@ def test_two_contacts_are_ambiguous_never_guessed():
     assert ci.isolate(model, q, r, th).link == 'link4'
     r[5] = 0.7
     assert ci.isolate(model, q, r, th).link == 'link6'   # a wrench on link6 (rank 6) gives exactly this r
-    r[5] = 0.5 * ci.TOLERANCE
-    assert ci.isolate(model, q, r, th).link == 'link4'   # within the tolerance: quiet
+    r[5] = 0.5 * ci.TOLERANCE   # within the tolerance, and not the next joint out: quiet
+    assert ci.isolate(model, q, r, th).link == 'link4'
+    r[5] = 0.0
+    r[4] = 0.2 * ci.TOLERANCE   # the next joint out, within DOUBT x the tolerance: quiet
+    assert ci.isolate(model, q, r, th).link == 'link4'
+    r[4] = 0.5 * ci.TOLERANCE   # under the tolerance, over DOUBT x it: a contact on link5 may load it so
+    res = ci.isolate(model, q, r, th)
+    assert res.status == 'ambiguous' and res.candidates == ('link4', 'link5'), res
+    assert "joint 'joint5'" in res.reason and 'near its tolerance' in res.reason
     assert ci.isolate(model, q, np.zeros(7), 1.0).status == 'none'
 
 
@@ -315,3 +322,36 @@ def test_a_contact_further_out_that_its_own_joints_do_not_feel_is_not_guessed():
     r6 = pin_jacobian(oracle, q, 'link6').T @ np.array([10.0, -20.0, 5.0, 0.5, -1.0, 2.0])
     res = ci.isolate(model, q, r6, 1e-3, strict=True)
     assert res.status == 'isolated' and res.link == 'link6'
+
+
+def test_a_joint_near_its_tolerance_is_ambiguous_and_the_measured_noise_resolves_it():
+    """A push on link7 whose line passes near joint 7's axis: joint 7 feels 2 % of its threshold.
+    Within the fixed tolerance (5 %) but over DOUBT x it: ambiguous between link6 and link7, never
+    link6; with the residual's measured noise low (tol_j = NOISE_SIGMAS x noise_j), joint 7 is
+    felt and link7 named with its wrench; with high noise the fixed tolerance stands."""
+    model, oracle = _robot('arm7')
+    q = np.array([0.2, -0.6, 0.1, 2.0, 0.3, 1.6, 0.8])
+    th = np.array([2.6] * 4 + [0.36] * 3)
+    J7 = pin_jacobian(oracle, q, 'link7')
+    f = np.array([3.0, -20.0, 6.0])
+    F7 = np.concatenate([f, np.cross([0.0, 0.0, 0.05], f)])   # through joint 7's axis (z): joint 7 quiet
+    F7[5] += 0.02 * th[6]                                       # plus a torque about it: 2 % of its threshold
+    r = J7.T @ F7
+    assert abs(r[6]) == pytest.approx(0.02 * th[6], rel=1e-9)
+    res = ci.isolate(model, q, r, th)
+    assert res.status == 'ambiguous' and res.candidates == ('link6', 'link7') and res.link == '', res
+    assert "joint 'joint7'" in res.reason
+    quiet = 0.001 * th                                          # tol: max(6 x 0.1 %, floor 1 %) of th
+    np.testing.assert_allclose(ci.tolerances(th, ci.TOLERANCE, quiet), ci.NOISE_FLOOR * ci.TOLERANCE * th)
+    res = ci.isolate(model, q, r, th, noise=quiet)
+    assert res.status == 'isolated' and res.link == 'link7'
+    np.testing.assert_allclose(res.wrench.wrench, F7, rtol=1e-8, atol=1e-8 * np.abs(F7).max())
+    loud = 0.01 * th                                            # 6 sigma over the fixed tolerance: capped
+    np.testing.assert_allclose(ci.tolerances(th, ci.TOLERANCE, loud), ci.TOLERANCE * th)
+    assert ci.isolate(model, q, r, th, noise=loud).status == 'ambiguous'
+    # a joint well under DOUBT x its tolerance is quiet: link6 (the limit of isolation, as before)
+    F7[5] -= 0.015 * th[6]
+    assert ci.isolate(model, q, J7.T @ F7, th).link == 'link6'
+    for bad in (np.full(6, 0.1), np.full(7, -0.1), np.full(7, np.nan)):
+        with pytest.raises(ValueError, match='noise must be 7 finite values'):
+            ci.isolate(model, q, r, th, noise=bad)

@@ -2,8 +2,10 @@
 residual as the observer gives it: the link only on a settled residual, the wrench while the
 flag is up and one zero wrench after it, the tool wrench every sample, re-initialisation."""
 import numpy as np
+import pytest
 
 from lie_dynamics import default_urdf_path, load_urdf
+from lie_dynamics.algorithms import contact_isolation as ci
 from lie_dynamics.ros.core.settings import Settings
 from lie_dynamics.ros.features.contact_link import ContactIsolation
 
@@ -104,3 +106,54 @@ def test_the_collision_line_names_the_link():
     iso.flush()
     assert [key for _, key, _ in iso.events] == ['collision', 'collision:clear']
     assert '(total 2); contact link not decided' in iso.events[0][2]
+
+
+def test_the_measured_noise_lets_a_lightly_loaded_joint_name_its_link():
+    """A push on link7 with joint 7 at 4 % of its threshold (under the fixed tolerance of 5 %),
+    the residual a first-order filter of the torques plus white effort noise of 5 % of each
+    threshold: after a second of free motion the node knows the residual's noise, decides on the
+    mean of the settled stretch (its noise about 0.5 % of the threshold) and names link7; it
+    never names link6."""
+    model = load_urdf(default_urdf_path())
+    iso = ContactIsolation()
+    iso.adopt(settings(), model)
+    f = np.array([9.0, -60.0, 18.0])
+    F7 = np.concatenate([f, np.cross([0.0, 0.0, 0.05], f)])   # through joint 7's axis
+    F7[5] += 0.04 * TH[6]
+    tau = model.jacobian(Q, 'link7', 'local').T @ F7
+    assert abs(tau[6]) == pytest.approx(0.04 * TH[6]) and np.abs(tau[:6]).max() > 3 * TH.max()
+    rng = np.random.default_rng(7)
+    r, links, on = np.zeros(7), [], 1000
+    for k in range(1600):
+        ext = tau if k >= on else 0.0
+        r = r + K * DT * (ext + rng.normal(0.0, 0.05, 7) * TH - r)   # the observer's filter
+        pub = iso.update(k * DT, Q, r, k >= on + 5, TH)
+        links.append(pub.link)
+    named = [x for x in links if x]
+    assert named and set(named) == {'link7'}, named
+    assert iso.isolation.status == 'isolated' and iso.link == 'link7'
+
+
+def test_the_mean_residual_is_of_the_current_configuration():
+    """The arm yields 0.01 rad at joint 6 under a settled push on link7: J^T F changes by about 2 %,
+    less than settling notices, and the mean keeps only the checkpoints within MOVE_RAD of the
+    current joints, so the published wrench is F again (a mean over both poses is off by ~0.5 %)."""
+    from lie_dynamics.ros.features import contact_link
+    model = load_urdf(default_urdf_path())
+    iso = ContactIsolation()
+    iso.adopt(settings(), model)
+    F = np.array([10.0, -20.0, 5.0, 0.5, -1.0, 2.0])
+    Q2 = Q + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.01, 0.0])
+    taus = [model.jacobian(x, 'link7', 'local').T @ F for x in (Q, Q2)]
+    assert 0.01 < np.abs(taus[1] - taus[0]).max() / np.abs(taus[0]).max() < ci.SETTLE_TOLERANCE
+    r, sent = np.zeros(7), []
+    for k in range(800):
+        q, tau = (Q, taus[0]) if k < 600 else (Q2, taus[1])
+        r = r + K * DT * (tau - r)
+        pub = iso.update(k * DT, q, r, True, TH)
+        if pub.wrench is not None:
+            sent.append((k, pub.wrench[1]))
+    assert iso.link == 'link7' and iso.settling.update(0.8, r, TH)   # settled throughout: one stretch
+    k, w = sent[-1]
+    assert k > 700 and contact_link.MOVE_RAD < 0.01
+    np.testing.assert_allclose(w, F, rtol=1e-3, atol=1e-3 * np.abs(F).max())

@@ -5,7 +5,11 @@ bias h = inverse_dynamics(q, qd, 0, wrenches) from the RNEA, then M = L L^T and 
 triangular solves (cholesky.py; M is never inverted). A mass matrix that is not
 numerically positive definite (a massless body with nothing beyond it, a massless chain)
 raises ValueError. Without wrenches, a generated kernel runs all of it (CRBA, RNEA bias,
-Cholesky, solves) as straight-line code (codegen/traced/cholesky.py).
+Cholesky, solves) as straight-line code (codegen/traced/cholesky.py); from
+THRESHOLDS['aba'].looped_from bodies, where the native backend runs the ABA's looped kernel
+(codegen/looped.py; not with mimic joints), that kernel answers instead (`_spec`): the same qdd to
+rounding in O(n), where the Cholesky kernel's source is O(n^3). The Cholesky reference still
+reports a mass matrix that is not positive definite.
 
 method='aba': the articulated body algorithm in the Lie-group form of Ploen & Park, in
 body frames with X_i = Ad_{f_{i-1,i}^-1} (f_{i-1,i} = M_i e^{[S_i] x_i}, eq 17):
@@ -53,8 +57,7 @@ def forward_dynamics(model, q, qd, tau, wrenches=None, method='cholesky', out=No
     if method not in METHODS:
         raise ValueError(f"unknown forward dynamics method {method!r}: use one of {METHODS}")
     if not wrenches:   # the fast path (its kernels take no wrenches): the result, or None
-        qdd = runtime.fast(model, traced_aba.spec(model) if method == 'aba' else traced_cholesky.FORWARD_DYNAMICS)(
-            q, qd, tau, out)
+        qdd = runtime.fast(model, _spec(model, method))(q, qd, tau, out)
         if qdd is not None:
             return qdd
     return runtime.call(model, _FORWARD_DYNAMICS, (q, qd, tau), out, (wrenches, method))
@@ -72,10 +75,33 @@ def forward_dynamics_validated(model, arrays, wrenches=None, method='cholesky'):
         if out is None:   # no kernel, a batch size where the vectorised form is faster, or a failed check
             out = _aba_vectorized(model, q, qd, tau, fext)
     else:
-        out = None if wrenches else runtime.run(model, traced_cholesky.FORWARD_DYNAMICS, [q, qd, tau])
+        out = None if wrenches else runtime.run(model, _spec(model, method), [q, qd, tau])
         if out is None:
             out = _cholesky_vectorized(model, q, qd, tau, wrenches)
     return out
+
+
+def _spec(model, method):
+    """The kernel of a forward-dynamics call without wrenches. method='cholesky' takes the ABA's
+    where that one is looped (runtime.looped: the native backend, from THRESHOLDS['aba'].looped_from
+    bodies, no mimic joints): the same qdd to rounding in O(n), where the Cholesky kernel's source
+    is O(n^3) and above its native cap the vectorised reference ran (20-120x Pinocchio on chains
+    of 100-200 bodies). A declined result (the pivot test) still ends in the Cholesky reference,
+    which names the problem."""
+    if method == 'aba':
+        return traced_aba.spec(model)
+    t = runtime.THRESHOLDS['aba'].looped_from
+    if t is None or model.nb < t:
+        return traced_cholesky.FORWARD_DYNAMICS
+    return runtime.derived(model, 'cholesky_spec', lambda: _looped_aba(model))   # one lookup per call
+
+
+def _looped_aba(model):
+    if traced_aba.supports(model):
+        s = traced_aba.spec(model)
+        if runtime.looped(model, s):
+            return s
+    return traced_cholesky.FORWARD_DYNAMICS
 
 
 _FORWARD_DYNAMICS = runtime.Entry(('q', 'qd', 'tau'), rnea.joint_vector, forward_dynamics_validated)

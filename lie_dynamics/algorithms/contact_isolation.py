@@ -9,7 +9,9 @@ not support k, and the support grows from the root outwards: every joint over it
 supports the contact link.
 
 Isolation (`isolate`), on a settled residual (`Settling`), per-joint thresholds th and a
-tolerance tol_j = TOLERANCE x th_j (above the residual's noise and model error):
+tolerance tol_j = TOLERANCE x th_j (above the residual's noise and model error), or, given the
+residual's measured noise sigma_j (the std of the r decided on), NOISE_SIGMAS x sigma_j within
+[NOISE_FLOOR, 1] x TOLERANCE x th_j (`tolerances`):
   1. over = {j : |r_j| > th_j}; none: no contact.
   2. The candidate bodies are those that every felt joint (|r_j| > tol_j) moves, one per rigid
      group: bodies behind locked joints are rigid with their parent, and the named link (the
@@ -23,12 +25,17 @@ tolerance tol_j = TOLERANCE x th_j (above the residual's noise and model error):
      further out always explains r too when it has 6 joints or fewer (a wrench on it that leaves
      its own joints quiet), but only if its own joints stay within tol_j: for a contact there
      that is a force whose line passes (nearly) through those joints' axes.
-  5. strict: the named link only if no pure force whose line passes within `radius` of a body
+  5. The next bodies out (one joint group beyond the named one) must have felt nothing: a joint
+     of theirs over DOUBT x tol_j (but under tol_j) makes the answer ambiguous, for a contact
+     there with its line near that axis gives such an r as well as one on the named link.
+  6. strict: the named link only if no pure force whose line passes within `radius` of a body
      further out that explains r gives r within tol_j (`_point_force`: the segments from the
      body's origin to its frames and next joints, no meshes); else ambiguous. With fewer than 6
      joints on the named link such a force usually exists, so strict is right far less often.
   That is the limit of isolation: joint torques alone cannot tell a contact whose own joints feel
-  less than the tolerance from one on the link before (docs/benchmarks.md measures how often).
+  less than DOUBT x the tolerance from one on the link before (docs/benchmarks.md measures how
+  often); the measured noise lowers the tolerance, and with it that band, as far as the noise
+  and the model allow.
 An ambiguous answer names its candidate links and the reason; it never picks one.
 
 Identification (`link_wrench`): J_k^T w = r in least squares through the SVD of J_k^T (n x 6),
@@ -70,6 +77,17 @@ TOLERANCE = 0.05
 RADIUS = 0.1
 # Settling: every joint changed by at most this fraction of max(|r_j|, th_j) over one time constant.
 SETTLE_TOLERANCE = 0.05
+# With the residual's measured noise (std of r as given, per joint): tol_j = NOISE_SIGMAS x noise_j,
+# within [NOISE_FLOOR x, 1 x] tolerance x th_j (the floor: model and integration error, which no
+# average removes; the ceiling: the fixed tolerance). At 6 sigma a quiet joint reads as felt about
+# once in 5e8 samples of Gaussian noise.
+NOISE_SIGMAS = 6.0
+NOISE_FLOOR = 0.2
+# A joint further out than the named link that felt more than DOUBT x tol_j, but not tol_j, may
+# carry a contact whose line passes near its axis: ambiguous rather than a guess (2 sigma of
+# noise at DOUBT x NOISE_SIGMAS: a quiet joint lands there in 5 % of decisions; the node decides
+# an ambiguous answer anew as its mean grows and the noise falls).
+DOUBT = 1.0 / 3.0
 
 
 class WrenchEstimate(NamedTuple):
@@ -181,11 +199,25 @@ def line_of_action(wrench, tol=1e-9):
     return np.cross(f, m) / ff, f / math.sqrt(ff), float(m @ f) / ff
 
 
-def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RCOND, strict=False):
+def tolerances(threshold, tolerance=TOLERANCE, noise=None):
+    """(n,) tol_j of isolation: tolerance x th_j, or with the residual's measured noise (std per
+    joint of the r that is decided on) NOISE_SIGMAS x noise_j kept within [NOISE_FLOOR, 1] x that."""
+    th = np.asarray(threshold, dtype=float)
+    tol = tolerance * th
+    if noise is None:
+        return tol
+    sig = np.asarray(noise, dtype=float)
+    if sig.shape != th.shape or not np.all(np.isfinite(sig)) or np.any(sig < 0):
+        raise ValueError(f'noise must be {th.size} finite values >= 0 (one per controlled joint), got {noise!r}')
+    return np.clip(NOISE_SIGMAS * sig, NOISE_FLOOR * tol, tol)
+
+
+def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RCOND, strict=False, noise=None):
     """Isolation of the contact link from a settled residual r (n,) at the state q with the
     per-joint thresholds `threshold` (one value or n): the rule of the module docstring, with
-    consistency within tolerance x threshold_j on each joint and point contacts within `radius`
-    (m) of a link's skeleton. Returns an Isolation; the wrench of an isolated link comes with it."""
+    consistency within tol_j (`tolerances`: tolerance x threshold_j, or from `noise`, the measured
+    std of r per joint) on each joint and point contacts within `radius` (m) of a link's skeleton.
+    Returns an Isolation; the wrench of an isolated link comes with it."""
     n = model.n
     r = _vector('r', r, n)
     th = broadcast_joints(threshold, n)
@@ -201,7 +233,7 @@ def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RC
     if not over.any():
         return Isolation('none', '', (), (), '', None)
     t = tree(model)
-    tol = tolerance * th
+    tol = tolerances(th, tolerance, noise)
 
     def ambiguous(bodies, reason):
         return Isolation('ambiguous', '', tuple(links[b] for b in bodies), over_names, reason, None)
@@ -231,7 +263,23 @@ def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RC
         return ambiguous(least, 'the joints move these links alike (a mimic coupling)' if alike else
                          'a wrench on any of these links gives these external torques')
     k = least[0]
-    # step 5 (strict): no point contact further out gives r with its own joints quiet
+    # step 5: the joints of the next bodies out (candidates one joint group beyond k) felt
+    # nothing: no more than DOUBT x tol_j, else a contact there, its line near their axes, may fit
+    # as well as one on k (candidates, not only step 3's: a body with more joints than its rank may
+    # fail step 3 by the residual's noise alone). Only the next joints: each joint checked is one
+    # more chance for noise to land in the band.
+    beyond = t.support & ~t.support[k]   # per body, its joints that do not move k
+    nxt = [c for c in cand if beyond[c].any() and not (t.support[k] & ~t.support[c]).any()
+           and not (beyond[c] & ~t.own[c]).any()]
+    doubt = np.zeros(n, dtype=bool)
+    for c in nxt:
+        doubt |= t.own[c] & (np.abs(r) > DOUBT * tol)
+    if doubt.any():
+        bodies = [c for c in nxt if (t.own[c] & doubt).any()]
+        j = int(np.flatnonzero(doubt)[0])
+        return ambiguous([k] + bodies, f"joint '{names[j]}' felt {abs(r[j]):.3g}, near its tolerance "
+                                       f'{tol[j]:.3g}: a contact further out, its line near that axis, fits too')
+    # step 6 (strict): no point contact further out gives r with its own joints quiet
     further = [b for b in whole if b != k and _point_force(model, q, r, tol, b, radius)] if strict else []
     if further:
         return ambiguous([k] + further, f"a point contact on link '{links[further[0]]}' would load its own joints "

@@ -182,20 +182,22 @@ def least_squares(Y, y, prior, rcond=1e-8):
                 residual=resid, determined=determined, scale=scale, null_space=null)
 
 
-def excitation_trajectory(model, duration=10.0, rate=100.0, harmonics=5, base_frequency=0.1, seed=0,
+def excitation_trajectory(model, duration=10.0, rate=100.0, harmonics=None, base_frequency=0.1, seed=0,
                           margin=0.1, optimize=False, **options):
     """A finite Fourier series per joint (periodic, smooth), kept inside the joint limits.
 
     q_j(t) = q0_j + sum_l a_jl sin(w_l t) + b_jl (1 - cos(w_l t)), w_l = 2 pi l base_frequency,
-    with random coefficients decaying as 1/l, scaled into the position limits (shrunk by
-    `margin` of their range; +-pi for unlimited joints) and under the velocity limits.
+    l = 1..harmonics (5 by default), with random coefficients decaying as 1/l, scaled into the
+    position limits (shrunk by `margin` of their range; +-pi for unlimited joints) and under the
+    velocity limits.
     Returns (t, q, qd, qdd) with q, qd, qdd of shape (samples, n).
 
     optimize=True: the series optimised for the condition number of the base calibration
     regressor, at rest at a home pose at both ends, within position, velocity, acceleration and
     effort limits (calibration.excitation.optimized_excitation, which takes the `options`:
     home, joints, velocity_fraction, acceleration, effort_fraction, ...; its period is the
-    duration, so base_frequency is not used).
+    duration, so base_frequency is not used; its harmonics by default grow with the duration:
+    calibration.excitation.default_harmonics).
     """
     if optimize:
         from ..calibration.excitation import optimized_excitation
@@ -203,6 +205,7 @@ def excitation_trajectory(model, duration=10.0, rate=100.0, harmonics=5, base_fr
                                     margin=margin, **options)
     if options:
         raise ValueError(f'options {sorted(options)} need optimize=True')
+    harmonics = 5 if harmonics is None else harmonics
     if duration <= 0 or rate <= 0 or harmonics < 1 or base_frequency <= 0:
         raise ValueError('duration, rate, base_frequency must be > 0 and harmonics >= 1')
     rng = np.random.default_rng(seed)

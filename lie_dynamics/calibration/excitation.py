@@ -10,10 +10,16 @@ sum_l b_jl w_l^2 = 0 (a basis of that subspace), so qd and qdd are 0 at both end
 objective is log cond of the column-scaled base calibration regressor (the structural base
 columns, regressor.structural_base) along the trajectory, plus a penalty on the limits
 (positions within a margin, a fraction of the velocity limits, an acceleration bound, a fraction
-of the effort limits predicted by the model's inverse dynamics); scipy's L-BFGS-B minimises it.
-The start is the best conditioned of a few random series, each scaled up or down to the limits;
-the result is checked on the sampled trajectory and, where a limit is still exceeded, shrunk
-towards home until none is (the stiff penalty leaves little to shrink).
+of the effort limits predicted by the model's inverse dynamics); scipy's L-BFGS-B minimises it
+with the gradient in closed form (the singular values' derivatives). log cond = log s_max -
+log s_min is not smooth where the extreme singular values cross, which stalls L-BFGS-B; so the
+optimisation runs in stages (STAGES) on the smooth surrogate log |s|_p + log |1/s|_p (p-norms of
+the singular values and of their inverses, log cond as p grows), p = 4 then 16, and ends on
+log cond itself, each stage starting where the last stopped. The grid of the optimisation has
+10 samples per period of the highest harmonic (at least 100). The start is the best conditioned
+of a few random series, each scaled up or down to the limits; the result is checked on the
+sampled trajectory and, where a limit is still exceeded, shrunk towards home until none is (the
+stiff penalty leaves little to shrink).
 """
 import numpy as np
 
@@ -106,22 +112,37 @@ def _violation(model, home, lo, hi, vmax, amax, emax, p, v, a):
     return ep, ev, ea, ee
 
 
+# Default harmonics: the highest at about HIGHEST_HARMONIC_HZ whatever the duration, at least 5. A longer
+# excitation with the same 5 harmonics only moves the same way more slowly (velocities and accelerations
+# scale with 1 / duration); more harmonics keep its pace and add independent motion (bench/calibration_excitation.py).
+HIGHEST_HARMONIC_HZ = 0.25
+
+
+def default_harmonics(duration):
+    """Harmonics of the optimised excitation by default: round(duration * HIGHEST_HARMONIC_HZ), at least 5."""
+    return max(5, int(round(duration * HIGHEST_HARMONIC_HZ)))
+
+
+# (p, share of the iterations): the smooth surrogates log |s|_p + log |1/s|_p, then log cond (None)
+STAGES = ((4.0, 0.25), (16.0, 0.25), (None, 0.5))
+
 LIMIT_NAMES = ('position limit', 'velocity limit', 'acceleration bound', 'effort limit')
 
 
-def optimized_excitation(model, duration=10.0, rate=100.0, harmonics=5, home=None, joints=None, margin=0.1,
+def optimized_excitation(model, duration=10.0, rate=100.0, harmonics=None, home=None, joints=None, margin=0.1,
                          velocity_fraction=0.8, acceleration=5.0, effort_fraction=0.8, seed=0,
-                         eps=COULOMB_VELOCITY_EPSILON, iterations=300, samples=None, starts=1):
+                         eps=COULOMB_VELOCITY_EPSILON, iterations=400, samples=None, starts=1):
     """(t, q, qd, qdd) of the optimised excitation (module docstring): q, qd, qdd (N, n).
 
     home: the pose it starts and ends at, at rest ((n,), default the middle of the position
     limits). joints: names of the joints that move (default all; the others stay at home).
     margin: fraction of each joint's range kept free at both ends. velocity_fraction,
     effort_fraction: of the URDF's limits; acceleration: rad/s^2 (m/s^2), one or per joint.
-    iterations: of L-BFGS-B (the condition number still falls between 100 and 400);
-    samples: grid of the optimisation (default 6 per period of the highest harmonic, at least
-    60); starts: random series tried as the start, each scaled to the limits, the best
-    conditioned kept; seed: theirs (fixed: the result is deterministic). The limits hold on the
+    harmonics: of the series (default default_harmonics(duration): more for a longer one).
+    iterations: of L-BFGS-B, all stages together (STAGES: a quarter each on the surrogates with
+    p = 4 and 16, half on log cond); samples: grid of the optimisation (default 10 per period of
+    the highest harmonic, at least 100); starts: random series tried as the start, each scaled
+    to the limits, the best conditioned kept; seed: theirs (fixed: the result is deterministic). The limits hold on the
     returned samples (checked); ValueError names the binding limit where they cannot (home
     outside the limits, gravity at home above the effort fraction, a bound that leaves no
     motion: a moving joint sweeping less than 1e-3 of its range, with the joint).
@@ -129,6 +150,8 @@ def optimized_excitation(model, duration=10.0, rate=100.0, harmonics=5, home=Non
     from scipy.optimize import minimize   # scipy: imported where it is used
 
     n = model.n
+    if harmonics is None and duration > 0:
+        harmonics = default_harmonics(duration)
     if not (duration > 0 and rate > 0 and harmonics >= 2 and 0 <= margin < 0.5):
         raise ValueError('duration and rate must be > 0, harmonics >= 2, margin in [0, 0.5)')
     for name, value in (('velocity_fraction', velocity_fraction), ('effort_fraction', effort_fraction)):
@@ -150,7 +173,7 @@ def optimized_excitation(model, duration=10.0, rate=100.0, harmonics=5, home=Non
                                                effort_fraction, cols)
 
     w = 2 * np.pi / duration * np.arange(1, harmonics + 1)
-    m = samples or max(60, int(np.ceil(6 * harmonics)))
+    m = samples or max(100, int(np.ceil(10 * harmonics)))
     t_opt = np.arange(m) * (duration / m)
     t = np.arange(0.0, duration + 0.5 / rate, 1.0 / rate)
     t = t[t <= duration + 1e-12]
@@ -165,9 +188,10 @@ def optimized_excitation(model, duration=10.0, rate=100.0, harmonics=5, home=Non
     bases = _derivative_bases(opt, n)
     limits = (lo, hi, vmax, amax, emax)
 
-    def cost(x, weight=1e3, gradient=True):
+    def cost(x, weight=1e3, gradient=True, power=None):
         p, v, a = trajectory(opt, x)
-        return _objective(model, home, p, v, a, columns, eps, limits, weight, bases if gradient else None, mask)
+        return _objective(model, home, p, v, a, columns, eps, limits, weight, bases if gradient else None, mask,
+                          power=power)
 
     # the start: the best conditioned of `starts` random series, each scaled up or down to the limits
     rng = np.random.default_rng(seed)
@@ -178,10 +202,15 @@ def optimized_excitation(model, duration=10.0, rate=100.0, harmonics=5, home=Non
         c0 = cost(x0, 0.0, False)[0]
         if best is None or c0 < best[0]:
             best = (c0, x0)
-    x0 = best[1]
-    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
-        res = minimize(cost, x0, jac=True, method='L-BFGS-B', options={'maxiter': iterations})
-    x = res.x if np.isfinite(res.fun) and res.fun <= cost(x0, gradient=False)[0] else x0
+    x = x0 = best[1]
+    for power, share in STAGES:
+        budget = max(1, int(round(share * iterations)))
+        with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+            res = minimize(cost, x, jac=True, method='L-BFGS-B', args=(1e3, True, power), options={'maxiter': budget})
+        if np.isfinite(res.fun):
+            x = res.x
+    # the exact objective decides: a stage that made it worse than the start is not kept
+    x = x if cost(x, gradient=False)[0] <= cost(x0, gradient=False)[0] else x0
     s = _shrink(model, home, lo, hi, vmax, amax, emax, lambda s: trajectory(fine, x, s), 1.0)
     p, v, a = trajectory(fine, x, s)
     worst = [float(e.max()) for e in _violation(model, home, lo, hi, vmax, amax, emax, p, v, a)]
@@ -217,39 +246,49 @@ def _derivative_bases(series, n):
             np.hstack([-(S * w ** 2) @ Ba, -(C * w ** 2) @ Bb]))
 
 
-def _objective(model, home, p, v, a, columns, eps, limits, weight, bases, mask, h=1e-6):
-    """log cond of the column-scaled base regressor + weight * the squared relative excess over
-    the limits, and (bases given) its gradient in the coefficients: the singular values'
-    derivatives (d s = u^T dZ v, with the column scaling differentiated too) chained with the
-    regressor's and the inverse dynamics' central differences in q, qd, qdd of every sample."""
+def _spread(s, power):
+    """log s_max - log s_min (power None) or its smooth surrogate log |s|_p + log |1/s|_p, and its
+    derivative in each singular value s (descending, > 0)."""
+    if power is None:
+        d = np.zeros_like(s)
+        d[0], d[-1] = 1 / s[0], -1 / s[-1]
+        return float(np.log(s[0] / s[-1])), d
+    a, b = (s / s[0]) ** power, (s[-1] / s) ** power          # scaled: no overflow
+    A, B = a.sum(), b.sum()
+    return float(np.log(s[0] / s[-1]) + (np.log(A) + np.log(B)) / power), (a / A - b / B) / s
+
+
+def _objective(model, home, p, v, a, columns, eps, limits, weight, bases, mask, h=1e-6, power=None):
+    """log cond of the column-scaled base regressor (power None; else the surrogate of _spread)
+    + weight * the squared relative excess over the limits, and (bases given) its gradient in the
+    coefficients: the singular values' derivatives (d s_i = u_i^T dZ v_i, with the column scaling
+    differentiated too) chained with the regressor's and the inverse dynamics' central
+    differences in q, qd, qdd of every sample."""
     lo, hi, vmax, amax, emax = limits
     m, n = p.shape
     q = home + p
     states = [q, v, a]
-    if bases is not None:   # the samples, then each state kind and joint moved by +-h
-        batch = [np.stack(states)]
-        for kind in range(3):
-            for j in range(n):
-                for sign in (1, -1):
-                    st = [x.copy() for x in states]
-                    st[kind][:, j] += sign * h
-                    batch.append(np.stack(st))
-        allst = np.concatenate(batch, axis=1)        # (3, m * (1 + 6 n), n)
+    if bases is not None:   # the samples, then each state kind and joint moved by +h and -h
+        step = np.zeros((3, n, 2, 3, n))
+        step[np.arange(3)[:, None], np.arange(n), 0, np.arange(3)[:, None], np.arange(n)] = h
+        step[:, :, 1] = -step[:, :, 0]
+        step = np.concatenate([np.zeros((1, 3, n)), step.reshape(-1, 3, n)])          # (1 + 6 n, 3, n)
+        allst = (np.stack(states)[None] + step[:, :, None, :]).transpose(1, 0, 2, 3).reshape(3, -1, n)
     else:
         allst = np.stack(states)
     # the calibration regressor's two parts, each on its own base columns (a column order cond ignores):
-    # the same numbers as calibration_regressor(...)[..., columns], without building the unused columns
+    # the same numbers as calibration_regressor(...)[..., columns], without building the unused columns;
+    # the joint columns' derivatives are exact (below), so only the inertial part takes the +-h states
     inertial = 10 * model.nb
-    Yall = np.concatenate([model.regressor(*allst)[..., columns[columns < inertial]],
-                           creg.joint_columns(allst[1], allst[2], eps)[..., columns[columns >= inertial] - inertial]],
-                          axis=2)
+    icols, jcols = columns[columns < inertial], columns[columns >= inertial] - inertial
+    Yi_all = model.regressor(*allst)[..., icols]
+    Y = np.concatenate([Yi_all[:m], creg.joint_columns(v, a, eps)[..., jcols]], axis=2).reshape(m * n, -1)
     tau_all = model.inverse_dynamics(*allst)
-    Y = Yall[:m].reshape(m * n, -1)
     D = np.linalg.norm(Y, axis=0)
     if np.any(D == 0):
         return (50.0, np.zeros(n * len(bases[0][0]))) if bases is not None else (50.0, None)
     U, sv, Vt = np.linalg.svd(Y / D, full_matrices=False)
-    value = float(np.log(sv[0] / sv[-1]))
+    value, dsv = _spread(sv, power)
     tau = tau_all[:m]
     span = hi - lo
     ep = np.maximum(q - hi, 0.0) / span - np.maximum(lo - q, 0.0) / span        # signed excess
@@ -260,16 +299,20 @@ def _objective(model, home, p, v, a, columns, eps, limits, weight, bases, mask, 
     value += weight * float(np.sum(ep ** 2) + np.sum(ev ** 2) + np.sum(ea ** 2) + np.sum(ee ** 2))
     if bases is None:
         return value, None
-    # d log cond / dY
-    G = np.zeros_like(Y)
-    for i, sign in ((0, 1.0), (-1, -1.0)):
-        G += sign * (np.outer(U[:, i], Vt[i] / D) - sv[i] * Y * (Vt[i] ** 2 / D ** 2)) / sv[i]
-    G = G.reshape(m, n, -1)
-    dY = (Yall[m:].reshape(3, n, 2, m, n, -1))
-    dY = (dY[:, :, 0] - dY[:, :, 1]) / (2 * h)                   # (kind, j, m, rows, cols)
+    # d value / dY: dZ through the singular values (U diag(dsv) V^T), then Z = Y / |Y columns|
+    Gz = (U * dsv) @ Vt
+    G = (Gz / D - (np.sum(Gz * Y, axis=0) / D ** 3) * Y).reshape(m, n, -1)
+    dYi = Yi_all[m:].reshape(3, n, 2, m, n, -1)
+    dYi = (dYi[:, :, 0] - dYi[:, :, 1]) / (2 * h)                # (kind, j, m, rows, inertial cols)
     dtau = tau_all[m:].reshape(3, n, 2, m, n)
     dtau = (dtau[:, :, 0] - dtau[:, :, 1]) / (2 * h)              # (kind, j, m, n)
-    gs = np.einsum('sic,kjsic->kjs', G, dY)                        # d value / d state (kind, j, sample)
+    gs = np.einsum('sic,kjsic->kjs', G[..., :len(icols)], dYi)    # d value / d state (kind, j, sample)
+    # joint j's own columns sit on row j: armature qdd_j, viscous qd_j, Coulomb tanh(qd_j / eps), offset 1
+    Gj = np.zeros((m, n, n * len(creg.JOINT_TERMS)))
+    Gj[..., jcols] = G[..., len(icols):]
+    Gj = Gj.reshape(m, n, n, len(creg.JOINT_TERMS))[:, np.arange(n), np.arange(n)]     # (m, n, 4)
+    gs[2] += Gj[..., 0].T
+    gs[1] += (Gj[..., 1] + Gj[..., 2] * (1 - np.tanh(v / eps) ** 2) / eps).T
     gs += 2 * weight * np.einsum('si,kjsi->kjs', ee / escale, dtau)
     gs[0] += 2 * weight * (ep / span).T
     gs[1] += 2 * weight * (ev / vmax).T
@@ -334,7 +377,8 @@ def main(argv=None):
     ap.add_argument('--duration', type=number(low=0, strict=True), default=20.0, help='seconds, > 0 (default 20)')
     ap.add_argument('--home', help='comma-separated start and end pose, one value per controlled joint')
     ap.add_argument('--rate', type=number(low=0, strict=True), default=100.0, help='samples per second (default 100)')
-    ap.add_argument('--harmonics', type=number(int, low=2), default=5, help='Fourier harmonics, >= 2 (default 5)')
+    ap.add_argument('--harmonics', type=number(int, low=2), default=None,
+                    help=f'Fourier harmonics, >= 2 (default: duration x {HIGHEST_HARMONIC_HZ:g} Hz, at least 5)')
     ap.add_argument('--margin', type=number(low=0), default=0.1, help='fraction of each range kept free (default 0.1)')
     ap.add_argument('--velocity-fraction', type=number(low=0, strict=True), default=0.8,
                     help='fraction of the velocity limits (default 0.8)')

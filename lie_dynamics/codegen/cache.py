@@ -16,6 +16,7 @@ import weakref
 import numpy as np
 
 from . import native as _native
+from . import looped as _looped
 from .frames import Frames
 from .kernel import Kernel, builds as _kernel_builds
 from .thresholds import THRESHOLDS
@@ -158,14 +159,32 @@ def entry(model, spec):
     k = s.kernels.get(spec.name)
     if k is None:
         t = THRESHOLDS[spec.limits]
-        if size(model, t) > (max(t.compile_max, native_max(t)) if native_on(model) else t.compile_max) \
+        loop = looped(model, spec)
+        if (not loop and size(model, t) > (max(t.compile_max, native_max(t)) if native_on(model) else t.compile_max)) \
                 or (spec.supports is not None and not spec.supports(model)) or not frames(model).supported:
             k = False
         else:
             fr, fp = frames(model), fingerprint(model)
-            k = _shared((fp, spec.name), lambda: Kernel(lambda: spec.build(fr), spec.name, fr, fp))
+            name = spec.name + (':looped' if loop else '')
+            k = _shared((fp, name), lambda: Kernel(lambda: spec.build(fr), spec.name, fr, fp,
+                                                   (lambda: spec.looped(fr)) if loop else None))
         s.kernels[spec.name] = k
     return k or None
+
+
+def looped(model, spec):
+    """Whether spec's kernel for this model is its looped native form (codegen/looped.py): the
+    native backend on, the model's size (counted as THRESHOLDS[spec.limits].looped_size) from its
+    looped_from or above the straight-line kernel's caps (compile_max, native_max), a model the
+    looped drivers take (each joint one body, no mimic joints: looped.joints_of)."""
+    t = THRESHOLDS[spec.limits]
+    if spec.looped is None or t.looped_from is None or not native_on(model):
+        return False
+    sized = size(model, t._replace(size=t.looped_size or t.size)) >= t.looped_from
+    if not sized and size(model, t) <= max(t.compile_max, native_max(t)):
+        return False
+    fr = frames(model)
+    return fr.supported and structural(model, 'looped_joints', lambda: _looped.joints_of(fr) is not None)
 
 
 def native_on(model):

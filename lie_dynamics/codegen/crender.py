@@ -138,3 +138,27 @@ def emit_c_units(g, fname, arg_lists, roles, outputs, index=None, size=None, par
     texts[-1] += [f'{pr};' for pr in proto] + [head, '{', f'  double s[{max(n_slots, 1)}];']
     texts[-1] += [f'  {fname}_p{p}(in, par, s, out);' for p in range(n_parts)] + ['}']
     return ['\n'.join(t) + '\n' for t in texts]
+
+
+def emit_step(g, fname, inputs, outputs):
+    """C text of one looped step (looped.py): `static inline void fname(const double *a0, ...,
+    double *o0, ...)`, inputs: [input names] per pointer argument, outputs: [Syms or floats] per
+    output pointer. Every output is computed before the first is stored, so an output pointer
+    may alias an input (a register block updated in place)."""
+    where = {nm: f'a{k}[{pos}]' for k, names in enumerate(inputs) for pos, nm in enumerate(names)}
+    _, live = g.live([o for outs in outputs for o in outs])
+    order = [i for i in sorted(live) if g.nodes[i][0] != 'in']
+
+    def ref(a, need):
+        return where[g.nodes[a][1]] if g.nodes[a][0] == 'in' else f't{a}'
+    args = [f'const double *a{k}' for k in range(len(inputs))] + [f'double *o{k}' for k in range(len(outputs))]
+    lines = [f'static inline void {fname}({", ".join(args)})', '{']
+    lines += [f'  (void)a{k};' for k in range(len(inputs))]
+    lines += [f'  const double t{i} = {node_text(*g.nodes[i], ref)};' for i in order]
+    stores = []
+    for k, outs in enumerate(outputs):
+        for pos, o in enumerate(outs):
+            txt = form_text(tuple(o.terms.items()), o.const, ref, literal)[0] if isinstance(o, Sym) else literal(o)
+            lines.append(f'  const double r{k}_{pos} = {txt};')
+            stores.append(f'  o{k}[{pos}] = r{k}_{pos};')
+    return '\n'.join(lines + stores + ['}']) + '\n'

@@ -21,6 +21,16 @@ def axis_frame(a):
     return np.column_stack([u, np.cross(a, u), a])
 
 
+def joint_transform(g, R0, t0, revolute, x):
+    """(R, t) of M' Rz(x) (revolute) or M' Trans(x e_z) (prismatic), M' = (R0, t0): constants of
+    one body (Frames.joint_transform) or symbols of a looped step (looped.py)."""
+    if revolute:
+        c, s = g.cos(x), g.sin(x)
+        Rz = ((c, -s, 0.0), (s, c, 0.0), (0.0, 0.0, 1.0))
+        return mat_mat(R0, Rz), t0
+    return R0, vadd(t0, vscale(x, (R0[0][2], R0[1][2], R0[2][2])))
+
+
 class Frames:
     """Per-model constants for kernels: body frames turned so that every joint axis is z.
 
@@ -143,12 +153,7 @@ class Frames:
 
     def joint_transform(self, g, b, x):
         """(R, t) of f_{p',b'}(x) as traced 3x3 / 3-vector."""
-        R0, t0 = self.R[b], self.t[b]
-        if self.revolute[b]:
-            c, s = g.cos(x), g.sin(x)
-            Rz = ((c, -s, 0.0), (s, c, 0.0), (0.0, 0.0, 1.0))
-            return mat_mat(R0, Rz), t0
-        return R0, vadd(t0, vscale(x, (R0[0][2], R0[1][2], R0[2][2])))
+        return joint_transform(g, self.R[b], self.t[b], self.revolute[b], x)
 
     def project(self, Mx):
         """E^T Mx E for a traced nb x nb nested list."""

@@ -87,11 +87,14 @@ class Kernel:
     """
     __slots__ = ('name', 'frames', 'structure', '_build', '_trace', '_lock', '_native_lock', 'supported',
                  'function', 'source', 'rows_source', 'nreg', '_rows', 'n_out', 'roles', 'widths', 'n_state',
-                 'scatter', 'packer', 'native_state', '__weakref__')
+                 'scatter', 'packer', 'native_state', 'looped', '__weakref__')
 
-    def __init__(self, build, name, frames=None, structure=None):
-        """build() -> Trace or None; traced on first need."""
+    def __init__(self, build, name, frames=None, structure=None, looped=None):
+        """build() -> Trace or None; traced on first need. looped: None, or () -> native.Rendered
+        or None, the looped C form (codegen/looped.py) that native() compiles instead of rendering
+        the trace (which it then never needs)."""
         self.name, self.frames, self.structure, self._build = name, frames, structure, build
+        self.looped = looped
         # two locks: a C compile (seconds) never holds up a thread that needs the Python forms
         self._trace, self._lock, self._native_lock, self.supported = None, threading.Lock(), threading.Lock(), None
         self.function = self.source = self.rows_source = self.nreg = self._rows = None
@@ -171,10 +174,18 @@ class Kernel:
             with self._native_lock:
                 lib = self.native_state
                 if lib is NativeState.UNTRIED:
-                    lib = _native.library(self.structure, self.name, self._render_c) or NativeState.UNAVAILABLE
+                    name, render, flags = ((self.name + ':looped', self._render_looped, _native.LOOPED_FLAGS)
+                                           if self.looped is not None
+                                           else (self.name, self._render_c, _native.KERNEL_FLAGS))
+                    lib = _native.library(self.structure, name, render, flags) or NativeState.UNAVAILABLE
                     self.native_state = lib
                     self._trace = None   # rendered (or loaded without a trace): the Python forms retrace
         return None if lib is NativeState.UNAVAILABLE else lib
+
+    def _render_looped(self):
+        r = self.looped()
+        _BUILDS[0] += r is not None
+        return r
 
     def _render_c(self):
         """The native.Rendered C form for native.library, or None."""

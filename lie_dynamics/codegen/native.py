@@ -6,9 +6,10 @@ error line). Under 'auto' a failing or missing compiler gives one warning per pr
 the Python kernels, whose results are the same to rounding.
 
 Compiler: $CC, else the compiler Python was built with, else `cc`; flags FLAGS for the call
-path, KERNEL_FLAGS for the kernels (no -ffast-math, -ffp-contract=off: the C kernels compute
-what the Python kernels compute, operation for operation). A kernel's C text of several
-translation units (crender.py) is compiled on every usable core and linked once. No -march:
+path, KERNEL_FLAGS for the kernels (LOOPED_FLAGS for the looped ones; no -ffast-math,
+-ffp-contract=off: the C kernels compute what the Python kernels compute, operation for
+operation). A kernel's C text of several translation units (crender.py) is compiled on every
+usable core and linked once. No -march:
 the cache is per machine, but a home folder (and its cache) may move to another CPU; the
 kernels across states (clanes.py) get their AVX2 form through `target_clones`, which the
 loader picks by the CPU it runs on, with the baseline beside it.
@@ -45,6 +46,11 @@ FLAGS = ('-O2', '-ffp-contract=off', '-fno-math-errno', '-fPIC', '-shared', '-pi
 # in 0.92-1.0x the time (no scheduling passes lengthening live ranges; every family on the arm
 # and the Talos arm, interleaved rounds: python -m bench.compile --parts 500,500:-O2).
 KERNEL_FLAGS = ('-O1',) + FLAGS[1:]
+# The looped kernels (looped.py): the kernels' -O1. -O2 ran the mass matrix of a 200-body chain
+# and the ABA of a 100-body one in 0.75-0.9x the time, but the ABA of a 16-body chain in 7-9x
+# and the mass matrix of a 16-body chain in 3.4x (loaded machine, interleaved rounds, not
+# explained yet): kept at -O1.
+LOOPED_FLAGS = KERNEL_FLAGS
 _LOCK = threading.Lock()
 _STATE = {'module': None, 'error': None, 'warned': False, 'compiles': 0, 'seconds': 0.0, 'jobs': None}
 
@@ -270,13 +276,14 @@ class Rendered(NamedTuple):
     n_out: int
 
 
-def library(structure, name, render):
+def library(structure, name, render, flags=None):
     """The Library of kernel `name` for a model structure (its fingerprint): from the cache,
-    else compiled from render() -> Rendered, or None (no such kernel). None when the backend
-    is off or unavailable (module())."""
+    else compiled with `flags` (None: KERNEL_FLAGS, read at the call) from render() -> Rendered,
+    or None (no such kernel). None when the backend is off or unavailable (module())."""
     if module() is None:
         return None
-    key = _key(KERNEL_FLAGS, generator_hash(), structure, name, THRESHOLDS['native_part'])
+    flags = KERNEL_FLAGS if flags is None else flags
+    key = _key(flags, generator_hash(), structure, name, THRESHOLDS['native_part'])
     path = disk_cache.path_of(key, '.so')
     for attempt in (0, 1):
         tmp = None
@@ -291,7 +298,7 @@ def library(structure, name, render):
             meta = ', '.join(str(int(v)) for v in meta)
             source = f'{rendered.source}const long lie_meta[64] = {{{meta}}};\n'
             try:
-                path, tmp = _compile(source, key, '.so', KERNEL_FLAGS)
+                path, tmp = _compile(source, key, '.so', flags)
             except NativeUnavailable as e:
                 _unavailable(str(e))
                 return None

@@ -18,7 +18,7 @@ The runtime's public names, in four modules:
   * batch.py: the batch runner (`run_loop`, `run_rows`).
 """
 from .batch import run_loop, run_rows
-from .cache import (build, cache_info, clear, deferred, derived, fingerprint, forget, frames, native_max,
+from .cache import (build, cache_info, clear, deferred, derived, fingerprint, forget, frames, looped, native_max,
                     native_on, pairs, structural, use_native)
 from .dispatch import (Entry, Output, call, check_mode, check_out, deliver, evaluate, fast, native, native_first,
                        route, run)
@@ -27,7 +27,8 @@ from .thresholds import THRESHOLDS
 from ..validation import float_list as is_fast_single   # its name in earlier versions
 
 __all__ = ['run_loop', 'run_rows', 'build', 'cache_info', 'clear', 'deferred', 'derived', 'fingerprint', 'forget',
-           'frames', 'native_max', 'native_on', 'pairs', 'structural', 'use_native', 'Entry', 'Output', 'call',
+           'frames', 'looped', 'native_max', 'native_on', 'pairs', 'structural', 'use_native', 'Entry', 'Output',
+           'call',
            'check_mode', 'check_out', 'deliver', 'evaluate', 'fast', 'native', 'native_first', 'route', 'run',
            'PARAMETERS', 'Bound', 'Result', 'Spec', 'accepts', 'as_rows', 'kernel', 'parameter', 'params',
            'result_of', 'THRESHOLDS',

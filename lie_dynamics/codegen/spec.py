@@ -31,21 +31,23 @@ class Spec:
     arrays, see as_rows), `checked` (the outputs are checked: the rows form runs without
     floating-point warnings), `pooled` (the batch runner keeps its register blocks between
     calls: batch.run_rows), `rows_chunk` (None, or the THRESHOLDS entry bounding the states of
-    one rows call) and `result` (model) -> (shape of one state's result, rtol), read as a
-    `Result` by `result_of`. None: all outputs as a vector."""
+    one rows call), `result` (model) -> (shape of one state's result, rtol), read as a
+    `Result` by `result_of` (None: all outputs as a vector), and `looped` (None, or (frames) ->
+    native.Rendered or None: the looped native form of the same steps, codegen/looped.py, which
+    replaces the straight-line C form from THRESHOLDS[limits].looped_from)."""
     __slots__ = ('name', 'build', 'params', 'limits', 'supports', 'rows_arrays', 'checked', 'pooled', 'result',
-                 'rows_chunk')
+                 'rows_chunk', 'looped')
 
     def __init__(self, name, build, params, limits, supports=None, rows_arrays=False, checked=False,
-                 pooled=False, result=None, rows_chunk=None):
+                 pooled=False, result=None, rows_chunk=None, looped=None):
         self.name, self.build, self.params, self.limits = name, build, tuple(params), limits
         self.supports, self.rows_arrays, self.checked, self.pooled = supports, rows_arrays, checked, pooled
-        self.result, self.rows_chunk = result, rows_chunk
+        self.result, self.rows_chunk, self.looped = result, rows_chunk, looped
 
     def variant(self, params):
         """The same kernel with other parameter lists (e.g. gravity switched off)."""
         return Spec(self.name, self.build, params, self.limits, self.supports, self.rows_arrays, self.checked,
-                    self.pooled, self.result, self.rows_chunk)
+                    self.pooled, self.result, self.rows_chunk, self.looped)
 
 
 def result_of(model, spec, n_out):

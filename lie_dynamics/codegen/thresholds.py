@@ -23,6 +23,9 @@ class Limits(NamedTuple):
     large: int = None         # above this size, rows from rows_from_large states
     rows_from_large: int = None
     native_max: int = None    # no native kernel above this size (None: compile_max)
+    looped_from: int = None   # from this size the looped native form (codegen/looped.py) replaces the
+    #                           straight-line one, at any size, and above the native caps (None: no looped form)
+    looped_size: str = None   # how looped_from counts: 'bodies' or 'pairs' (None: as `size`)
 
 
 # Every size threshold of the algorithms, with the measurement that chose it (timings on the
@@ -49,7 +52,13 @@ THRESHOLDS = {
     # native_nodes): on Baxter, PR2, Talos reduced, random trees of 32-64 bodies and a 32-body
     # chain the native M (2,500-18,000 nodes) compiles in 0.3-3.1 s of compiler CPU and runs
     # 0.1-1.2x Pinocchio's crba; a 64-body chain has 66,000 nodes.
-    'mass_matrix': Limits(24, 24, 40, 40, native_max=64),
+    # looped_from, counted in (body, ancestor) pairs, the straight-line M's size (`python -m bench.looped`, load
+    # 3-9, one state, looped / straight-line at -O1, medians of per-round ratios): chains of 16-32 bodies (136-528
+    # pairs) 1.6-2.1, 48 (1,176) 1.3, 64 (2,080) 0.7; binary trees of 16-32 bodies (~50-130 pairs) 1-5. First use
+    # 0.1-0.3 s looped, against 0.7-3 s straight-line up to 32 bodies, 6-16 s at 48 and 21 s at 64 (loaded). Hence
+    # looped from 1,000 pairs (a 45-body chain), and above native_max (trees of 100-200 bodies) whatever the pairs.
+    # The looped M runs 0.2-0.85x Pinocchio's crba on chains of 100-200 bodies.
+    'mass_matrix': Limits(24, 24, 40, 40, native_max=64, looped_from=1000, looped_size='pairs'),
     # Cholesky forward dynamics (CRBA + RNEA bias + factorisation, O(n^2) source, the CRBA's
     # cap); the float loop beats the rows up to ~48 states on the arm, and the kernel beats
     # the composed numpy path at every batch size.
@@ -59,7 +68,13 @@ THRESHOLDS = {
     # ABA (O(n) source): build time grows ~12 ms per body (0.3 s at 24, 1.2 s at 120) while
     # the kernel stays ~10x faster than the vectorised form; loop/rows crossovers 28-48
     # states for 2-24 bodies, the vectorised form never clearly faster in between.
-    'aba': Limits(128, 128, 32, 32),
+    # looped_from (`python -m bench.looped`, as the mass matrix's): the looped ABA runs 0.9-1.1x
+    # the straight-line one on chains of 8-16 bodies and trees of 32 (single rounds swing 0.6-4x
+    # at 32-64 under that load), 0.3x Pinocchio's aba from 24 bodies (0.3x on chains of 100 and
+    # 200); first use 0.2-0.4 s against 0.5-5 s. Forward dynamics (method='cholesky') takes it
+    # from here too (algorithms/aba.py): 0.44-0.8x the straight-line Cholesky kernel on chains of
+    # 8-32 and a 32-body tree, and O(n) where that kernel's O(n^3) source stops at native_nodes.
+    'aba': Limits(128, 128, 32, 32, looped_from=24),
     # Derivatives of inverse dynamics (and C = 1/2 dtau/dqd): above 16 bodies one state is
     # faster through the vectorised form; crossovers 4 (loop) and 128 (rows) on 7-20 bodies.
     # Native (and the Coriolis kernel): 8,000-59,000 nodes on the same robots, 0.8-9.4 s of
@@ -114,7 +129,8 @@ THRESHOLDS = {
     # those robots go native (the largest, forward-dynamics derivatives of a 32-body tree,
     # 85,000 nodes, ~8 s of CPU, ~4 s on 2 quiet cores, once: the disk cache keeps it) but
     # the O(n^2) and O(n^3) families of long chains (64 bodies: 160,000-1,700,000 nodes): there the
-    # vectorised reference runs (a looped native rendering would take over: docs/architecture.md).
+    # looped form runs where a family has one (looped_from: M, ABA, forward dynamics), else the
+    # vectorised reference (docs/architecture.md, "Looped native kernels").
     'native_nodes': 100000,
     # Native batches release the GIL from this many states (below, the release costs more
     # than other threads gain).

@@ -46,7 +46,7 @@ PLANT = {
 }
 HOLD = 0.3         # x duration: each hold phase
 EXCITATION = 2.0   # x duration: the excitation (and the recording)
-# L-BFGS-B iterations of the excitation design (optimized_excitation's default is 300): about 30 s
+# L-BFGS-B iterations of the excitation design (optimized_excitation's default is 400): about 30 s
 # of one core, whatever the duration
 ITERATIONS = 100
 RECORD_SERVICE = '/dynamics_node/record'
@@ -193,25 +193,17 @@ def _phase(domain, log_dir, node_params, seconds, rate, sim_extra, traj=None, re
     the simulation runs and false at its end (recording: the folder)."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
-    from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray
     from std_srvs.srv import SetBool
 
-    from ..ros.core.cdr import stamp_ns
-    from .demo import DESIRED_TOPIC, LOCKSTEP_TIMEOUT, STOP, Stack
+    from .demo import DESIRED_TOPIC, LOCKSTEP_TIMEOUT, STOP, Stack, record_states
 
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     os.makedirs(log_dir, exist_ok=True)
     steps = int(round(seconds * rate))
     ctx = rclpy.Context()
-    old = os.environ.get('ROS_DOMAIN_ID')
-    os.environ['ROS_DOMAIN_ID'] = str(domain)
-    rclpy.init(context=ctx)
-    if old is None:
-        os.environ.pop('ROS_DOMAIN_ID')
-    else:
-        os.environ['ROS_DOMAIN_ID'] = old
+    rclpy.init(context=ctx, domain_id=domain)
     rec = {'t': [], 'q': [], 'qd': [], 'tau': [], 'command0': None, 'interrupted': False}
     node = ex = None
     try:
@@ -219,19 +211,11 @@ def _phase(domain, log_dir, node_params, seconds, rate, sim_extra, traj=None, re
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(node)
 
-        def on_state(msg):
-            t = stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec) * 1e-9
-            if rec['t'] and t == rec['t'][-1]:
-                return   # a re-sent state
-            rec['t'].append(t)
-            rec['q'].append(list(msg.position))
-            rec['qd'].append(list(msg.velocity))
-            rec['tau'].append(list(msg.effort))
+        record_states(node, rec)
 
         def on_command(msg):
             if rec['command0'] is None:
                 rec['command0'] = np.array(msg.data)
-        node.create_subscription(JointState, 'joint_states', on_state, 20000)
         node.create_subscription(Float64MultiArray, COMMAND_TOPIC, on_command, 10)
         client = node.create_client(SetBool, RECORD_SERVICE) if record else None
 

@@ -33,7 +33,6 @@ import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 
 import numpy as np
@@ -58,8 +57,26 @@ HISTORY_S = 60.0
 # controller); shorter waits made results depend on machine load.
 LOCKSTEP_TIMEOUT = 2.0
 STATUS_WINDOW_S = 2.0
+
+
+class _Flag:
+    """A stop flag a signal handler may set while the main thread is setting it: a plain
+    attribute, no lock (threading.Event.set takes a non-reentrant lock, so a second signal
+    arriving inside set() would deadlock the handler)."""
+    value = False
+
+    def set(self):
+        self.value = True
+
+    def clear(self):
+        self.value = False
+
+    def is_set(self):
+        return self.value
+
+
 # set by Ctrl-C / SIGTERM in the demo's main: the loops stop at their next check
-STOP = threading.Event()
+STOP = _Flag()
 STATUS_LOG_PERIOD_S = 10.0  # status lines into a file or pipe (not a terminal): at most this often
 # where trajectory_source publishes and the node (desired_topic ~/desired) listens
 DESIRED_TOPIC = '/dynamics_node/desired'
@@ -154,6 +171,23 @@ class Stack:
         return False
 
 
+def record_states(node, rec):
+    """Subscribe `node` to joint_states, appending each simulated step's stamp, positions,
+    velocities and efforts to rec['t'], rec['q'], rec['qd'], rec['tau']."""
+    from sensor_msgs.msg import JointState
+
+    def on_state(msg):
+        t = stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec) * 1e-9
+        if rec['t'] and t == rec['t'][-1]:
+            return  # the simulator re-sent an unanswered state: one sample per simulated step
+        rec['t'].append(t)
+        rec['q'].append(list(msg.position))
+        rec['qd'].append(list(msg.velocity))
+        rec['tau'].append(list(msg.effort))
+    # deep enough for a whole default run: a reader that falls behind must not drop the oldest states
+    node.create_subscription(JointState, 'joint_states', on_state, 20000)
+
+
 def log_folder(out, name):
     """Where the demo writes the process logs of a scenario: <out>/logs/<scenario>/."""
     return os.path.abspath(os.path.join(out, 'logs', re.sub(r'[^a-z0-9]+', '_', name.lower()).strip('_')))
@@ -168,8 +202,6 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
             return run_scenario(name, duration, rate, status, domain, tmp)
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
-    from sensor_msgs.msg import JointState
-
     node_params, with_traj = scenarios()[name]
     payload = name == payload_demo.NAME
     if payload:  # identify.duration follows the scenario's duration
@@ -180,13 +212,7 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
     os.makedirs(log_dir, exist_ok=True)
     steps = int(round(duration * rate)) if duration > 0 else 0
     ctx = rclpy.Context()
-    old_domain = os.environ.get('ROS_DOMAIN_ID')
-    os.environ['ROS_DOMAIN_ID'] = env['ROS_DOMAIN_ID']
-    rclpy.init(context=ctx)
-    if old_domain is None:
-        os.environ.pop('ROS_DOMAIN_ID')
-    else:
-        os.environ['ROS_DOMAIN_ID'] = old_domain
+    rclpy.init(context=ctx, domain_id=int(env['ROS_DOMAIN_ID']))
     keep = None if steps else max(1, int(HISTORY_S * rate))
     contact = name == contact_demo.NAME
     rec = {k: collections.deque(maxlen=keep) for k in ('t', 'q', 'qd', 'tau') + (contact_demo.KEYS if contact else ())
@@ -198,16 +224,7 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(node)
 
-        def on_state(msg):
-            t = stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec) * 1e-9
-            if rec['t'] and t == rec['t'][-1]:
-                return  # the simulator re-sent an unanswered state: one sample per simulated step
-            rec['t'].append(t)
-            rec['q'].append(list(msg.position))
-            rec['qd'].append(list(msg.velocity))
-            rec['tau'].append(list(msg.effort))
-        # deep enough for a whole default run: a reader that falls behind must not drop the oldest states
-        node.create_subscription(JointState, 'joint_states', on_state, 20000)
+        record_states(node, rec)
         # the node's estimate topics reach the recorder before the simulator starts
         estimates_matched = contact_demo.record(node, rec, 20000) if contact else (lambda: True)
         caller = payload_demo.Caller(node, rec, duration) if payload else None

@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from .. import algebra as la
-from .. import runtime
+from .. import looped, runtime
 from ..kernel import Trace
 from ..runtime import Spec
 from ..thresholds import PD_RTOL
@@ -261,12 +261,16 @@ class _Joint:
     """Traced X_i = Ad_{f^-1} for f = f_{p'',b''}(x) (see _Geometry) as a product of steps from
     the child side: rotations about z or x and translations."""
 
-    def __init__(self, g, dec, revolute, x):
+    def __init__(self, g, dec, revolute, x, cs=None):
+        """dec: _decompose's factors (constants, or symbols in a looped step); x: the joint
+        coordinate; cs: (cos, sin) of x + theta when known (a looped step's registers)."""
         ct, st = dec['theta']
         sx, sy, sz = dec['s']
         steps = []
         if revolute:   # Rz(theta) Rz(x): a quarter turn folds into cos x, sin x; else cos(x + theta)
-            if _trivial(ct, st) or not isinstance(x, Sym):
+            if cs is not None:
+                c, s = cs
+            elif _trivial(ct, st) or not isinstance(x, Sym):
                 c, s = g.cos(x), g.sin(x)
                 c, s = ct * c - st * s, st * c + ct * s
             else:
@@ -325,6 +329,9 @@ def trace_aba(fr, geom, g, x, xd, taus, params, a0, armature, fext=None):
     (n, f) in b''. Returns per body (xdd_i, D_i, scale_i), None for welded bodies;
     scale_i is the trace of the 3x3 block of Ia_i that D_i lies in plus the armature (same
     units as D_i, and >= D_i for a positive semi-definite Ia_i).
+
+    Three passes over the bodies, each one step per body (`velocity`, `articulate` then
+    `to_parent`, `acceleration`): the looped native form (`looped_aba`) renders the same steps.
     """
     nb = fr.nb
     free = [bool(np.any(fr.E[b] != 0)) for b in range(nb)]
@@ -332,70 +339,96 @@ def trace_aba(fr, geom, g, x, xd, taus, params, a0, armature, fext=None):
     kk = [2 if fr.revolute[b] else 5 for b in range(nb)]
     V, c = [None] * nb, [None] * nb
     for b in range(nb):                                          # eq 18
-        p, k = fr.parent[b], kk[b]
-        Vp = X[b].twist_to_child(V[p]) if p >= 0 else [0.0] * 6
-        V[b] = list(Vp)
-        V[b][k] = Vp[k] + xd[b]
-        # c = [V, S xd]: xd (w x e_z, v x e_z) (revolute) or xd (0, w x e_z) (prismatic)
-        if k == 2:
-            c[b] = [Vp[1] * xd[b], -(Vp[0] * xd[b]), 0.0, Vp[4] * xd[b], -(Vp[3] * xd[b]), 0.0]
-        else:
-            c[b] = [0.0, 0.0, 0.0, Vp[1] * xd[b], -(Vp[0] * xd[b]), 0.0]
+        p = fr.parent[b]
+        V[b], c[b] = velocity(X[b], V[p] if p >= 0 else None, xd[b], kk[b])
     Ia, pa = [None] * nb, [None] * nb
-    U, Dinv, u, out = [None] * nb, [None] * nb, [None] * nb, [None] * nb
+    piv = [None] * nb
     for b in reversed(range(nb)):
-        p, k = fr.parent[b], kk[b]
-        w, v = tuple(V[b][:3]), tuple(V[b][3:])
-        n_, f_ = la.ad_t((w, v), la.inertia_times(params[b], (w, v)))
-        own = [-e for e in n_ + f_]                              # bias wrench -ad_V^T J V
-        if fext is not None:
-            own = [a - e for a, e in zip(own, fext[b][0] + fext[b][1], strict=True)]
-        P = own if pa[b] is None else [a + e for a, e in zip(pa[b], own, strict=True)]
-        K = _sym6_rigid(params[b])
-        if Ia[b] is not None:
-            K = _sym6_add(Ia[b], K)
-        if free[b]:
-            col = [K[i][k] for i in range(6)]
-            D = col[k] + armature[b]
-            Dinv[b] = g.inv(D)
-            u[b] = taus[b] - P[k]
-            U[b] = [g.bake(col[i] * Dinv[b]) for i in range(6)]                      # U / D
-            out[b] = (D, K[k - 2][k - 2] + K[k - 1][k - 1] + D)
-            if p < 0:
-                continue
-            Ka = [[0.0] * 6 for _ in range(6)]
-            for i in range(6):
-                for j in range(i, 6):
-                    if i != k and j != k:
-                        Ka[i][j] = Ka[j][i] = K[i][j] - col[i] * U[b][j]
-            w = armature[b] * Dinv[b]    # row k of Ia^A: col - col col[k] / D = armature col / D
-            for j in range(6):
-                Ka[k][j] = Ka[j][k] = col[j] * w
-            P = [P[i] + la.dot(Ka[i], c[b]) + U[b][i] * u[b] for i in range(6)]    # pa + Ia^A c + U u / D
-            K = Ka
-        else:
-            if p < 0:
-                continue
-            P = [P[i] + la.dot(K[i], c[b]) for i in range(6)]
-        Kp = X[b].inertia_to_parent(K)
-        Ia[p] = Kp if Ia[p] is None else _sym6_add(Ia[p], Kp)
-        Pp = X[b].wrench_to_parent(P)
-        pa[p] = Pp if pa[p] is None else [a + e for a, e in zip(pa[p], Pp, strict=True)]
+        p = fr.parent[b]
+        K, P, piv[b] = articulate(g, free[b], kk[b], params[b], V[b], c[b], Ia[b], pa[b], taus[b], armature[b],
+                                  None if fext is None else fext[b], p < 0)
+        if p >= 0:
+            Ia[p], pa[p] = to_parent(X[b], K, P, Ia[p], pa[p])
     acc = [None] * nb
     base = [0.0, 0.0, 0.0] + list(a0)
     res = [None] * nb
     for b in range(nb):                                          # eq 19
-        p, k = fr.parent[b], kk[b]
-        ap = X[b].twist_to_child(acc[p] if p >= 0 else base)
-        ap = [a + e for a, e in zip(ap, c[b], strict=True)]
+        p = fr.parent[b]
+        acc[b], xdd = acceleration(X[b], acc[p] if p >= 0 else base, c[b], kk[b], piv[b])
         if free[b]:
-            xdd = u[b] * Dinv[b]
-            for i in range(6):
-                xdd = xdd - U[b][i] * ap[i]                      # xdd = (u - U^T a') / D
-            res[b] = (xdd,) + out[b]
-            ap[k] = ap[k] + xdd                                  # a = a' + S xdd
-        acc[b] = ap
+            res[b] = (xdd,) + piv[b][3]
     return res
+
+
+# The steps of the ABA, per body (trace_aba and the looped form, looped_aba, both call them).
+def velocity(X, Vp, xd, k):
+    """Eq 18 for one body: (V_i, c_i = [V_i, S_i xd_i]) from its parent's twist Vp (None at a root)."""
+    Vp = X.twist_to_child(Vp) if Vp is not None else [0.0] * 6
+    V = list(Vp)
+    V[k] = Vp[k] + xd
+    # c = [V, S xd]: xd (w x e_z, v x e_z) (revolute) or xd (0, w x e_z) (prismatic)
+    if k == 2:
+        return V, [Vp[1] * xd, -(Vp[0] * xd), 0.0, Vp[4] * xd, -(Vp[3] * xd), 0.0]
+    return V, [0.0, 0.0, 0.0, Vp[1] * xd, -(Vp[0] * xd), 0.0]
+
+
+def articulate(g, free, k, params, V, c, Ia, pa, tau, armature, fext, root):
+    """The backward step of one body: its articulated inertia and bias (Ia, pa: what its children
+    passed, None for none), its pivot, and what it passes to its parent. Returns (K, P, piv): K,
+    P the inertia and wrench for the parent (None at a root), piv (U / D, 1 / D, u, (D, scale))
+    of a free joint, None for a welded body."""
+    w, v = tuple(V[:3]), tuple(V[3:])
+    n_, f_ = la.ad_t((w, v), la.inertia_times(params, (w, v)))
+    own = [-e for e in n_ + f_]                              # bias wrench -ad_V^T J V
+    if fext is not None:
+        own = [a - e for a, e in zip(own, fext[0] + fext[1], strict=True)]
+    P = own if pa is None else [a + e for a, e in zip(pa, own, strict=True)]
+    K = _sym6_rigid(params)
+    if Ia is not None:
+        K = _sym6_add(Ia, K)
+    if not free:
+        return (None, None, None) if root else (K, [P[i] + la.dot(K[i], c) for i in range(6)], None)
+    col = [K[i][k] for i in range(6)]
+    D = col[k] + armature
+    Dinv = g.inv(D)
+    u = tau - P[k]
+    U = [g.bake(col[i] * Dinv) for i in range(6)]                      # U / D
+    piv = (U, Dinv, u, (D, K[k - 2][k - 2] + K[k - 1][k - 1] + D))
+    if root:
+        return None, None, piv
+    Ka = [[0.0] * 6 for _ in range(6)]
+    for i in range(6):
+        for j in range(i, 6):
+            if i != k and j != k:
+                Ka[i][j] = Ka[j][i] = K[i][j] - col[i] * U[j]
+    w = armature * Dinv    # row k of Ia^A: col - col col[k] / D = armature col / D
+    for j in range(6):
+        Ka[k][j] = Ka[j][k] = col[j] * w
+    P = [P[i] + la.dot(Ka[i], c) + U[i] * u for i in range(6)]    # pa + Ia^A c + U u / D
+    return Ka, P, piv
+
+
+def to_parent(X, K, P, Ia, pa):
+    """The parent's (Ia, pa) (None: nothing yet) plus a child's K and P moved to the parent frame."""
+    Kp = X.inertia_to_parent(K)
+    Pp = X.wrench_to_parent(P)
+    return (Kp if Ia is None else _sym6_add(Ia, Kp),
+            Pp if pa is None else [a + e for a, e in zip(pa, Pp, strict=True)])
+
+
+def acceleration(X, ap, c, k, piv):
+    """Eq 19 for one body: (a_i, xdd_i) from the parent's acceleration ap (the base's at a root);
+    piv None (welded): xdd None."""
+    ap = X.twist_to_child(ap)
+    ap = [a + e for a, e in zip(ap, c, strict=True)]
+    if piv is None:
+        return ap, None
+    U, Dinv, u, _ = piv
+    xdd = u * Dinv
+    for i in range(6):
+        xdd = xdd - U[i] * ap[i]                      # xdd = (u - U^T a') / D
+    ap[k] = ap[k] + xdd                                  # a = a' + S xdd
+    return ap, xdd
 
 
 def build_aba(fr, wrench=False, armature=True):
@@ -444,6 +477,125 @@ def build_aba(fr, wrench=False, armature=True):
     return Trace(g, 'aba_kernel', args, outputs)
 
 
+def _looped_consts(dec):
+    """A body's 12 constants in a looped step (the driver's stride): psi, alpha, theta (cos, sin
+    each), s, theta's angle, a pad."""
+    ct, st = dec['theta']
+    out = [*dec['psi'], *dec['alpha'], ct, st, *dec['s'], math.atan2(st, ct), 0.0, 0.0]
+    assert len(out) == 12
+    return out
+
+
+def _looped_key(rev, free, root, dec):
+    """A body's step signature: joint kind, free or welded, root, and which of its constants are
+    exact (a rotation by zero, a zero offset: folded as in the straight-line trace)."""
+    return (rev, free, root, dec['psi'] == (1.0, 0.0), dec['alpha'] == (1.0, 0.0),
+            dec['theta'] == (1.0, 0.0), *(v == 0.0 for v in dec['s']))
+
+
+def _looped_dec(key, K):
+    """_decompose's factors as a looped step sees them: symbols K, constants where the key says."""
+    _, _, _, psi, alpha, theta, s0, s1, s2 = key
+    return dict(psi=(1.0, 0.0) if psi else (K[0], K[1]), alpha=(1.0, 0.0) if alpha else (K[2], K[3]),
+                theta=(1.0, 0.0) if theta else (K[4], K[5]),
+                s=tuple(0.0 if z else K[6 + i] for i, z in enumerate((s0, s1, s2))))
+
+
+def _looped_steps(g, key, K, JT):
+    """The joint (_Joint) of a looped step from its registers JT: (cos, sin) of x + theta for a
+    revolute joint, (x, -) for a prismatic one."""
+    rev = key[0]
+    return _Joint(g, _looped_dec(key, K), rev, JT[0], (JT[0], JT[1]) if rev else None)
+
+
+def looped_aba(fr, armature=True):
+    """The looped native form of the ABA kernels (codegen/looped.py): trace_aba's three passes, one
+    step per body and pass (`velocity`; `articulate` then `to_parent`; `acceleration`), rendered
+    once per step signature (_looped_key). Same arguments and outputs as build_aba(fr, False,
+    armature). None for mimic joints or frames that cannot be built."""
+    J = looped.joints_of(fr)
+    geom = _Geometry(fr)
+    if J is None or not geom.ok:
+        return None
+    nb, n = fr.nb, fr.n
+    free = [j >= 0 for j in J]
+    keys, sig = looped.classify([_looped_key(fr.revolute[b], free[b], fr.parent[b] < 0, geom.steps[b])
+                                 for b in range(nb)])
+    src = [looped.structure(fr), looped.table('int', 'SIG', sig),
+           looped.table('double', 'K0', [v for b in range(nb) for v in _looped_consts(geom.steps[b])])]
+    for i, key in enumerate(keys):
+        rev, fre, root = key[:3]
+        k = 2 if rev else 5
+
+        def vel(g, x, xd, K, Vp, key=key, rev=rev, fre=fre, root=root, k=k):
+            JT = [g.cos(x[0] + K[9]), g.sin(x[0] + K[9])] if rev else [x[0], 0.0]
+            V, c = velocity(_looped_steps(g, key, K, JT), None if root else Vp, xd[0] if fre else 0.0, k)
+            return [JT, V, c]
+
+        def back(g, P, V, c, Ia, pa, tau, ar, K, JT, Iap, pap, fre=fre, root=root, key=key, k=k):
+            params = (P[0], tuple(P[1:4]), tuple(P[4:10]))
+            Ka, Pa, piv = articulate(g, fre, k, params, V, c, looped.sym6_in(Ia), pa, tau[0] if fre else 0.0,
+                                     ar[0] if fre and armature else 0.0, None, root)
+            out = [[], [], [], []]
+            if piv is not None:
+                out[0], out[1] = list(piv[0]) + [piv[1], piv[2]], list(piv[3])
+            if not root:
+                Iap, pap = to_parent(_looped_steps(g, key, K, JT), Ka, Pa, looped.sym6_in(Iap), pap)
+                out[2], out[3] = looped.sym6_out(Iap), list(pap)
+            return out
+
+        def acc(g, K, JT, ap, c, piv, key=key, fre=fre, root=root, k=k):
+            base = [0.0, 0.0, 0.0] + list(ap[:3]) if root else ap
+            a, xdd = acceleration(_looped_steps(g, key, K, JT), base, c, k,
+                                  (piv[:6], piv[6], piv[7], None) if fre else None)
+            return [a, [xdd] if fre else []]
+        src.append(looped.step(f'vel{i}', vel, (1, 1, 12, 6)))
+        src.append(looped.step(f'back{i}', back, (10, 6, 6, 21, 6, 1, 1, 12, 2, 21, 6)))
+        src.append(looped.step(f'acc{i}', acc, (12, 2, 6, 6, 8)))
+
+    def sw(name, call):
+        return looped.switch('SIG[b]', [f'{name}{i}' for i in range(len(keys))], call)
+    vel_call = sw('vel', '&x, &xd, K0 + 12 * b, V + 6 * up, JT + 2 * b, V + 6 * b, C + 6 * b')
+    back_call = sw('back', 'P + 10 * b, V + 6 * b, C + 6 * b, IA + 21 * b, PA + 6 * b, &t, &ar, K0 + 12 * b, '
+                           'JT + 2 * b, IA + 21 * up, PA + 6 * up, UD + 8 * b, ds, IA + 21 * up, PA + 6 * up')
+    acc_call = sw('acc', 'K0 + 12 * b, JT + 2 * b, PAR[b] >= 0 ? ACC + 6 * up : A0, C + 6 * b, UD + 8 * b, '
+                         'ACC + 6 * b, &xdd')
+    ar = 'JNT[b] >= 0 ? AR[JNT[b]] : 0.0' if armature else '0.0'
+    decl, free = looped.work([(a, w * nb) for a, w in (('JT', 2), ('V', 6), ('C', 6), ('IA', 21), ('PA', 6), ('UD', 8),
+                                                       ('ACC', 6))] + [('OUT', 3 * n)], 3 * n)
+    src.append(f'''
+void lie_kernel(const double *const *in, const double *const *par, double *out)
+{{
+  const double *q = in[0], *qd = in[1], *tau = in[2], *P = par[0], *A0 = par[1], *E0 = par[2];
+  {'const double *AR = par[3];' if armature else ''}
+{decl}  (void)E0;
+  memset(IA, 0, 21 * NB * sizeof(double));
+  memset(PA, 0, 6 * NB * sizeof(double));
+  for (int b = 0; b < NB; b++) {{
+    const int up = PAR[b] >= 0 ? PAR[b] : 0;
+    const double x = X_OF(q, E0, b), xd = JNT[b] >= 0 ? qd[JNT[b]] : 0.0;
+    {vel_call}
+  }}
+  for (int b = NB - 1; b >= 0; b--) {{
+    const int up = PAR[b] >= 0 ? PAR[b] : 0;
+    const double t = JNT[b] >= 0 ? tau[JNT[b]] : 0.0, ar = {ar};
+    double ds[2] = {{0.0, 0.0}};
+    {back_call}
+    if (JNT[b] >= 0) {{ OUT[NJ + JNT[b]] = ds[0]; OUT[2 * NJ + JNT[b]] = ds[1]; }}
+  }}
+  for (int b = 0; b < NB; b++) {{
+    const int up = PAR[b] >= 0 ? PAR[b] : 0;
+    double xdd = 0.0;
+    {acc_call}
+    if (JNT[b] >= 0) OUT[JNT[b]] = xdd;
+  }}
+  memcpy(out, OUT, 3 * NJ * sizeof(double));   /* after every read of the inputs: out may alias them */
+{free}}}
+''')
+    pars = (10 * nb, 3, sum(fr.offset)) + ((n,) if armature else ())
+    return looped.rendered(''.join(src), (n, n, n), pars, 3 * n)
+
+
 def supports(model):
     """True when every joint moves exactly one body with multiplier 1 (no mimic joints, which
     couple bodies: the recursion cannot express them)."""
@@ -469,13 +621,14 @@ def wrenches(model, fext):
 
 
 ABA = Spec('aba', lambda fr: build_aba(fr, False), (_inertias, 'gravity', 'offsets', 'armature'), 'aba',
-           supports=supports, checked=True, result=lambda model: ((model.n,), PD_RTOL))
+           supports=supports, checked=True, result=lambda model: ((model.n,), PD_RTOL), looped=looped_aba)
 ABA_WRENCH = Spec('aba_wrench', lambda fr: build_aba(fr, True), (_inertias, 'gravity', 'offsets', 'armature'),
                   'aba', supports=supports, checked=True, result=lambda model: ((model.n,), PD_RTOL))
 # The rigid variants, for a model whose armature is all zero (the default): the same trace with
 # the armature the constant 0.0, which folds its terms away (bench/probes/aba_armature.py).
 ABA_RIGID = Spec('aba_rigid', lambda fr: build_aba(fr, False, False), (_inertias, 'gravity', 'offsets'), 'aba',
-                 supports=supports, checked=True, result=lambda model: ((model.n,), PD_RTOL))
+                 supports=supports, checked=True, result=lambda model: ((model.n,), PD_RTOL),
+                 looped=lambda fr: looped_aba(fr, False))
 ABA_WRENCH_RIGID = Spec('aba_wrench_rigid', lambda fr: build_aba(fr, True, False), (_inertias, 'gravity', 'offsets'),
                         'aba', supports=supports, checked=True, result=lambda model: ((model.n,), PD_RTOL))
 

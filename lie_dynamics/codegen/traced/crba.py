@@ -1,8 +1,33 @@
 """The composite rigid body algorithm, traced (the recursive form of eq 39; algorithms/crba.py)."""
 from .. import algebra as la
+from .. import looped
+from ..frames import joint_transform
 from ..kernel import Trace
 from ..runtime import Spec
 from ..tracer import Graph
+
+
+# The steps of the CRBA, per body (the straight-line trace below and the looped kernel,
+# looped.py, both call them): the composite-inertia update, the joint's wrench, its component
+# along the joint axis; the ancestor walk is algebra.wrench_to_parent.
+def composite(ic_b, X_b, ic_p):
+    """ic_p plus the composite inertia ic_b of a child moved to the parent frame by X_b = (R, t)."""
+    m, h, Io = la.inertia_to_parent(ic_b, *X_b)
+    mp, hp, Ip = ic_p
+    return (mp + m, la.vadd(hp, h), la.vadd(Ip, Io))
+
+
+def joint_wrench(revolute, ic):
+    """F = Jc_b S_b for the composite inertia ic = (m, h, I) and the primed axis S_b."""
+    m, h, Io = ic
+    if revolute:
+        return ((Io[2], Io[4], Io[5]), (-h[1], h[0], 0.0))
+    return ((h[1], -h[0], 0.0), (0.0, 0.0, m))
+
+
+def s_dot(revolute, F):
+    """S_j^T F for a wrench F = (n, f) in frame j'."""
+    return F[0][2] if revolute else F[1][2]
 
 
 def trace_mass_matrix(fr, g, params, X, armature):
@@ -19,26 +44,16 @@ def trace_mass_matrix(fr, g, params, X, armature):
     for b in reversed(range(nb)):
         p = fr.parent[b]
         if p >= 0:
-            m, h, Io = la.inertia_to_parent(ic[b], *X[b])
-            mp, hp, Ip = ic[p]
-            ic[p] = (mp + m, la.vadd(hp, h), la.vadd(Ip, Io))
-
-    def s_dot(b, F):
-        return F[0][2] if fr.revolute[b] else F[1][2]
-
+            ic[p] = composite(ic[b], X[b], ic[p])
     Mx = [[0.0] * nb for _ in range(nb)]
     for b in range(nb):
-        m, h, Io = ic[b]
-        if fr.revolute[b]:
-            F = ((Io[2], Io[4], Io[5]), (-h[1], h[0], 0.0))
-        else:
-            F = ((h[1], -h[0], 0.0), (0.0, 0.0, m))
-        Mx[b][b] = s_dot(b, F)
+        F = joint_wrench(fr.revolute[b], ic[b])
+        Mx[b][b] = s_dot(fr.revolute[b], F)
         j = b
         while fr.parent[j] >= 0:
             F = la.wrench_to_parent(F, *X[j])
             j = fr.parent[j]
-            Mx[j][b] = Mx[b][j] = s_dot(j, F)
+            Mx[j][b] = Mx[b][j] = s_dot(fr.revolute[j], F)
     Mq = fr.project(Mx)
     n = fr.n
     return [[Mq[a][a] + armature[a] if a == c else Mq[min(a, c)][max(a, c)] for c in range(n)] for a in range(n)]
@@ -56,5 +71,77 @@ def build_mass_matrix(fr):
     return Trace(g, 'mass_kernel', co['args'] + [parg, co['offset_args'], ararg], outputs)
 
 
+# ---------------------------------------------------------------------------- looped form
+def _ic(v):
+    return v[0], tuple(v[1:4]), tuple(v[4:10])
+
+
+def _ic_flat(ic):
+    return [ic[0], *ic[1], *ic[2]]
+
+
+def _X(v):
+    """(R, t) from 12 values: R row-major, then t."""
+    return tuple(tuple(v[3 * r:3 * r + 3]) for r in range(3)), tuple(v[9:12])
+
+
+def _X_flat(X):
+    return [e for row in X[0] for e in row] + list(X[1])
+
+
+def _F_flat(F):
+    return [*F[0], *F[1]]
+
+
+def looped_mass_matrix(fr):
+    """The looped native form of MASS_MATRIX (codegen/looped.py), or None (mimic joints). Steps:
+    the joint transform (frames.joint_transform, per joint kind), `composite` (backward), the
+    joint wrench (`joint_wrench`, per joint kind) and the ancestor walk (algebra.wrench_to_parent,
+    one step for every pair); the driver writes S_j^T F (`s_dot`: component 2 or 5 of F) into M."""
+    if looped.joints_of(fr) is None:
+        return None
+    kinds, sig = looped.classify(list(fr.revolute))
+    src = [looped.structure(fr), looped.table('int', 'SIG', sig),
+           looped.table('int', 'AX', [2 if r else 5 for r in fr.revolute]),
+           looped.table('double', 'K0', [e for b in range(fr.nb) for e in _X_flat((fr.R[b], fr.t[b]))])]
+    for i, rev in enumerate(kinds):
+        src.append(looped.step(f'xform{i}', lambda g, x, K, rev=rev: [_X_flat(joint_transform(g, *_X(K), rev, x[0]))],
+                               (1, 12)))
+        src.append(looped.step(f'column{i}', lambda g, ic, rev=rev: [_F_flat(joint_wrench(rev, _ic(ic)))], (10,)))
+    src.append(looped.step('composite', lambda g, a, X, p: [_ic_flat(composite(_ic(a), _X(X), _ic(p)))], (10, 12, 10)))
+    src.append(looped.step('pair', lambda g, F, X: [_F_flat(la.wrench_to_parent((F[:3], F[3:]), *_X(X)))], (6, 12)))
+    xform = looped.switch('SIG[b]', [f'xform{i}' for i in range(len(kinds))], '&x, K0 + 12 * b, X + 12 * b')
+    column = looped.switch('SIG[b]', [f'column{i}' for i in range(len(kinds))], 'IC + 10 * b, F')
+    decl, free = looped.work([('X', 12 * fr.nb), ('IC', 10 * fr.nb)], fr.n * fr.n)
+    src.append(f'''
+void lie_kernel(const double *const *in, const double *const *par, double *out)
+{{
+  const double *q = in[0], *P = par[0], *E0 = par[1], *AR = par[2];
+{decl}  double F[6];
+  (void)E0;
+  memcpy(IC, P, 10 * NB * sizeof(double));
+  for (int b = 0; b < NB; b++) {{
+    const double x = X_OF(q, E0, b);
+    {xform}
+  }}
+  for (int b = NB - 1; b >= 0; b--)
+    if (PAR[b] >= 0) composite(IC + 10 * b, X + 12 * b, IC + 10 * PAR[b], IC + 10 * PAR[b]);
+  memset(out, 0, NJ * NJ * sizeof(double));
+  for (int b = 0; b < NB; b++) {{
+    const int jb = JNT[b];
+    if (jb < 0) continue;
+    {column}
+    out[jb * NJ + jb] = F[AX[b]] + AR[jb];
+    for (int j = b; PAR[j] >= 0; ) {{
+      pair(F, X + 12 * j, F);
+      j = PAR[j];
+      if (JNT[j] >= 0) out[JNT[j] * NJ + jb] = out[jb * NJ + JNT[j]] = F[AX[j]];
+    }}
+  }}
+{free}}}
+''')
+    return looped.rendered(''.join(src), (fr.n,), (10 * fr.nb, sum(fr.offset), fr.n), fr.n * fr.n)
+
+
 MASS_MATRIX = Spec('mass_matrix', build_mass_matrix, ('inertia', 'offsets', 'armature'), 'mass_matrix',
-                   result=lambda model: ((model.n, model.n), None))
+                   result=lambda model: ((model.n, model.n), None), looped=looped_mass_matrix)

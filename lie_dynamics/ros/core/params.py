@@ -226,7 +226,8 @@ PARAMS = (
               'for: the wrench components the joints barely see stay 0 (~/contact/wrench, ~/contact/tool_wrench; '
               'rank and smallest singular value used in the diagnostics).', True, (1e-12, 0.999)),
     ParamSpec('contact.tolerance', 'double', TOLERANCE,
-              'Isolation: a joint torque is explained (or quiet) within this fraction of its collision.threshold. '
+              'Isolation: a joint torque is explained (or quiet) within this fraction of its collision.threshold '
+              'at most; less where the residual\'s measured noise allows (6 x its noise, down to 0.2 x this). '
               'Above the residual\'s noise and model error in free motion, relative to the thresholds.', True,
               (1e-6, 1.0)),
     ParamSpec('contact.strict_isolation', 'bool', False,

@@ -8,17 +8,22 @@ ContactMonitor: the estimate r, its time t in s, the debounced flag), returns wh
   * the wrench of the isolated link (link name, (fx fy fz mx my mz) at its origin in its axes)
     while the flag is up and a link is isolated: at every sample while the residual changes, and
     while it is settled at every checkpoint (a quarter time constant), the wrench of its mean over
-    the last MEAN_WINDOWS time constants (the effort noise averaged out; unchanged in between, so
-    not sent again); one zero wrench (the last link's, '' if none was) when the flag falls;
+    the last MEAN_WINDOWS time constants at the current configuration (MOVE_RAD), corrected for
+    the observer's lag (the effort noise averaged out; unchanged in between, so not sent again);
+    one zero wrench (the last link's, '' if none was) when the flag falls;
   * the tool wrench (`contact.wrench_frame`, all contact at that link) at every sample, when set
     (of the same mean while settled);
   * the isolated link when it changes: '' while nothing is in contact, while the residual
     settles, and when the answer is ambiguous.
 
 Isolation is decided on a settled residual only (contact_isolation.Settling, window one observer
-time constant 1 / min(observer.gain)), once each time it settles: after the flag rises the link
-stays '' until the residual has stopped changing, and while it changes again (the push grows or
-moves) the last decision holds until it settles anew. The Jacobians and the isolation run only
+time constant 1 / min(observer.gain)), once each time it settles, DECIDE_WINDOWS time constants
+into the settled stretch, on the stretch's mean with its measured noise (`_noise`: the scatter of
+the stretch's checkpoints, or the residual's mean square with the flag down, `_free`, whichever is
+larger), so the tolerances are NOISE_SIGMAS x that noise where it allows; an ambiguous answer is
+decided anew at each checkpoint while the stretch grows (its noise falls). After the flag rises
+the link stays '' until then, and while the residual changes again (the push grows or moves) the
+last decision holds until it settles anew. The Jacobians and the isolation run only
 while the flag is up, except the tool wrench's; a fit (Jacobian and SVD) serves while it is
 younger than one time constant or the joints have not moved (REFIT_RAD) since: w = inverse r.
 A model, gravity, payload or observer change (contact.REINIT_KEYS) and a paused observer start
@@ -36,7 +41,18 @@ from .contact import REINIT_KEYS
 ZERO = np.zeros(6)
 # The wrenches read the mean residual of the last MEAN_WINDOWS time constants while it is settled:
 # the effort noise averaged out (the observer alone averages over about two), the rise's tail gone.
-MEAN_WINDOWS = 5.0
+MEAN_WINDOWS = 20.0
+# Isolation waits until the settled stretch spans this many time constants: the mean's noise then
+# is about 0.55 of one sample's (`_noise`), and it falls as the stretch grows.
+DECIDE_WINDOWS = 5.0
+# The residual's noise with the flag down: a running mean square over FREE_WINDOWS time constants
+# (checkpoints every quarter), used once it has FREE_MIN checkpoints, from FREE_WAIT time constants
+# after the flag falls or the observer starts (the decay of a contact's residual, the observer's
+# start, are no noise).
+FREE_WINDOWS, FREE_MIN, FREE_WAIT = 50.0, 16, 5.0
+# The mean keeps the checkpoints whose joints lie within MOVE_RAD (rad or m) of the current ones:
+# J^T F of a fixed wrench changes by about that fraction of itself.
+MOVE_RAD = 2e-3
 # A fit serves while the joints move less than this (rad or m) from where it was made: the
 # Jacobian's change stays below about 1e-4 of the wrench (no new SVD while the arm is held).
 REFIT_RAD = 1e-4
@@ -88,6 +104,11 @@ class ContactIsolation:
         self._fits = {}             # 'link' / 'tool' -> (link, time, WrenchEstimate) of the last fit
         self.residual = None        # the r of the last wrenches: the mean over a settled stretch, else the sample's
         self._mean, self._sum = collections.deque(), None   # (t, r) of the settled stretch, their sum
+        self._decided = False       # the settled stretch's decision is made
+        self._all = None            # [count, sum, sum of squares] of the whole stretch's checkpoints
+        self._start = 0.0           # the time the settled stretch began
+        self._gain = 1.0            # the observer's gain K (1/s, one or per joint)
+        self._free_ms, self._free_n, self._free_next = None, 0, None   # the flag-down noise (_free)
         self._mean_span = 0.0
         self._held = None           # (link wrench, tool wrench, mean r) of the last checkpoint
 
@@ -110,9 +131,11 @@ class ContactIsolation:
         if model is not None:
             gain = np.atleast_1d(np.asarray(settings.observer.gain, dtype=float))
             self.settling = ci.Settling(1.0 / float(gain.min()))
+            self._gain = gain
             self._mean_span = MEAN_WINDOWS * self.settling.window
         if reinit:
             self.reset()
+            self._free_ms, self._free_n, self._free_next = None, 0, None
 
     def reset(self):
         """Forget the history and the decision (the observer starts anew); a zero wrench stays owed."""
@@ -121,6 +144,7 @@ class ContactIsolation:
         self.isolation = None
         self._settled = False
         self._fits = {}
+        self._free_next = None   # the noise record waits out the observer's new start
 
     def _fit(self, kind, t, q, link, est=None):
         """The fit (WrenchEstimate: its inverse maps r to the wrench) on `link` at q: est, or the
@@ -140,6 +164,11 @@ class ContactIsolation:
 
     def update(self, t, q, r, collision, threshold):
         """One observer sample: Published."""
+        if not collision:
+            if self.flag or self._free_next is None:   # the flag fell, the observer (re)started: no noise
+                self._free_next = t + FREE_WAIT * self.settling.window
+            elif t >= self._free_next:
+                self._free(t, r)
         if not (collision or self.up or self.frame or self.link or self._settled) and self.isolation is None:
             self.flag, self.residual = False, r   # the flag down and nothing owed: nothing to decide
             return _NOTHING
@@ -181,32 +210,77 @@ class ContactIsolation:
         return Published(wrench, tool, changed)
 
     def _checkpoint(self, t, q, r, threshold):
-        """A checkpoint of a settled stretch (every quarter time constant): the decision at its
-        first, the mean residual of the last MEAN_WINDOWS time constants' checkpoints (samples
-        closer than a time constant carry little more: the observer's filter), and the wrenches
-        of that mean, held until the next checkpoint."""
-        if not self._settled:   # decided once per settled stretch (cost)
-            iso = ci.isolate(self.model, q, r, threshold, self.tolerance, self.radius, self.rcond, self.strict)
+        """A checkpoint of a settled stretch (every quarter time constant; samples closer than a
+        time constant carry little more: the observer's filter). The decision once the stretch
+        spans DECIDE_WINDOWS time constants, on the mean of its checkpoints with that mean's noise
+        (`_noise`; an ambiguous one decided anew at later checkpoints, the mean longer). The
+        wrenches of the external torque's time mean over the checkpoints of the last MEAN_WINDOWS
+        time constants within MOVE_RAD of the current joints (the observer's lag corrected), held
+        until the next checkpoint."""
+        m = self._mean
+        if not self._settled or (m and np.any(np.abs(r - self._sum / len(m)) > ci.SETTLE_TOLERANCE * np.maximum(
+                np.abs(self._sum / len(m)), threshold))):   # a new stretch, or a drift the mean would lag
+            m.clear()
+            self._sum = np.zeros_like(r)
+            self._decided, self._start = False, t
+            self._all = [0, np.zeros_like(r), np.zeros_like(r)]
+        q = np.array(q, dtype=float)
+        # the trapezoid integral of r from the stretch's start (the lag correction needs the time mean)
+        area = m[-1][3] + 0.5 * (t - m[-1][0]) * (r + m[-1][1]) if m else np.zeros_like(r)
+        m.append((t, r, q, area))
+        self._sum += r
+        a = self._all   # the whole stretch (isolation: which joints feel r does not change as the arm yields)
+        a[0] += 1
+        a[1] += r
+        a[2] += r * r
+        # the mean is of one configuration: J^T F changes as the arm yields to the push
+        while t - m[0][0] > self._mean_span or np.abs(q - m[0][2]).max() > MOVE_RAD:
+            self._sum -= m.popleft()[1]
+        span = t - m[0][0]
+        mean = self._sum / len(m)
+        if span > 0:   # the observer lags: mean tau_ext over [t0, t] = (integral of r + (r(t) - r(t0)) / K) / T
+            mean = (area - m[0][3] + (r - m[0][1]) / self._gain) / span
+        if not self._decided and t - self._start >= DECIDE_WINDOWS * self.settling.window - 1e-9:
+            # on the plain mean of the whole stretch: its lag scales every joint alike, and a joint
+            # a contact does not load stays unloaded as the arm yields; the least noisy mean
+            whole = a[1] / a[0]
+            iso = ci.isolate(self.model, q, whole, threshold, self.tolerance, self.radius, self.rcond, self.strict,
+                             noise=self._noise(whole, a[2] / a[0], t - self._start))
             if self.isolation is None or iso.status != self.isolation.status or iso.link != self.isolation.link:
                 self._log(iso)
             self.isolation = iso
+            # an ambiguous answer is decided anew while the mean grows (its noise falls)
+            self._decided = iso.status != 'ambiguous' or t - self._start >= self._mean_span - self.settling.quarter
             if iso.link:
                 self._fit('link', t, q, iso.link, iso.wrench)
-            self._mean.clear()
-            self._sum = np.zeros_like(r)
-        m = self._mean
-        m.append((t, r))
-        self._sum += r
-        while t - m[0][0] > self._mean_span:
-            self._sum -= m.popleft()[1]
-        mean = self._sum / len(m)
-        link = self.isolation.link
+        link = self.isolation.link if self.isolation is not None else ''
         if link:
             self.wrench = self._fit('link', t, q, link)
         if self.frame:
             self.tool = self._fit('tool', t, q, self.frame)
         self._held = (self.wrench.inverse @ mean if link else None,
                       self.tool.inverse @ mean if self.frame else None, mean)
+
+    def _free(self, t, r):
+        """Every quarter time constant with the flag down: the residual's mean square per joint,
+        a running mean over the last FREE_WINDOWS time constants (noise and free-motion model
+        error, what a quiet joint reads)."""
+        self._free_next = t + self.settling.quarter
+        self._free_n += 1
+        a = max(1.0 / self._free_n, 0.25 / FREE_WINDOWS)
+        self._free_ms = (1 - a) * self._free_ms + a * (r * r) if self._free_ms is not None else r * r
+
+    def _noise(self, mean, square, span):
+        """(n,) the std of a mean residual over `span` s per joint (mean and mean square of its
+        checkpoints), from the checkpoints' scatter about it or the flag-down mean square (`_free`),
+        whichever is larger: the observer's output is a first-order (Ornstein-Uhlenbeck) process of
+        time constant tau, whose mean over T has variance var 2 (tau/T)^2 (T/tau - 1 + exp(-T/tau)).
+        A drift counts as noise."""
+        var = np.maximum(square - mean * mean, 0.0)
+        if self._free_ms is not None and self._free_n >= FREE_MIN:   # a longer record: fewer chance lows
+            var = np.maximum(var, self._free_ms)
+        x = max(span + self.settling.quarter, self.settling.quarter) / self.settling.window
+        return np.sqrt(var * min(1.0, 2.0 / (x * x) * (x - 1.0 + np.exp(-x))))
 
     def flush(self):
         """Pass the observer's lines on to `events`, the collision line once the link is decided

@@ -1,0 +1,132 @@
+"""Looped against straight-line native kernels, beside Pinocchio: where THRESHOLDS looped_from lies.
+
+    python -m bench.looped [--robots chain8,chain16,...] [--families mass_matrix,aba,forward_dynamics]
+                           [--rounds 7] [--out DIR]
+
+For each robot (random revolute chains and binary trees, bench.common.robot_urdf; or a label of
+bench.native_sizes) and family, in a fresh temporary kernel cache: the straight-line native kernel
+(every looped_from off; the native caps as THRESHOLDS has them: above them, `–`, the vectorised
+reference runs), the looped one (looped_from 1) and Pinocchio's call on the same URDF, one state,
+interleaved rounds (ratios: medians of per-round ratios). `forward_dynamics` is method='cholesky':
+straight-line, the Cholesky kernel; looped, the looped ABA that method takes from looped_from.
+First use: the first runtime.native call (trace or step tracing, render, compile, load). The
+1-minute load average is printed (2 cores: above ~0.5 the wall times include waiting).
+"""
+import argparse
+import os
+import shutil
+import tempfile
+import time
+import warnings
+
+import numpy as np
+
+from bench import common
+from bench.compile import _restore_cache_dir
+from bench.native_sizes import _arguments, pin_peer, robot_xml
+
+ROBOTS = ('chain8', 'chain16', 'chain24', 'chain32', 'chain48', 'chain64', 'chain100', 'chain200',
+          'tree16', 'tree32', 'tree64', 'tree100', 'tree200')
+FAMILIES = ('mass_matrix', 'aba', 'forward_dynamics')
+LIMITS = {'mass_matrix': 'mass_matrix', 'aba': 'aba', 'forward_dynamics': 'aba'}
+
+
+def _specs(model, fam):
+    """(straight-line spec, looped spec) of a family for this model."""
+    from lie_dynamics.codegen.traced import aba, cholesky, crba
+    if fam == 'mass_matrix':
+        return crba.MASS_MATRIX, crba.MASS_MATRIX
+    if fam == 'aba':
+        return aba.spec(model), aba.spec(model)
+    return cholesky.FORWARD_DYNAMICS, aba.spec(model)
+
+
+def _first(model, spec):
+    """(bound native kernel or None, first-use seconds)."""
+    from lie_dynamics.codegen import runtime
+    t0 = time.perf_counter()
+    fn = runtime.native(model, spec)
+    return fn, time.perf_counter() - t0
+
+
+def measure(labels, families, rounds=7):
+    from lie_dynamics import load_urdf
+    from lie_dynamics.codegen import runtime
+    T = runtime.THRESHOLDS
+    saved = dict(T)
+    saved_dir = os.environ.get('LIE_DYNAMICS_CACHE_DIR')
+    work = tempfile.mkdtemp(prefix='bench_looped_')
+    rows = []
+    try:
+        for label in labels:
+            os.environ['LIE_DYNAMICS_CACHE_DIR'] = os.path.join(work, label)
+            xml = robot_xml(label)
+            for fam in families:
+                runtime.clear()
+                with warnings.catch_warnings():
+                    warnings.simplefilter('ignore')   # vendor inertias are warned about
+                    straight, looped = load_urdf(xml), load_urdf(xml)
+                lim = LIMITS[fam]
+                T[lim] = saved[lim]._replace(looped_from=None)
+                s_spec, l_spec = _specs(straight, fam)
+                s_fn, s_first = _first(straight, s_spec)
+                T[lim] = saved[lim]._replace(looped_from=1)
+                l_fn, l_first = _first(looped, l_spec)
+                T[lim] = saved[lim]
+                rng = np.random.default_rng(1)
+                args = _arguments(fam, straight, rng)
+                fns = {'pin': pin_peer(xml, straight, fam, rng)}
+                if s_fn is not None:
+                    fns['straight'] = lambda f=s_fn: f(*args)
+                if l_fn is not None:
+                    fns['looped'] = lambda f=l_fn: f(*args)
+                t = common.time_interleaved(fns, rounds, 0.005)
+                row = dict(robot=label, n=straight.n, family=fam, loadavg=os.getloadavg()[0],
+                           pin_us=float(np.median(t['pin'])) * 1e6)
+                for k, first in (('straight', s_first), ('looped', l_first)):
+                    if k in t:
+                        row[f'{k}_first_s'] = first
+                        row[f'{k}_us'] = float(np.median(t[k])) * 1e6
+                        row[f'{k}_ratio'] = float(np.median(t[k] / t['pin']))
+                if 'straight' in t and 'looped' in t:
+                    row['looped_over_straight'] = float(np.median(t['looped'] / t['straight']))
+                rows.append(row)
+                print(_line(row), flush=True)
+    finally:
+        T.update(saved)
+        runtime.clear()
+        _restore_cache_dir(saved_dir)
+        shutil.rmtree(work, ignore_errors=True)
+    return rows
+
+
+def _line(r):
+    def f(k, fmt):
+        return '–' if r.get(k) is None else format(r[k], fmt)
+    return (f"| {r['robot']} | {r['family']} | {f('straight_first_s', '.2f')} | {f('looped_first_s', '.2f')} | "
+            f"{f('straight_ratio', '.2f')} | {f('looped_ratio', '.2f')} | {f('looped_over_straight', '.2f')} | "
+            f"{f('pin_us', '.1f')} | {r['loadavg']:.1f} |")
+
+
+HEAD = ('| robot | family | straight first use s | looped first use s | straight / Pinocchio | looped / Pinocchio '
+        '| looped / straight | Pinocchio µs | load |\n|---|---|---:|---:|---:|---:|---:|---:|---:|')
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--robots', default=','.join(ROBOTS))
+    ap.add_argument('--families', default=','.join(FAMILIES))
+    ap.add_argument('--rounds', type=int, default=7)
+    ap.add_argument('--out', default=None)
+    a = ap.parse_args(argv)
+    print(HEAD)
+    rows = measure(a.robots.split(','), [f for f in a.families.split(',') if f], a.rounds)
+    if a.out:
+        md = HEAD + '\n' + '\n'.join(_line(r) for r in rows) + '\n'
+        common.write_tables(a.out, 'looped', md, dict(rows=rows), rows, fields=list(dict.fromkeys(
+            k for r in rows for k in r)))
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

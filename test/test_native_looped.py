@@ -1,0 +1,237 @@
+"""Looped native kernels (codegen/looped.py): the mass matrix and the ABA (and forward dynamics,
+method='cholesky', which takes the looped ABA) rendered as per-body steps looped in C, forced on
+small robots by THRESHOLDS looped_from = 1 so that they compile in a fraction of a second. Checked
+against the Python kernels (the same model with the native backend off), the straight-line
+native kernels and Pinocchio, single states and batches, with payload, gravity, armature and
+locked-joint changes, and without recompiling for parameter changes."""
+import numpy as np
+import pytest
+
+from lie_dynamics.codegen import kernel, native, runtime
+from lie_dynamics.codegen.traced import aba as t_aba
+from lie_dynamics.codegen.traced import crba as t_crba
+from dyn_cases import quiet_load as _load, rel_max as _rel
+from oracle import Oracle
+from robots import random_urdf
+
+TOL = 1e-12
+LIMITS = ('mass_matrix', 'aba')
+
+pytestmark = pytest.mark.skipif(native.module() is None, reason='no working C compiler')
+
+
+@pytest.fixture(scope='module')
+def looped_everywhere():
+    """looped_from = 1 for the families with a looped form (restored after the module)."""
+    T = runtime.THRESHOLDS
+    saved = {k: T[k] for k in LIMITS}
+    for k in LIMITS:
+        T[k] = T[k]._replace(looped_from=1)
+    runtime.clear()
+    yield
+    T.update(saved)
+    runtime.clear()
+
+
+class Robot:
+    """A model whose M and ABA are looped, its Python twin (native off) and Pinocchio."""
+
+    def __init__(self, xml, **kw):
+        self.xml = xml
+        self.model = _load(xml, **kw)
+        self.ref = _load(xml, **kw)
+        runtime.use_native(self.ref, False)
+        self.oracle = Oracle(xml, joints=self.model.joint_names, locked=self.model.locked_values)
+
+
+# revolute, continuous and prismatic joints, fixed links merged into their parents
+CASES = {'chain': lambda: random_urdf(31, 7), 'tree': lambda: random_urdf(32, 9, tree=True)}
+
+
+@pytest.fixture(scope='module', params=list(CASES))
+def robot(request, looped_everywhere):
+    return Robot(CASES[request.param]())
+
+
+def _states(model, N, seed):
+    rng = np.random.default_rng(seed)
+    return [np.ascontiguousarray(x) for x in rng.uniform(-1, 1, (3, N, model.n))]
+
+
+def _check_solve(got, want, ref, q, qd, tau):
+    """A forward-dynamics result: its residual M qdd + h - tau (M, h of the Python twin) to TOL and
+    the other result to eps cond(M), at least TOL (two correct solves differ by that much)."""
+    M = ref.mass_matrix(q)
+    assert _rel(M @ got + ref.inverse_dynamics(q, qd, np.zeros_like(q)), tau) <= TOL
+    assert _rel(got, want) <= max(TOL, 1e-15 * np.linalg.cond(M))
+
+
+def _check_all(m, ref, oracle, q, qd, qdd):
+    """Every looped family of m on states (N, n) against the Python twin and Pinocchio, one state
+    at a time and as one batch (the batch's rows equal the single calls)."""
+    tau = ref.inverse_dynamics(q, qd, qdd)
+    M = m.mass_matrix(q)
+    A = m.forward_dynamics(q, qd, tau, method='aba')
+    C = m.forward_dynamics(q, qd, tau)
+    for i in range(len(q)):
+        s = (q[i], qd[i], tau[i])
+        Mi = m.mass_matrix(q[i])
+        assert np.array_equal(M[i], Mi)
+        assert _rel(Mi, ref.mass_matrix(q[i])) <= TOL
+        assert _rel(Mi, oracle.crba(q[i])) <= TOL
+        a = m.forward_dynamics(*s, method='aba')
+        assert np.array_equal(A[i], a)
+        assert np.array_equal(C[i], m.forward_dynamics(*s))
+        for got in (a, C[i]):
+            _check_solve(got, ref.forward_dynamics(*s, method='aba'), ref, *s)
+            _check_solve(got, oracle.aba(*s), ref, *s)
+
+
+def test_looped_kernels_run_and_agree(robot):
+    m, ref = robot.model, robot.ref
+    for spec in (t_crba.MASS_MATRIX, t_aba.spec(m)):
+        assert runtime.looped(m, spec) and not runtime.looped(ref, spec)
+        assert runtime.native(m, spec) is not None
+    _check_all(m, ref, robot.oracle, *_states(m, 4, seed=1))
+
+
+def test_out_buffers(robot):
+    m, ref = robot.model, robot.ref
+    q, qd, qdd = _states(m, 3, seed=2)
+    buf = np.empty((3, m.n, m.n))
+    assert m.mass_matrix(q, out=buf) is buf
+    assert _rel(buf, ref.mass_matrix(q)) <= TOL
+    tau = ref.inverse_dynamics(q, qd, qdd)
+    one = np.empty(m.n)
+    assert m.forward_dynamics(q[0], qd[0], tau[0], method='aba', out=one) is one
+    assert np.array_equal(one, m.forward_dynamics(q[0], qd[0], tau[0], method='aba'))
+    with pytest.raises(ValueError, match='out must be'):
+        m.mass_matrix(q[0], out=np.empty((m.n, m.n + 1)))
+
+
+def test_parameters_change_without_recompiling(robot):
+    m, ref = robot.model, robot.ref
+    q, qd, qdd = _states(m, 2, seed=3)
+    _check_all(m, ref, robot.oracle, q, qd, qdd)
+    before = native.compile_count()
+    link = [nm for nm, (b, _) in m.link_frames.items() if b >= 0][-1]
+    try:
+        for x in (m, ref):
+            x.set_payload(link, 1.5, [0.05, 0.0, 0.1], [0.01, 0.0, 0.0, 0.02, 0.0, 0.03])
+            x.set_gravity([0.5, -1.0, -9.0])
+        tau = ref.inverse_dynamics(q, qd, qdd)
+        for i in range(len(q)):
+            assert _rel(m.mass_matrix(q[i]), ref.mass_matrix(q[i])) <= TOL
+            for method in ('aba', 'cholesky'):
+                s = (q[i], qd[i], tau[i])
+                _check_solve(m.forward_dynamics(*s, method=method), ref.forward_dynamics(*s, method='aba'), ref, *s)
+    finally:
+        for x in (m, ref):
+            x.clear_payload()
+            x.set_gravity([0.0, 0.0, -9.81])
+    assert native.compile_count() == before
+
+
+def test_armature(robot):
+    """The armature: a parameter of the looped M, the ABA's other variant (one more kernel)."""
+    m, ref = robot.model, robot.ref
+    q, qd, qdd = _states(m, 2, seed=4)
+    arm = np.linspace(0.05, 0.3, m.n)
+    try:
+        for x in (m, ref):
+            x.set_armature(arm)
+        assert runtime.looped(m, t_aba.spec(m)) and t_aba.spec(m) is t_aba.ABA
+        tau = ref.inverse_dynamics(q, qd, qdd)
+        for i in range(len(q)):
+            assert _rel(m.mass_matrix(q[i]), ref.mass_matrix(q[i])) <= TOL
+            s = (q[i], qd[i], tau[i])
+            _check_solve(m.forward_dynamics(*s, method='aba'), ref.forward_dynamics(*s, method='aba'), ref, *s)
+    finally:
+        for x in (m, ref):
+            x.set_armature(np.zeros(m.n))
+
+
+def test_locked_joints_change_without_recompiling(looped_everywhere):
+    xml = random_urdf(33, 8)
+    names = _load(xml).joint_names
+    part = Robot(xml, joints=names[::2])
+    m = part.model
+    assert len(m.locked_joint_names) == len(names) - m.n
+    q, qd, qdd = _states(m, 2, seed=5)
+    _check_all(m, part.ref, part.oracle, q, qd, qdd)
+    compiled = native.compile_count()
+    values = {j: 0.2 + 0.05 * k for k, j in enumerate(m.locked_joint_names)}
+    for x in (m, part.ref):
+        x.set_locked(values)
+    oracle = Oracle(xml, joints=m.joint_names, locked=m.locked_values)
+    _check_all(m, part.ref, oracle, q, qd, qdd)
+    assert native.compile_count() == compiled
+
+
+def test_looped_equals_straight_line(looped_everywhere):
+    """The looped and the straight-line C forms of the same traces, one model each."""
+    xml = random_urdf(34, 6, tree=True)
+    m = _load(xml)
+    T = runtime.THRESHOLDS
+    saved = {k: T[k] for k in LIMITS}
+    try:
+        for k in LIMITS:
+            T[k] = T[k]._replace(looped_from=None)
+        straight = _load(xml)
+        q, qd, qdd = _states(m, 3, seed=6)
+        tau = straight.inverse_dynamics(q, qd, qdd)
+        M, A = straight.mass_matrix(q), straight.forward_dynamics(q, qd, tau, method='aba')
+        assert not runtime.looped(straight, t_crba.MASS_MATRIX)
+    finally:
+        T.update(saved)
+    assert runtime.looped(m, t_crba.MASS_MATRIX)
+    assert _rel(m.mass_matrix(q), M) <= TOL
+    assert _rel(m.forward_dynamics(q, qd, tau, method='aba'), A) <= max(TOL, 1e-15 * max(
+        np.linalg.cond(x) for x in M))
+
+
+def test_mimic_joints_keep_todays_routes(looped_everywhere):
+    """Mimic joints couple bodies: no looped form (looped.joints_of), the straight-line kernel runs."""
+    xml = random_urdf(35, 6, mimic=True)
+    m = _load(xml)
+    assert not t_aba.supports(m)   # a mimic joint was drawn
+    assert not runtime.looped(m, t_crba.MASS_MATRIX)
+    ref = _load(xml)
+    runtime.use_native(ref, False)
+    q = _states(m, 1, seed=7)[0][0]
+    assert _rel(m.mass_matrix(q), ref.mass_matrix(q)) <= TOL
+    assert _rel(m.mass_matrix(q), Oracle(xml, joints=m.joint_names).crba(q)) <= TOL
+
+
+def test_looped_kernels_load_from_the_disk_cache(looped_everywhere):
+    """A second process (here: the runtime cleared) loads the looped library without compiling or
+    rendering it again; its key differs from the straight-line kernel's (another name)."""
+    xml = random_urdf(36, 5)
+    q = _states(_load(xml), 1, seed=8)[0][0]
+    first = _load(xml).mass_matrix(q)
+    runtime.clear()
+    compiled, rendered = native.compile_count(), kernel.builds()
+    m = _load(xml)
+    assert np.array_equal(m.mass_matrix(q), first)
+    assert native.compile_count() == compiled and kernel.builds() == rendered
+    assert runtime.looped(m, t_crba.MASS_MATRIX)
+
+
+def test_looped_from_counts_pairs_and_takes_over_above_the_caps():
+    """The mass matrix's looped_from counts (body, ancestor) pairs; above the straight-line caps
+    the looped form runs whatever looped_from says."""
+    T = runtime.THRESHOLDS
+    saved = T['mass_matrix']
+    xml = random_urdf(37, 5)   # a chain: 15 pairs
+    try:
+        for limits, want in ((saved._replace(looped_from=15), True), (saved._replace(looped_from=16), False),
+                             (saved._replace(looped_from=10 ** 6, compile_max=2, native_max=4), True)):
+            T['mass_matrix'] = limits
+            m = _load(xml)
+            assert runtime.pairs(m) == 15
+            assert runtime.looped(m, t_crba.MASS_MATRIX) == want, limits
+            q = _states(m, 1, seed=9)[0][0]
+            assert _rel(m.mass_matrix(q), Oracle(xml, joints=m.joint_names).crba(q)) <= TOL
+    finally:
+        T['mass_matrix'] = saved
+        runtime.clear()
