@@ -155,6 +155,18 @@ def test_a_newer_state_replaces_queued_terms_not_estimates(held):
     assert monitor.samples == 5 and dyn.published['gravity'] == 4
 
 
+def test_a_backlog_is_run_in_the_callback(held):
+    node = held.start(**EVERY)
+    ex = HeldTasks()
+    node.note_executor('events', ex)
+    monitor = node.contact_monitor
+    from lie_dynamics.ros.node import LATER_MAX_STEPS
+    first = LATER_MAX_STEPS - len(TERMS)   # queued: one observer step per state, the newest state's terms
+    for k, s in enumerate(states(node.core.model, first + 3, 9)):   # the tasks never run
+        node.on_joint_state(bytes(serialize_message(message(*s))))
+        assert monitor.samples == (0 if k < first else first + 1)   # all run in the callback once, then queued
+
+
 def test_without_a_later_executor_the_work_runs_at_once(held):
     node = held.start(**EVERY)
     dyn, monitor = node.features.get('dynamics'), node.contact_monitor

@@ -58,6 +58,10 @@ FEATURES = (
 # state arriving meanwhile waits at most for the rest of a task (this, or one longer step), and
 # each task costs one executor dispatch (a few microseconds with the EventsExecutor).
 LATER_SLICE_S = 50e-6
+# A node that cannot keep up (more work per state than a period) runs the queued steps in the
+# callback once more than this many wait: the observer's steps are never dropped, and its backlog
+# must not grow; the input's depth-1 queue then drops states, as before.
+LATER_MAX_STEPS = 32
 
 
 class DynamicsNode(Node):
@@ -251,6 +255,9 @@ class DynamicsNode(Node):
             later.clear()
             later.extend(kept)
         later.extend(queued)
+        if len(later) > LATER_MAX_STEPS:   # falling behind: catch up now, as the callback did before
+            self._run_all_later()
+            return
         if not self._scheduled:
             self._scheduled = True
             self._executor.create_task(self._run_later)
