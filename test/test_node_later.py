@@ -3,7 +3,7 @@ run.py spins the node with the EventsExecutor): over real DDS every dynamics top
 observer's estimates still come with the values of their state, in order, the newest state's
 terms always; in process, with the tasks held back: a newer state's command goes out before the
 older state's work, whose dynamics terms it replaces (the observer's steps are all kept), a
-settings change runs the queued work first, and destroying the node runs what is left."""
+settings change runs the queued work first, and so do destroying the node and a backlog."""
 import numpy as np
 import pytest
 
