@@ -22,6 +22,8 @@ _U32 = {'<': struct.Struct('<I'), '>': struct.Struct('>I')}
 _STAMP = {'<': struct.Struct('<iII'), '>': struct.Struct('>iII')}   # sec, nanosec, frame_id length
 _F8 = {'<': np.dtype('<f8'), '>': np.dtype('>f8')}
 _STAMP_LE = struct.Struct('<iI')   # builtin_interfaces/Time, as Template writes it
+_F8_LE = _F8['<']
+_new = tuple.__new__   # a NamedTuple's generated __new__ costs a Python call per message
 
 
 class Unsupported(ValueError):
@@ -122,7 +124,11 @@ class JointStateSample(NamedTuple):
 
 class JointStateDecoder:
     """Serialized sensor_msgs/JointState -> JointStateSample. Keeps the last name list (and its
-    bytes), so that a stream naming the same joints decodes them once.
+    bytes), so that a stream naming the same joints decodes them once, and the last message's
+    layout: a message of the same length whose bytes from the frame_id to the positions and
+    whose velocity and effort counts are those of the last one has its arrays where the last
+    one had them, read without walking the message again (a stream's every message but the
+    first; the stamp and the doubles are what changes).
 
     Layout: header {int32 sec, uint32 nanosec, string frame_id}, string[] name, float64[]
     position, velocity, effort."""
@@ -130,10 +136,22 @@ class JointStateDecoder:
     def __init__(self):
         self._names_raw = None
         self._names = ()
+        # the last message's layout: (length, encapsulation, bytes 12..key_end, key_end, counts
+        # Struct, counts, (count, offset) per array, names); None after one that was not read
+        self._same = None
 
     def read(self, buf):
         """The sample of `buf` (bytes). Raises ValueError for a malformed or truncated message
         (Unsupported: another encoding)."""
+        same = self._same
+        if (same is not None and len(buf) == same[0] and buf[12:same[3]] == same[2] and buf[:4] == same[1]
+                and same[4].unpack_from(buf) == same[5]):
+            sec, nanosec = _STAMP_LE.unpack_from(buf, 4)
+            (n0, o0), (n1, o1), (n2, o2) = same[6]
+            return _new(JointStateSample, (stamp_ns(sec, nanosec), same[7],
+                                           np.frombuffer(buf, _F8_LE, n0, o0), np.frombuffer(buf, _F8_LE, n1, o1),
+                                           np.frombuffer(buf, _F8_LE, n2, o2)))
+        self._same = None
         b = Buffer(buf, 'joint_states')
         if b.end < 16:
             raise truncated('joint_states')
@@ -142,10 +160,19 @@ class JointStateDecoder:
         if size > b.end - 12:
             raise truncated('joint_states')
         names, pos = self._read_names(b, buf, align(pos, 4))
-        position, pos = b.doubles(pos)
-        velocity, pos = b.doubles(pos)
-        effort, pos = b.doubles(pos)
-        return JointStateSample(stamp_ns(sec, nanosec), names, position, velocity, effort)
+        arrays, at = [], []   # at: each array's (payload offset of its count, of its first value)
+        for _ in range(3):
+            count_at = align(pos, 4)
+            a, pos = b.doubles(pos)
+            arrays.append(a)
+            at.append((count_at, pos - 8 * len(a)))
+        if b.order == '<' and len(names):   # the layout the next message of this stream is checked against
+            key_end = 4 + at[0][0] + 4   # the bytes from the frame_id's length to the position count
+            v, e = 4 + at[1][0], 4 + at[2][0]
+            counts = struct.Struct(f'<{v}xI{e - v - 4}xI')   # the velocity and effort counts
+            self._same = (len(buf), bytes(buf[:4]), bytes(buf[12:key_end]), key_end, counts, counts.unpack_from(buf),
+                          tuple((len(a), 4 + start) for a, (_, start) in zip(arrays, at, strict=True)), names)
+        return JointStateSample(stamp_ns(sec, nanosec), names, *arrays)
 
     def _read_names(self, b, buf, pos):
         count = b.u32(pos)

@@ -146,6 +146,36 @@ def test_joint_states_read_bit_identical_to_rclpy(capfd):
     assert min(outcomes.values()) > 300, outcomes   # damage covers both outcomes
 
 
+def test_joint_states_stream_read_bit_identical_to_rclpy(capfd, monkeypatch):
+    """A stream keeps its layout (the decoder then reads the arrays where the last message had
+    them): every message still reads as rclpy reads it, also one of the same length whose names,
+    frame_id or array counts differ, and one damaged in between."""
+    import lie_dynamics.cdr as core_cdr
+    walked = []   # the messages read from the start (a Buffer made): the others took the last layout
+    monkeypatch.setattr(core_cdr, 'Buffer', lambda *a: walked.append(1) or cdr.Buffer(*a))
+    rng = random.Random(20261127)
+    decoder = cdr.JointStateDecoder()
+    layouts = [(JOINTS, 'base', 7, 7), (JOINTS, 'base', 7, 0), (JOINTS, 'base', 0, 7), (JOINTS, 'esab', 7, 7),
+               ([j[::-1] for j in JOINTS], 'base', 7, 7), (JOINTS, '', 7, 7), (['a', 'b'], 'base', 2, 2)]
+    changes, last = 0, None
+    for k in range(600):
+        layout = layouts[0 if rng.random() < 0.6 else rng.randrange(len(layouts))]
+        names, frame, nv, ne = layout
+        n = len(names)
+        m = JointState(name=names, position=_values(rng, n), velocity=_values(rng, nv), effort=_values(rng, ne))
+        m.header.frame_id = frame
+        m.header.stamp.sec, m.header.stamp.nanosec = rng.randint(-2**31, 2**31 - 1), rng.randint(0, 2**32 - 1)
+        buf = bytes(serialize_message(m))
+        assert check_joint_state(decoder, buf, capfd)
+        changes += layout != last
+        last = layout
+        if k % 50 == 49:
+            check_joint_state(decoder, damaged(rng, buf), capfd)
+            last = None
+    # read from the start: when the layout changed (or after a damaged message), and the damaged ones
+    assert len(walked) <= changes + 12 and changes < 400
+
+
 def test_desired_states_read_bit_identical_to_rclpy(capfd):
     rng = random.Random(77)
     outcomes = {True: 0, False: 0}

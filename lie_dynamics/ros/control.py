@@ -66,7 +66,7 @@ class Control:
                 node.set_tick_period()
             if 'publish_joint_state' in changes:
                 node.outputs.joint_state(core.settings.publish_joint_state)
-            node.features.configure_if_changed(core)  # publishers made here, not on the control path
+            node.configure_features()  # publishers made here, not on the control path
             node.drain_events()
 
     @guarded

@@ -10,6 +10,7 @@ topics, services, QoS: interfaces.py; parameters, services: control.py). Per joi
 result to each of the FEATURES -> one event queue -> the paced log. The timer runs on the steady
 clock (a stopped /clock must not stop the watchdog). Heavy work runs off it: loading/, trajectories/.
 """
+import collections
 import sys
 import threading
 import time
@@ -53,6 +54,16 @@ FEATURES = (
 )
 
 
+# The features' work after a command runs in executor tasks of about this length (_run_later): a
+# state arriving meanwhile waits at most for the rest of a task (this, or one longer step), and
+# each task costs one executor dispatch (a few microseconds with the EventsExecutor).
+LATER_SLICE_S = 50e-6
+# A node that cannot keep up (more work per state than a period) runs the queued steps in the
+# callback once more than this many wait: the observer's steps are never dropped, and its backlog
+# must not grow; the input's depth-1 queue then drops states, as before.
+LATER_MAX_STEPS = 32
+
+
 class DynamicsNode(Node):
     """Dynamics node. features: the per-sample feature types (FEATURES); extra keyword arguments
     go to rclpy's Node (context, overrides)."""
@@ -61,6 +72,11 @@ class DynamicsNode(Node):
         super().__init__(node_name, **kwargs)
         self.background = None
         self.features = None
+        # the features' work after each command, in steps (_after_command): [(feature, step)]
+        self._later = collections.deque()
+        self._executor = None      # the executor whose tasks run them (note_executor); None: at once
+        self._scheduled = False    # a _run_later task is queued
+        self.dropped_steps = 0     # queued steps of a coalescing feature replaced by a newer state's
         try:
             self._construct(features)
         except BaseException:
@@ -124,14 +140,22 @@ class DynamicsNode(Node):
         period = tick_period(self.core.settings.stale_timeout, self._diag.period)
         self._timer.timer_period_ns = int(period * 1e9)
 
-    def note_executor(self, kind):
-        """The executor that spins the node (run.py), shown in the diagnostics."""
+    def note_executor(self, kind, later=None):
+        """The executor that spins the node (run.py), shown in the diagnostics. later: that
+        executor, when its create_task is cheap (the EventsExecutor): the features' work after
+        each command then runs in steps, one per executor turn (_after_command); None: at once."""
         self.core.note_context(executor=kind)
+        self._executor = later
 
     def destroy_node(self):
         if self.background is not None:   # it leaves the ROS graph while the node's teardown runs
             self.background.stop_trajectories()
         if self.features is not None:
+            try:
+                with self.lock:   # the last states' queued work, while the publishers exist
+                    self._run_all_later()
+            except Exception:  # noqa: BLE001 - best effort: the node is going
+                self._later.clear()
             self.features.stop()
         if self.background is not None:   # lines still held back are said before the node goes
             self.event_log.close()
@@ -167,13 +191,16 @@ class DynamicsNode(Node):
                 core.refuse_malformed('joint_states', str(exc))
                 self.drain_events()
                 return
-            self.background.collect()   # a new model swaps in here, between two commands (cheap: none)
+            background = self.background
+            background.swap_in()   # a new model swaps in here, between two commands (cheap: none)
             features = self.features
             features.before_command(core)
             tau = core.on_sample(sample)
             if tau is not None:
                 self.outputs.command(tau, core.layout, sample.stamp)   # the input's stamp (ns)
-            features.feed(core)   # after the command: never delays it
+            # after the command, never delaying it: the features' work, then the loader's bookkeeping
+            self._after_command(features)
+            background.collect()
             if self.events or self.event_log.waiting:
                 self.drain_events()
             core.record_compute_time(time.perf_counter() - t0)
@@ -189,6 +216,76 @@ class DynamicsNode(Node):
                 self.core.on_desired(names, points)
             if self.events:
                 self.drain_events()
+
+    def configure_features(self):
+        """Configure the features for the core's settings and model if they changed (parameters
+        applied), the work still queued for earlier states run first, under the configuration it
+        was queued with."""
+        with self.lock:
+            if self._later and self.features.changed(self.core):
+                self._run_all_later()
+            self.features.configure_if_changed(self.core)
+
+    def _after_command(self, features):
+        """(under the lock) The features' work for the state just commanded (Features.steps): at
+        once without a `later` executor (note_executor); with one, the steps of the features
+        marked `later` are queued and run in executor tasks (_run_later), so that a state arriving
+        meanwhile has its command out first, and its steps of a coalescing feature (the dynamics
+        topics) replace the older state's still queued."""
+        later = self._later
+        if later and features.changed(self.core):   # the older states' work under their configuration
+            self._run_all_later()
+        steps = features.steps(self.core)
+        if self._executor is None:
+            for _, step in steps:
+                step()
+            return
+        queued = []
+        for f, step in steps:
+            if f.later:
+                queued.append((f, step))
+            else:
+                step()
+        if not queued:
+            return
+        newer = {f for f, _ in queued if f.coalesce}
+        if newer and later:
+            kept = [x for x in later if x[0] not in newer]
+            self.dropped_steps += len(later) - len(kept)
+            later.clear()
+            later.extend(kept)
+        later.extend(queued)
+        if len(later) > LATER_MAX_STEPS:   # falling behind: catch up now, as the callback did before
+            self._run_all_later()
+            return
+        if not self._scheduled:
+            self._scheduled = True
+            self._executor.create_task(self._run_later)
+
+    @guarded
+    def _run_later(self):
+        """(an executor task) Queued steps of the features' work for up to LATER_SLICE_S; the
+        rest in the next task, queued behind whatever arrived meanwhile."""
+        with self.lock, self.background.deferred():
+            later = self._later
+            end = time.perf_counter() + LATER_SLICE_S
+            try:
+                while later:
+                    later.popleft()[1]()
+                    if time.perf_counter() >= end:
+                        break
+            finally:
+                self._scheduled = bool(later)
+                if later:
+                    self._executor.create_task(self._run_later)
+                if self.events or self.event_log.waiting:
+                    self.drain_events()
+
+    def _run_all_later(self):
+        """(under the lock) Every queued step now, in order."""
+        later = self._later
+        while later:
+            later.popleft()[1]()
 
     # ------------------------------------------------------------------ log
     def log_event(self, severity, key, text):

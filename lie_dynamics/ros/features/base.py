@@ -24,6 +24,12 @@ from the one table, interfaces.py) and then calls, through `Features`:
     before every command, asking the core through its public methods (`Compensator.use_gravity`);
   * `on_sample(sample)` with each accepted core.sample.SampleResult, once, in order, after the
     command went out, while `active` (nothing is called per sample for an inactive feature);
+    through `steps(sample)`: the same work as callables run in order (by default one, calling
+    on_sample). A feature marked `later` (its work only publishes: the observer, the dynamics
+    topics) may have its steps run by the node in executor tasks after the command, so that a
+    newer state's command goes out between two of them (the others run at once, in order); one
+    also marked `coalesce` (its work for a state is worth nothing once a newer state's is queued:
+    the dynamics topics) has its queued steps replaced by the newer state's;
   * `report(level, message)` -> (level, message, [(key, value string)]): its part of the
     node's one diagnostics status (registration order; `Features.report` bounds every text);
   * `events`: (severity, throttle key, text) log lines, appended to the node's one event queue
@@ -31,6 +37,8 @@ from the one table, interfaces.py) and then calls, through `Features`:
     node drains through its throttled, paced log; a feature never writes a log line itself;
   * `stop()` when the node goes (worker threads, helper nodes).
 """
+import functools
+
 from ..core.diagnostics import DIAG_TEXT_MAX, clip
 
 
@@ -39,6 +47,8 @@ class Feature:
 
     name = 'feature'
     active = False
+    later = False      # its steps may run in executor tasks after the command (steps)
+    coalesce = False   # its queued steps of a state are dropped when a newer state's come (steps)
 
     def __init__(self):
         self.events = []
@@ -61,6 +71,10 @@ class Feature:
 
     def on_sample(self, sample):
         """One new accepted sample (only while `active`)."""
+
+    def steps(self, sample):
+        """on_sample(sample)'s work as callables run in order (by default: one, on_sample)."""
+        return (functools.partial(self.on_sample, sample),)
 
     def report(self, level, message):
         return level, message, []
@@ -104,9 +118,13 @@ class Features:
         """The warm-up calls of every feature under `settings`, each once, in order."""
         return tuple(dict.fromkeys(k for f in self.all for k in f.kernels(settings)))
 
+    def changed(self, core):
+        """Have core's settings or model changed since the features were last configured?"""
+        return core.settings is not self._settings or core.model is not self._model
+
     def configure_if_changed(self, core):
         """Configure the features if core's settings or model changed since the last call."""
-        if core.settings is not self._settings or core.model is not self._model:
+        if self.changed(core):
             self._settings, self._model = core.settings, core.model
             for f in self.all:
                 f.configure(core.settings, core.model, core.derived)
@@ -119,14 +137,18 @@ class Features:
     def feed(self, core):
         """After the command for a joint_states message: each active feature gets core.result if
         the core accepted it (a rejected message, or the same result again, feeds nothing)."""
+        for _, step in self.steps(core):
+            step()
+
+    def steps(self, core):
+        """feed's work, not done: [(feature, step)] in the order feed runs them (each feature's
+        `steps`); the features are configured first if core's settings or model changed."""
         self.configure_if_changed(core)
         sample = core.result
         if sample is self._last or sample is None or not sample.accepted:
-            return
+            return []
         self._last = sample
-        for f in self.all:
-            if f.active:
-                f.on_sample(sample)
+        return [(f, step) for f in self.all if f.active for step in f.steps(sample)]
 
     def drain(self):
         """[(severity, key, text)] queued by the core and the features, emptied."""

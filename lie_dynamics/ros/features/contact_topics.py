@@ -34,6 +34,7 @@ class ContactTopics(Feature):
     DynamicsNode `node` (its public core: the command layout before a model is loaded)."""
 
     name = 'contact'
+    later = True   # its work only publishes the estimates: after the next state's command if one is waiting
 
     def __init__(self, node):
         super().__init__()

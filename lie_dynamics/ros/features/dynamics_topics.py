@@ -22,6 +22,7 @@ non-finite value is not published (one throttled log line). Rate limiting runs o
 stamps (the robot's clock: a replayed or simulated stream is thinned the same way), on the steady
 clock for unstamped states; a stamp that goes back restarts it.
 """
+import functools
 import time
 
 import numpy as np
@@ -84,6 +85,7 @@ class DynamicsTopics(Feature):
     is first switched on, then kept)."""
 
     name = 'dynamics'
+    later = coalesce = True   # its work only publishes, and only the newest state's terms are worth it
 
     def __init__(self, node, clock=time.monotonic):
         super().__init__()
@@ -148,34 +150,42 @@ class DynamicsTopics(Feature):
         self._writers = writers
 
     def on_sample(self, s):
+        for step in self.steps(s):
+            step()
+
+    def steps(self, s):
+        """One step per term to publish for sample s (none when the rate gate holds it back)."""
         t = self.time.seconds(s.stamp)
         if self.time.switched:  # another time base: a new stream
             self.gate.next = None
         if not self.gate.passes(round(t * 1e9)):
-            return
+            return ()
         if s.names is not self._names:
             self._label(s.names)
+        return tuple(functools.partial(self._term, term, s) for term in self.terms)
+
+    def _term(self, term, s):
+        """Compute one term at sample s and publish it (a non-finite value: skipped, said once)."""
         model, q = s.model, s.q
-        for term in self.terms:
-            try:
-                if term == 'gravity':
-                    value = model.gravity(q)
-                elif term == 'coriolis':
-                    value = model.coriolis_term(q, s.qd)
-                elif term == 'mass_matrix':
-                    value = model.mass_matrix(q)
-                else:
-                    value = model.jacobian(q, self.link, self.frame)
-            except (ValueError, ArithmeticError) as exc:
-                value, why = None, f'{type(exc).__name__}: {exc}'
+        try:
+            if term == 'gravity':
+                value = model.gravity(q)
+            elif term == 'coriolis':
+                value = model.coriolis_term(q, s.qd)
+            elif term == 'mass_matrix':
+                value = model.mass_matrix(q)
             else:
-                why = 'non-finite values'
-            if value is None or not np.isfinite(value).all():
-                self.skipped += 1
-                self.events.append(('warn', f'dynamics:{term}', clip(
-                    f'~/dynamics/{term} not published for the state at stamp {s.stamp * 1e-9:.9f} s: {why}', 300)))
-                continue
-            self._publish(term, value, s)
+                value = model.jacobian(q, self.link, self.frame)
+        except (ValueError, ArithmeticError) as exc:
+            value, why = None, f'{type(exc).__name__}: {exc}'
+        else:
+            why = 'non-finite values'
+        if value is None or not np.isfinite(value).all():
+            self.skipped += 1
+            self.events.append(('warn', f'dynamics:{term}', clip(
+                f'~/dynamics/{term} not published for the state at stamp {s.stamp * 1e-9:.9f} s: {why}', 300)))
+            return
+        self._publish(term, value, s)
 
     def _publish(self, term, value, s):
         if term in ('gravity', 'coriolis'):

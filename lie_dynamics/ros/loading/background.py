@@ -254,8 +254,9 @@ class Background:
         return (job.text, job.kind) if refused else None
 
     # ------------------------------------------------------------------ control path
-    def collect(self):
-        """Swap in finished models and account for finished fills (control path, cheap)."""
+    def swap_in(self):
+        """Take the finished jobs' outcomes: a finished model swaps in (control path, before a
+        command; an attribute test while nothing finished)."""
         worker, core = self.worker, self.core
         if worker.has_outcomes:
             for out in worker.outcomes():
@@ -269,6 +270,12 @@ class Background:
                     self.trajectory_input.done(f'{type(out.error).__name__}: {out.error}')
                 elif out.value is not None:   # refused: counted here
                     self.trajectory_input.done(out.value[0], kind=out.value[1])
+
+    def collect(self):
+        """swap_in, then account for finished fills and the loader's state (control path, cheap;
+        the joint_states callback calls it after the command)."""
+        self.swap_in()
+        worker, core = self.worker, self.core
         busy = worker.busy('model')
         core.note_context(loading=busy[2] if busy is not None else '')
         tp = self.trajectories
