@@ -262,6 +262,11 @@ def boundary(xs, errs, tol):
     return float(xs[bad].min()), float(xs[bad].max())
 
 
+def cell(row, key, fmt):
+    """A table cell: row[key] formatted with fmt, or '–' where the row has no value."""
+    return '–' if row.get(key) is None else format(row[key], fmt)
+
+
 def write_tables(out, name, md, data, rows=None, fields=None):
     """A section's files in `out`: name.md (md), name.json (data) and, given rows (dicts),
     name.csv with columns `fields` (default: the first row's keys; other keys are left out)."""

@@ -13,6 +13,7 @@ First use: the first runtime.native call (trace or step tracing, render, compile
 1-minute load average is printed (2 cores: above ~0.5 the wall times include waiting).
 """
 import argparse
+import functools
 import os
 import shutil
 import tempfile
@@ -101,8 +102,7 @@ def measure(labels, families, rounds=7):
 
 
 def _line(r):
-    def f(k, fmt):
-        return '–' if r.get(k) is None else format(r[k], fmt)
+    f = functools.partial(common.cell, r)
     return (f"| {r['robot']} | {r['family']} | {f('straight_first_s', '.2f')} | {f('looped_first_s', '.2f')} | "
             f"{f('straight_ratio', '.2f')} | {f('looped_ratio', '.2f')} | {f('looped_over_straight', '.2f')} | "
             f"{f('pin_us', '.1f')} | {r['loadavg']:.1f} |")

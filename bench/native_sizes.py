@@ -13,6 +13,7 @@ rounds (ratio: median of per-round ratios). Robots: PR2, Baxter, Talos reduced
 The 1-minute load average is printed (2 cores: above ~0.5 the wall times include waiting).
 """
 import argparse
+import functools
 import os
 import shutil
 import tempfile
@@ -134,8 +135,7 @@ def measure(labels, families, max_nodes, rounds=7):
 
 
 def _line(r):
-    def f(k, fmt):
-        return '–' if r.get(k) is None else format(r[k], fmt)
+    f = functools.partial(common.cell, r)
     return (f"| {r['robot']} ({r['n']} joints, {r['nb']} bodies) | {r['family']} | {r['nodes']} | "
             f"{f('first_s', '.2f')} | {f('cpu_s', '.2f')} | {f('us', '.1f')} | {f('pin_us', '.1f')} | "
             f"{f('ratio', '.2f')} | {r['loadavg']:.1f} |")

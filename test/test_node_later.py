@@ -61,7 +61,7 @@ def stamp_of(msg):
 
 def test_every_topic_after_the_command_over_dds(ros):
     node = ros.start(**EVERY)
-    node.note_executor('single_threaded', ros.ex)   # as run.py does for the EventsExecutor
+    node.defer_to(ros.ex)   # as run.py does for the EventsExecutor
     wait_until(lambda: all(ros.t.count_publishers(f'/dynamics_node/dynamics/{t}') for t in TERMS)
                and ros.t.count_publishers('/dynamics_node/external_torques'), what='publishers')
     model, dyn = node.core.model, node.features.get('dynamics')
@@ -89,7 +89,7 @@ def test_every_topic_after_the_command_over_dds(ros):
     for t, term in (('mass_matrix', lambda q: model.mass_matrix(q)),
                     ('jacobian', lambda q: model.jacobian(q, dyn.link, dyn.frame))):
         wanted = [term(s[1]).ravel() for s in sent]
-        wait_until(lambda t=t, w=wanted[-1]: np.array_equal(ros.dyn[t][-1].data, w), what=t)
+        wait_until(lambda t=t, w=wanted[-1]: len(ros.dyn[t]) and np.array_equal(ros.dyn[t][-1].data, w), what=t)
         for m in ros.dyn[t]:
             assert any(np.array_equal(np.asarray(m.data), w) for w in wanted)
     # the observer's steps are never dropped: an estimate for every state it took, in order
@@ -127,7 +127,7 @@ def held():
 def test_a_newer_state_replaces_queued_terms_not_estimates(held):
     node = held.start(**EVERY)
     ex = HeldTasks()
-    node.note_executor('events', ex)
+    node.defer_to(ex)
     dyn, monitor = node.features.get('dynamics'), node.contact_monitor
     sent = [bytes(serialize_message(message(*s))) for s in states(node.core.model, 6, 5)]
     node.on_joint_state(sent[0])
@@ -158,7 +158,7 @@ def test_a_newer_state_replaces_queued_terms_not_estimates(held):
 def test_a_backlog_is_run_in_the_callback(held):
     node = held.start(**EVERY)
     ex = HeldTasks()
-    node.note_executor('events', ex)
+    node.defer_to(ex)
     monitor = node.contact_monitor
     from lie_dynamics.ros.node import LATER_MAX_STEPS
     first = LATER_MAX_STEPS - len(TERMS)   # queued: one observer step per state, the newest state's terms

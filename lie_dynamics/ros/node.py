@@ -74,7 +74,7 @@ class DynamicsNode(Node):
         self.features = None
         # the features' work after each command, in steps (_after_command): [(feature, step)]
         self._later = collections.deque()
-        self._executor = None      # the executor whose tasks run them (note_executor); None: at once
+        self._executor = None      # the executor whose tasks run them (defer_to); None: at once
         self._scheduled = False    # a _run_later task is queued
         self.dropped_steps = 0     # queued steps of a coalescing feature replaced by a newer state's
         try:
@@ -140,12 +140,14 @@ class DynamicsNode(Node):
         period = tick_period(self.core.settings.stale_timeout, self._diag.period)
         self._timer.timer_period_ns = int(period * 1e9)
 
-    def note_executor(self, kind, later=None):
-        """The executor that spins the node (run.py), shown in the diagnostics. later: that
-        executor, when its create_task is cheap (the EventsExecutor): the features' work after
-        each command then runs in steps, one per executor turn (_after_command); None: at once."""
+    def note_executor(self, kind):
+        """The kind of executor that spins the node (run.py), shown in the diagnostics."""
         self.core.note_context(executor=kind)
-        self._executor = later
+
+    def defer_to(self, executor):
+        """Run the features' work after each command in steps, one per task of `executor` (run.py
+        passes the EventsExecutor, whose create_task is cheap; _after_command); None: at once."""
+        self._executor = executor
 
     def destroy_node(self):
         if self.background is not None:   # it leaves the ROS graph while the node's teardown runs
@@ -228,7 +230,7 @@ class DynamicsNode(Node):
 
     def _after_command(self, features):
         """(under the lock) The features' work for the state just commanded (Features.steps): at
-        once without a `later` executor (note_executor); with one, the steps of the features
+        once without an executor to defer to (defer_to); with one, the steps of the features
         marked `later` are queued and run in executor tasks (_run_later), so that a state arriving
         meanwhile has its command out first, and its steps of a coalescing feature (the dynamics
         topics) replace the older state's still queued."""

@@ -135,8 +135,10 @@ def run(make_node, name, args=None, done=None, on_stop=None, parser=None):
         rclpy.try_shutdown()
         return _refuse(name, 'invalid configuration', exc)
     executor.add_node(node)
-    if hasattr(node, 'note_executor'):  # shown in the node's diagnostics; the EventsExecutor runs its later work
-        node.note_executor(kind, executor if kind == 'events' else None)
+    if hasattr(node, 'note_executor'):  # shown in the node's diagnostics
+        node.note_executor(kind)
+    if kind == 'events' and hasattr(node, 'defer_to'):  # its tasks are cheap: they run the work after a command
+        node.defer_to(executor)
     # Everything built so far lives as long as the process: move it out of the collector's
     # reach, so the hot path's garbage collections scan only what the callbacks allocate.
     gc.collect()
