@@ -283,6 +283,13 @@ def write_tables(out, name, md, data, rows=None, fields=None):
         json.dump(data, fh, indent=1)
 
 
+def write_rows(out, name, head, line, rows):
+    """write_tables for a table of one line per row dict: head, then line(row) for each; the
+    CSV's fields every key of the rows, in first-seen order."""
+    md = head + '\n' + '\n'.join(line(r) for r in rows) + '\n'
+    write_tables(out, name, md, dict(rows=rows), rows, fields=list(dict.fromkeys(k for r in rows for k in r)))
+
+
 def savefig(fig, path):
     """PNG at ~100 dpi (small enough to commit copies)."""
     fig.savefig(path, dpi=100)

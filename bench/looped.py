@@ -122,9 +122,7 @@ def main(argv=None):
     print(HEAD)
     rows = measure(a.robots.split(','), [f for f in a.families.split(',') if f], a.rounds)
     if a.out:
-        md = HEAD + '\n' + '\n'.join(_line(r) for r in rows) + '\n'
-        common.write_tables(a.out, 'looped', md, dict(rows=rows), rows, fields=list(dict.fromkeys(
-            k for r in rows for k in r)))
+        common.write_rows(a.out, 'looped', HEAD, _line, rows)
     return 0
 
 
