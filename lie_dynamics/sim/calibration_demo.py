@@ -196,7 +196,7 @@ def _phase(domain, log_dir, node_params, seconds, rate, sim_extra, traj=None, re
     from std_msgs.msg import Float64MultiArray
     from std_srvs.srv import SetBool
 
-    from .demo import DESIRED_TOPIC, LOCKSTEP_TIMEOUT, STOP, Stack, record_states
+    from .demo import DESIRED_TOPIC, LOCKSTEP_TIMEOUT, Stack, check_stop, record_states
 
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -226,8 +226,7 @@ def _phase(domain, log_dir, node_params, seconds, rate, sim_extra, traj=None, re
                     return False
                 ex.spin_once(timeout_sec=0.05)
                 stack.check()
-                if STOP.is_set():
-                    raise KeyboardInterrupt
+                check_stop()
             return True
 
         def call(value, stack):

@@ -58,25 +58,10 @@ HISTORY_S = 60.0
 LOCKSTEP_TIMEOUT = 2.0
 STATUS_WINDOW_S = 2.0
 
-
-class _Flag:
-    """A stop flag a signal handler may set while the main thread is setting it: a plain
-    attribute, no lock (threading.Event.set takes a non-reentrant lock, so a second signal
-    arriving inside set() would deadlock the handler)."""
-    value = False
-
-    def set(self):
-        self.value = True
-
-    def clear(self):
-        self.value = False
-
-    def is_set(self):
-        return self.value
-
-
-# set by Ctrl-C / SIGTERM in the demo's main: the loops stop at their next check
-STOP = _Flag()
+# set by Ctrl-C / SIGTERM in the demo's main: the loops stop at their next check (check_stop). A
+# list appended to, as ros/run.py's stop flag: no lock (threading.Event.set takes one, which a
+# second signal arriving inside set() would wait on forever)
+STOP = []
 STATUS_LOG_PERIOD_S = 10.0  # status lines into a file or pipe (not a terminal): at most this often
 # where trajectory_source publishes and the node (desired_topic ~/desired) listens
 DESIRED_TOPIC = '/dynamics_node/desired'
@@ -266,7 +251,7 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
             try:
                 while True:
                     ex.spin_once(timeout_sec=0.05)  # one callback: keep this loop lean, it must not lag
-                    _check_stop()
+                    check_stop()
                     if caller is not None:
                         caller.tick()
                     if steps and rec['t'] and rec['t'][-1] >= duration - 0.5 / rate:
@@ -300,13 +285,14 @@ def run_scenario(name, duration, rate=1000.0, status=None, domain=None, log_dir=
 
 
 def _request_stop(*_):
-    if STOP.is_set():  # asked twice: stop at once
+    if STOP:  # asked twice: stop at once
         raise KeyboardInterrupt
-    STOP.set()
+    STOP.append(True)
 
 
-def _check_stop():
-    if STOP.is_set():
+def check_stop():
+    """KeyboardInterrupt once a stop was requested (STOP)."""
+    if STOP:
         raise KeyboardInterrupt
 
 
@@ -321,7 +307,7 @@ def _wait(ex, cond, timeout, stack):
         if cond():
             return True
         ex.spin_once(timeout_sec=0.05)
-        _check_stop()
+        check_stop()
         stack.check()
     return False
 
