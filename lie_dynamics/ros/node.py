@@ -224,8 +224,7 @@ class DynamicsNode(Node):
         applied), the work still queued for earlier states run first, under the configuration it
         was queued with."""
         with self.lock:
-            if self._later and self.features.changed(self.core):
-                self._run_all_later()
+            self._run_later_if_changed()
             self.features.configure_if_changed(self.core)
 
     def _after_command(self, features):
@@ -234,16 +233,13 @@ class DynamicsNode(Node):
         marked `later` are queued and run in executor tasks (_run_later), so that a state arriving
         meanwhile has its command out first, and its steps of a coalescing feature (the dynamics
         topics) replace the older state's still queued."""
-        later = self._later
-        if later and features.changed(self.core):   # the older states' work under their configuration
-            self._run_all_later()
-        steps = features.steps(self.core)
+        self._run_later_if_changed()
         if self._executor is None:
-            for _, step in steps:
-                step()
+            features.feed(self.core)
             return
+        later = self._later
         queued = []
-        for f, step in steps:
+        for f, step in features.steps(self.core):
             if f.later:
                 queued.append((f, step))
             else:
@@ -282,6 +278,13 @@ class DynamicsNode(Node):
                     self._executor.create_task(self._run_later)
                 if self.events or self.event_log.waiting:
                     self.drain_events()
+
+    def _run_later_if_changed(self):
+        """(under the lock) The older states' queued work now, under the configuration it was
+        queued with, if the core's settings or model changed since (before the features are
+        configured anew)."""
+        if self._later and self.features.changed(self.core):
+            self._run_all_later()
 
     def _run_all_later(self):
         """(under the lock) Every queued step now, in order."""
