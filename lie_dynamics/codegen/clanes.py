@@ -22,8 +22,7 @@ Instruction sets: on x86-64 under GCC or Clang the function is compiled twice
 loader picks by the CPU it runs on; the cached library is then right on any x86-64 machine it
 is copied to. Elsewhere the compiler's baseline vectors.
 """
-from .crender import literal, node_text
-from .render import form_text
+from .crender import node_text, output_text
 
 LANES = 4
 # The kernels rendered across states too (kernel.Kernel's name): the form costs 2-4x the kernel's
@@ -104,12 +103,9 @@ def emit_lanes(g, fname, arg_lists, roles, outputs, index=None, size=None):
     if index is not None:
         lines.append(f'  memset(out, 0, {int(size) * LANES} * sizeof(double));')
     for k, o in enumerate(outputs):
-        if hasattr(o, 'terms'):
-            txt = form_text(tuple(o.terms.items()), o.const, ref, literal)[0]
-            if not any(vec[a] for a in o.terms):
-                txt = f'lie_bc({txt})'
-        else:
-            txt = f'lie_bc({literal(o)})'
+        txt = output_text(o, ref)
+        if not (hasattr(o, 'terms') and any(vec[a] for a in o.terms)):   # a scalar: broadcast to the lanes
+            txt = f'lie_bc({txt})'
         slot = k if index is None else int(index[k])
         lines.append(f'  *(lie_v *)(out + {LANES * slot}) = {txt};')
     fns = sorted({g.nodes[i][0] for i in live if vec[i]} - {'in', 'mul', 'inv', 'lin', 'sin', 'cos'})

@@ -52,6 +52,11 @@ def node_text(op, data, ref, call=None):
     return f'{call or op}({ref(data, 0)})'
 
 
+def output_text(o, ref):
+    """C text of one kernel output: a linear form of graph values (a Sym) or a constant."""
+    return form_text(tuple(o.terms.items()), o.const, ref, literal)[0] if isinstance(o, Sym) else literal(o)
+
+
 def emit_c(g, fname, arg_lists, roles, outputs, index=None, size=None, part='auto'):
     """C source of kernel `fname` (module docstring): its translation units, one per part,
     joined by UNIT. arg_lists: [(list name, [input names])], roles: per list 'state' or
@@ -122,8 +127,7 @@ def emit_c_units(g, fname, arg_lists, roles, outputs, index=None, size=None, par
         if index is not None:
             lines.append(f'  memset(out, 0, {int(size)} * sizeof(double));')
         for k, o in enumerate(outputs):   # after every read of the inputs, as `out` may alias them
-            txt = form_text(tuple(o.terms.items()), o.const, ref, literal)[0] if isinstance(o, Sym) else literal(o)
-            lines.append(f'  out[{k if index is None else int(index[k])}] = {txt};')
+            lines.append(f'  out[{k if index is None else int(index[k])}] = {output_text(o, ref)};')
         return lines
 
     def pointers():
@@ -158,7 +162,6 @@ def emit_step(g, fname, inputs, outputs):
     stores = []
     for k, outs in enumerate(outputs):
         for pos, o in enumerate(outs):
-            txt = form_text(tuple(o.terms.items()), o.const, ref, literal)[0] if isinstance(o, Sym) else literal(o)
-            lines.append(f'  const double r{k}_{pos} = {txt};')
+            lines.append(f'  const double r{k}_{pos} = {output_text(o, ref)};')
             stores.append(f'  o{k}[{pos}] = r{k}_{pos};')
     return '\n'.join(lines + stores + ['}']) + '\n'
