@@ -28,14 +28,21 @@ residual's measured noise sigma_j (the std of the r decided on), NOISE_SIGMAS x 
   5. The next bodies out (one joint group beyond the named one) must have felt nothing: a joint
      of theirs over DOUBT x tol_j (but under tol_j) makes the answer ambiguous, for a contact
      there with its line near that axis gives such an r as well as one on the named link.
-  6. strict: the named link only if no pure force whose line passes within `radius` of a body
+  6. With 6 supporting joints or more on the named link (its wrench fully seen, rank 6) the line
+     of a pure force is fixed: if it passes within `radius` of a next body's skeleton and through
+     that body's own joints' axes (their torques within tol_j), a push there gives r as well:
+     ambiguous (`_point_force`). This catches a push on the next body whose line passes near its
+     axis, which step 5 cannot see below DOUBT x tol_j; a push on the named link itself rarely
+     has its line there. With fewer joints on the named link that line is free and nearly
+     always fits: the check would make every such answer ambiguous, so it is left to strict.
+  7. strict: the named link only if no pure force whose line passes within `radius` of a body
      further out that explains r gives r within tol_j (`_point_force`: the segments from the
      body's origin to its frames and next joints, no meshes); else ambiguous. With fewer than 6
      joints on the named link such a force usually exists, so strict is right far less often.
   That is the limit of isolation: joint torques alone cannot tell a contact whose own joints feel
-  less than DOUBT x the tolerance from one on the link before (docs/benchmarks.md measures how
-  often); the measured noise lowers the tolerance, and with it that band, as far as the noise
-  and the model allow.
+  less than DOUBT x the tolerance from one on a link before with fewer than 6 joints
+  (docs/benchmarks.md measures how often); the measured noise lowers the tolerance, and with it
+  that band, as far as the noise and the model allow.
 An ambiguous answer names its candidate links and the reason; it never picks one.
 
 Identification (`link_wrench`): J_k^T w = r in least squares through the SVD of J_k^T (n x 6),
@@ -279,7 +286,15 @@ def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RC
         j = int(np.flatnonzero(doubt)[0])
         return ambiguous([k] + bodies, f"joint '{names[j]}' felt {abs(r[j]):.3g}, near its tolerance "
                                        f'{tol[j]:.3g}: a contact further out, its line near that axis, fits too')
-    # step 6 (strict): no point contact further out gives r with its own joints quiet
+    # step 6: k's wrench fully seen (rank 6) fixes the line of a pure force; if that line may lie
+    # on a next body, within `radius` of it and through its own joints' axes (within tol_j), a
+    # push there gives r as well: ambiguous (with fewer joints on k such a line is nearly always
+    # free, and the node names k as before; docs/benchmarks.md, section 11)
+    near = [c for c in nxt if _point_force(model, q, r, tol, c, radius)] if fits[k].rank == 6 else []
+    if near:
+        return ambiguous([k] + near, f"a push on link '{links[near[0]]}' whose line passes through the axis of "
+                                     'its own joint gives these external torques as well')
+    # step 7 (strict): no point contact further out gives r with its own joints quiet
     further = [b for b in whole if b != k and _point_force(model, q, r, tol, b, radius)] if strict else []
     if further:
         return ambiguous([k] + further, f"a point contact on link '{links[further[0]]}' would load its own joints "
