@@ -63,6 +63,17 @@ def pin_jacobian(oracle, q, link):
     return J @ oracle.E
 
 
+def scaled(J):
+    """(D J, D): the Jacobian with its translation rows divided by the lever L, the RMS distance of
+    the origin from the revolute joints' axes (|v_j| / |w_j|), D = diag(1/L x 3, 1 x 3): the
+    unknowns (L f, m) of the wrench fit."""
+    w = np.linalg.norm(J[3:], axis=0)
+    d = np.linalg.norm(J[:3, w > 1e-12], axis=0) / w[w > 1e-12]
+    L = np.sqrt(np.mean(d * d)) if d.size and np.any(d > 0) else 1.0
+    D = np.array([1 / L] * 3 + [1.0] * 3)
+    return D[:, None] * J, D
+
+
 def residual(oracle, q, pushes):
     """r = sum J_k^T F_k for {link: wrench (f, m) at its origin in its axes}."""
     return sum(pin_jacobian(oracle, q, link).T @ np.asarray(F, dtype=float) for link, F in pushes.items())
@@ -125,7 +136,7 @@ def test_a_push_on_each_link_is_isolated_and_its_wrench_recovered(name):
         w = res.wrench
         Jn = pin_jacobian(oracle, q, named)
         assert np.allclose(Jn.T @ w.wrench, r, atol=1e-9 * np.abs(r).max()), link
-        sv = np.linalg.svd(Jn, compute_uv=False)
+        sv = np.linalg.svd(scaled(Jn)[0], compute_uv=False)
         assert w.rank == int((sv >= ci.RCOND * sv[0]).sum())
         assert w.sigma_min == pytest.approx(sv[w.rank - 1], rel=1e-9)
         if w.rank == 6 and link == named:
@@ -160,21 +171,54 @@ def test_rank_deficient_links_solve_the_visible_components():
         res = ci.isolate(model, q, J.T @ F, 1e-6)
         w = res.wrench
         assert res.link == link and w.rank == rank
-        # the visible part of F: its projection on the row space of J (the minimum-norm solution)
-        U, s, _ = np.linalg.svd(J)
-        visible = U[:, :rank] @ (U[:, :rank].T @ F)
+        # the visible part of F: in (L f, m) its projection on the row space of J (the minimum-norm solution)
+        Js, D = scaled(J)
+        U, s, _ = np.linalg.svd(Js)
+        visible = D * (U[:, :rank] @ (U[:, :rank].T @ (F / D)))
         assert np.allclose(w.wrench, visible, atol=1e-9 * np.abs(F).max())
         assert w.sigma_min == pytest.approx(s[rank - 1], rel=1e-9)
         assert np.abs(w.misfit).max() < 1e-9 * np.abs(F).max()
     # rcond decides what is solved for: between the two smallest singular values, one is dropped
     J = model.jacobian(q, 'link7', 'local')
-    s = np.linalg.svd(J, compute_uv=False)
+    s = np.linalg.svd(scaled(J)[0], compute_uv=False)
     r = J.T @ rng.normal(size=6)
     w = ci.link_wrench(model, q, r, 'link7', rcond=np.sqrt(s[4] * s[5]) / s[0])
     assert w.rank == 5 and w.sigma_min == pytest.approx(s[4], rel=1e-9)
     assert np.abs(w.misfit).max() > 1e-6 and np.abs(w.unexplained).max() < 1e-9   # dropped, not unexplainable
     assert ci.link_wrench(model, q, r, 'link7').rank == 6
     assert ci.link_wrench(model, q, r, 'link7', rcond=0.999).rank == 1
+
+
+def test_the_rank_of_the_wrench_fit_does_not_depend_on_the_unit_of_length():
+    """The same fit in millimetres (J's translation rows and the torques x 1000): the same rank and
+    sigma_min, the force alike and the torque x 1000, at random states and near a singularity
+    (the wrist: joints 5 and 7 aligned). Unscaled, the singular values for force and torque differ
+    by the lever, so the rank depended on the unit."""
+    model, oracle = _robot('arm7')
+    rng = np.random.default_rng(21)
+    qs = list(states(model, N=6, seed=22)[0]) + [np.array([0.2, -0.6, 0.1, 2.0, 0.3, 1e-4, 0.8])]
+    for q in qs:
+        for link in ('link3', 'link5', 'link6', 'link7', 'tool0'):
+            J = pin_jacobian(oracle, q, link)
+            F = rng.normal(size=6) * np.array([20, 20, 20, 2, 2, 2])
+            r = J.T @ F
+            Jmm = J * np.array([1e3] * 3 + [1.0] * 3)[:, None]
+            m, mm = ci.solve_wrench(J, r), ci.solve_wrench(Jmm, 1e3 * r)
+            assert m.rank == mm.rank and mm.sigma_min == pytest.approx(m.sigma_min, rel=1e-9), (link, q)
+            np.testing.assert_allclose(mm.wrench, m.wrench * np.array([1.0] * 3 + [1e3] * 3), rtol=1e-7,
+                                       atol=1e-9 * np.abs(m.wrench).max() * 1e3)
+            assert ci.lever(Jmm) == pytest.approx(1e3 * ci.lever(J), rel=1e-12)
+    # what the scaling recovers: at this state (a push of the contact benchmark) link6's J^T has,
+    # unscaled, a singular value under rcond x the largest (a component of F was dropped, 0 by
+    # design); scaled it has not, and the wrench comes back whole
+    q = np.array([1.065, -0.022, 1.328, 1.749, -1.662, 2.659, 0.391])
+    J = pin_jacobian(oracle, q, 'link6')
+    s = np.linalg.svd(J, compute_uv=False)
+    assert s[-1] < ci.RCOND * s[0]
+    F = np.array([10.0, -20.0, 5.0, 0.5, -1.0, 2.0])
+    w = ci.link_wrench(model, q, J.T @ F, 'link6')
+    assert w.rank == 6 and w.sigma_min > 1.2 * ci.RCOND * np.linalg.svd(scaled(J)[0], compute_uv=False)[0]
+    np.testing.assert_allclose(w.wrench, F, rtol=1e-8, atol=1e-8 * np.abs(F).max())
 
 
 def test_two_contacts_are_ambiguous_never_guessed():

@@ -47,12 +47,16 @@ An ambiguous answer names its candidate links and the reason; it never picks one
 
 Identification (`link_wrench`): J_k^T w = r in least squares through the SVD of J_k^T (n x 6),
 w = (f, m) at the link's origin in link axes (J_k in the 'local' frame: its rows (v, w) pair
-with (f, m)). Singular values below rcond x the largest (default RCOND) are dropped: with fewer
-than 6 supporting joints (a link near the base) or at a singularity only the components the joints see
-are solved for, the others are 0 (the minimum-norm solution at the link origin), and the rank
-and the smallest singular value used are reported. The same fit at a chosen link is the tool
-wrench (all contact at that frame), Franka's O_F_ext_hat_K. `line_of_action` is the line of a
-pure force with that wrench.
+with (f, m)), the force scaled by the link's lever L (`lever`: the RMS distance of the origin from
+its revolute joints' axes), so that the unknowns (L f, m) are both torques and the rank decision
+does not depend on the unit of length (unscaled, J^T's singular values for force and torque
+differ by about the lever, and the rank depended on the unit). Singular values below rcond x
+the largest (default RCOND) are dropped: with fewer than 6 supporting joints (a link near the
+base) or at a singularity only the components the joints see are solved for, the others are 0
+(the minimum-norm solution in (L f, m) at the link origin), and the rank and the smallest
+singular value used are reported. With full rank the scaling changes nothing. The same fit at a
+chosen link is the tool wrench (all contact at that frame), Franka's O_F_ext_hat_K.
+`line_of_action` is the line of a pure force with that wrench.
 
 Settling: the observer is a first-order filter (rdot = K (tau_ext - r)), so while the residual
 rises the proximal joints cross their thresholds first and a literal rule names a proximal link;
@@ -100,7 +104,8 @@ DOUBT = 1.0 / 3.0
 class WrenchEstimate(NamedTuple):
     wrench: np.ndarray   # (fx, fy, fz, mx, my, mz), N and N m, at the link origin in link axes
     rank: int            # components solved for (singular values >= rcond x the largest)
-    sigma_min: float     # the smallest singular value used (0.0 when rank is 0)
+    sigma_min: float     # the smallest singular value used (of J^T D, D the force's scaling by `lever`; 0.0
+    #                      when rank is 0)
     misfit: np.ndarray   # r - J^T wrench (n,): what the solved components leave
     unexplained: np.ndarray   # (n,) the part of r that no wrench on this link can give (outside
     #                           the range of J^T: nonzero only with more joints than the rank)
@@ -170,20 +175,40 @@ def _rcond(rcond):
     return float(rcond)
 
 
+def lever(jacobian_local):
+    """The length L (m) that makes force and torque comparable for this Jacobian: the RMS distance
+    of the frame's origin from the axes of its revolute joints (|v_j| / |w_j| of their columns),
+    1.0 when no such axis lies off the origin. It scales with the unit of length, so the rank
+    decision of `solve_wrench` does not depend on it."""
+    J = np.asarray(jacobian_local, dtype=float)
+    w = np.linalg.norm(J[3:], axis=0)
+    rev = w > _EXACT * max(float(w.max(initial=0.0)), 1.0)
+    d = np.linalg.norm(J[:3, rev], axis=0) / w[rev]
+    L = float(np.sqrt(np.mean(d * d))) if d.size else 0.0
+    return L if L > 0 else 1.0
+
+
 def solve_wrench(jacobian_local, r, rcond=RCOND):
     """WrenchEstimate of J^T w = r for a 6 x n 'local' Jacobian (rows v, w): least squares through
-    the SVD, singular values below rcond x the largest dropped (module docstring)."""
+    the SVD of J^T with the force scaled by the frame's lever L (`lever`: the unknowns (L f, m),
+    both in N m, so that rcond compares like with like whatever the unit of length), singular
+    values below rcond x the largest dropped (module docstring)."""
     J = np.asarray(jacobian_local, dtype=float)
     rcond = _rcond(rcond)
     r = np.asarray(r, dtype=float)
-    U, s, Vt = np.linalg.svd(J.T, full_matrices=False)      # J^T = U diag(s) Vt, U (n, 6)
+    L = lever(J)
+    D = np.array([1.0 / L] * 3 + [1.0] * 3)                 # w = D w', w' = (L f, m)
+    A = J.T * D                                             # J^T D: r = A w'
+    U, s, Vt = np.linalg.svd(A, full_matrices=False)        # A = U diag(s) Vt, U (n, 6)
     keep = s >= rcond * s[0] if s.size and s[0] > 0 else np.zeros(s.shape, dtype=bool)
     k = int(keep.sum())
-    P = Vt[:k].T @ (U[:, :k] / s[:k]).T
+    P = D[:, None] * (Vt[:k].T @ (U[:, :k] / s[:k]).T)     # w = P r
     w = P @ r
     Ur = U[:, s > _EXACT * s[0]] if s.size else U[:, :0]   # the range of J^T, to rounding
-    V = np.linalg.svd(J.T)[2] if J.shape[1] < 6 else Vt   # all six directions when J^T has fewer rows
-    return WrenchEstimate(w, k, float(s[k - 1]) if k else 0.0, r - J.T @ w, r - Ur @ (Ur.T @ r), V[k:].T, P)
+    V = np.linalg.svd(A)[2] if J.shape[1] < 6 else Vt      # all six directions when J^T has fewer rows
+    # the wrench directions whose components are 0: orthogonal to D x the solved directions of w'
+    unseen = np.linalg.qr(V[k:].T / D[:, None])[0] if k < 6 else np.zeros((6, 0))
+    return WrenchEstimate(w, k, float(s[k - 1]) if k else 0.0, r - J.T @ w, r - Ur @ (Ur.T @ r), unseen, P)
 
 
 def link_wrench(model, q, r, link, rcond=RCOND):
