@@ -18,7 +18,8 @@ residual's measured noise sigma_j (the std of the r decided on), NOISE_SIGMAS x 
      child link of the body's joint) stands for every link fixed to it; a body that a mimic of an
      existing joint moves is a body of its own. None (joints felt on two branches): ambiguous.
   3. A candidate explains r if some wrench on it gives r within tol_j on every joint (the part
-     of r outside the range of J_k^T, nonzero only with more supporting joints than its rank).
+     of r outside the range of J_k^T, nonzero only with more supporting joints than its rank;
+     for a mean r over a motion, within tol_j of a mean of J_k^T w over it, to first order).
      None: two contacts, ambiguous.
   4. Of those that explain r, the least supported one (on a chain the most proximal) is named;
      several least supported ones (two branches, fingers a mimic moves alike): ambiguous. A body
@@ -244,14 +245,20 @@ def tolerances(threshold, tolerance=TOLERANCE, noise=None):
     return np.clip(NOISE_SIGMAS * sig, NOISE_FLOOR * tol, tol)
 
 
-def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RCOND, strict=False, noise=None):
+def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RCOND, strict=False, noise=None,
+            q_from=None):
     """Isolation of the contact link from a settled residual r (n,) at the state q with the
     per-joint thresholds `threshold` (one value or n): the rule of the module docstring, with
     consistency within tol_j (`tolerances`: tolerance x threshold_j, or from `noise`, the measured
     std of r per joint) on each joint and point contacts within `radius` (m) of a link's skeleton.
+    `q_from`: when r is a mean over states from q_from to q (the arm yields to a push while the
+    mean is taken), step 3 takes r as J_k(q)^T w - c (J_k(q) - J_k(q_from))^T w for some c in
+    [0, 1] (to first order in the motion; w the fitted wrench): no single J_k^T gives such a mean.
     Returns an Isolation; the wrench of an isolated link comes with it."""
     n = model.n
     r = _vector('r', r, n)
+    if q_from is not None:
+        q_from = _vector('q_from', q_from, n)
     th = broadcast_joints(threshold, n)
     if th is None or not np.all(np.isfinite(th)) or np.any(th <= 0):
         raise ValueError(f'threshold must be one or {n} finite positive values, got {threshold!r}')
@@ -279,7 +286,28 @@ def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RC
                              'two contacts or more')
     # step 3: some wrench on the body explains r within tol on every joint
     fits = {b: link_wrench(model, q, r, links[b], rcond) for b in cand}
-    whole = [b for b in cand if np.all(np.abs(fits[b].unexplained) <= tol)]
+
+    def explains(b):
+        u = fits[b].unexplained
+        if np.all(np.abs(u) <= tol):
+            return True
+        if q_from is None:
+            return False
+        # a mean over the motion from q_from is, to first order, J(q)^T w - c (J(q) - J(q_from))^T w
+        # for some c in [0, 1]: what is left of it (ux, outside the range of J(q)^T) may be left
+        Jq = model.jacobian(q, links[b], 'local')
+        ux = solve_wrench(Jq, (Jq - model.jacobian(q_from, links[b], 'local')).T @ fits[b].wrench).unexplained
+        lo, hi = 0.0, 1.0   # the c with |u + c ux| <= tol on every joint
+        for uj, xj, tj in zip(u, ux, tol):
+            if abs(xj) <= _EXACT * tj:
+                if abs(uj) > tj:
+                    return False
+                continue
+            a, b2 = sorted(((-tj - uj) / xj, (tj - uj) / xj))
+            lo, hi = max(lo, a), min(hi, b2)
+        return lo <= hi
+
+    whole = [b for b in cand if explains(b)]
     if not whole:
         b = min(cand, key=lambda b: t.support[b].sum())
         j = int(np.argmax(np.abs(fits[b].unexplained) / tol))

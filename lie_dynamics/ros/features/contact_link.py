@@ -18,16 +18,17 @@ ContactMonitor: the estimate r, its time t in s, the debounced flag), returns wh
 
 Isolation is decided on a settled residual only (contact_isolation.Settling, window one observer
 time constant 1 / min(observer.gain)), once each time it settles, DECIDE_WINDOWS time constants
-into the settled stretch, on the stretch's mean with its measured noise (`_noise`: the scatter of
-the stretch's checkpoints, or the residual's mean square with the flag down, `_free`, whichever is
-larger), so the tolerances are NOISE_SIGMAS x that noise where it allows; an ambiguous answer is
-decided anew at each checkpoint while the stretch grows (its noise falls). After the flag rises
-the link stays '' until then, and while the residual changes again (the push grows or moves) the
-last decision holds until it settles anew. The Jacobians and the isolation run only
-while the flag is up, except the tool wrench's; a fit (Jacobian and SVD) serves while it is
-younger than one time constant or the joints have not moved (REFIT_RAD) since: w = inverse r.
-A model, gravity, payload or observer change (contact.REINIT_KEYS) and a paused observer start
-it anew, as they start the observer anew.
+into the settled stretch, on the stretch's mean (over the motion since the stretch began:
+isolate's q_from) with its measured noise (`_noise`: the scatter of the stretch's checkpoints,
+or the residual's mean square with the flag down, `_free`, whichever is larger), so the
+tolerances are NOISE_SIGMAS x that noise where it allows; an ambiguous answer is decided anew at
+each checkpoint while the stretch grows (its noise falls). After the flag rises the link stays
+'' until then, and while the residual changes again (the push grows or moves) the last decision
+holds until it settles anew. The Jacobians and the isolation run only while the flag is up,
+except the tool wrench's; a fit (Jacobian and SVD) serves while it is younger than one time
+constant or the joints have not moved (REFIT_RAD) since: w = inverse r. A model, gravity,
+payload or observer change (contact.REINIT_KEYS) and a paused observer start it anew, as they
+start the observer anew.
 """
 import collections
 from typing import NamedTuple, Optional
@@ -107,6 +108,7 @@ class ContactIsolation:
         self._decided = False       # the settled stretch's decision is made
         self._all = None            # [count, sum, sum of squares] of the whole stretch's checkpoints
         self._start = 0.0           # the time the settled stretch began
+        self._q_start = None        # the joints then (the stretch's mean spans the motion from there)
         self._gain = 1.0            # the observer's gain K (1/s, one or per joint)
         self._free_ms, self._free_n, self._free_next = None, 0, None   # the flag-down noise (_free)
         self._mean_span = 0.0
@@ -224,6 +226,7 @@ class ContactIsolation:
             self._sum = np.zeros_like(r)
             self._decided, self._start = False, t
             self._all = [0, np.zeros_like(r), np.zeros_like(r)]
+            self._q_start = np.array(q, dtype=float)
         q = np.array(q, dtype=float)
         # the trapezoid integral of r from the stretch's start (the lag correction needs the time mean)
         area = m[-1][3] + 0.5 * (t - m[-1][0]) * (r + m[-1][1]) if m else np.zeros_like(r)
@@ -245,7 +248,7 @@ class ContactIsolation:
             # a contact does not load stays unloaded as the arm yields; the least noisy mean
             whole = a[1] / a[0]
             iso = ci.isolate(self.model, q, whole, threshold, self.tolerance, self.radius, self.rcond, self.strict,
-                             noise=self._noise(whole, a[2] / a[0], t - self._start))
+                             noise=self._noise(whole, a[2] / a[0], t - self._start), q_from=self._q_start)
             if self.isolation is None or iso.status != self.isolation.status or iso.link != self.isolation.link:
                 self._log(iso)
             self.isolation = iso
