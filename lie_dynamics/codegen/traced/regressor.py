@@ -193,13 +193,26 @@ def _columns_in(C, nz):
     return [(tuple(flat[6 * k:6 * k + 3]), tuple(flat[6 * k + 3:6 * k + 6])) for k in range(10)]
 
 
+PAIR_ARGS = 'Z + ZL[p] + 6 * i, X + 12 * b, COLS, zb + 6 * i, out + (size_t)PJ[i] * 10 * NB + 10 * b'
+
+
+def _pose_pattern(revolute, pat):
+    """The entries of a body's pose (looped.pose_out) that its body step stores as constants (folded
+    in its pair step), None for the others, for step signature pattern `pat` (looped.exact)."""
+    g = Graph()
+    K = [c if c is not None else g.input(f'k{k}') for k, c in enumerate(pat)]
+    X = joint_transform(g, _consts_in(K[:30], revolute), revolute, g.input('x'))
+    return tuple(None if isinstance(e, Sym) else e for e in looped.pose_out(X))
+
+
 def looped_regressor(fr):
     """The looped native form of REGRESSOR (codegen/looped.py), or None (mimic joints). Steps:
     per body, by depth-first order (looped.dfs_order), `joint_transform`, `motion`,
     `body_columns` and its own block (`project` of its screw), one step per signature (joint
     kind, welded or root, the exact constants: looped.exact); per (body, moving ancestor) pair
-    one step, `screw_to_child` then `project`, the ancestor's screw carried in a register block
-    per depth along the current path (Z)."""
+    `screw_to_child` then `project`, one step per pattern of the body's pose (its constant
+    entries folded: _pose_pattern), the ancestor's screw carried in a register block per depth
+    along the current path (Z)."""
     J = looped.joints_of(fr)
     if J is None:
         return None
@@ -233,10 +246,16 @@ def looped_regressor(fr):
             return [looped.pose_out(X), [*V[0], *V[1]], [*A[0], *A[1]], [flat[k] for k in nz], own]
         src.append(looped.step(f'body{i}', body, (1, 1, 1, 36, 6, 6)))
 
-    def pair(g, Zp, X, C):
-        Z = screw_to_child((tuple(Zp[:3]), tuple(Zp[3:])), looped.pose_in(X))
-        return [[*Z[0], *Z[1]], project(Z, _columns_in(C, nz))]
-    src.append(looped.step('pair', pair, (6, 12, len(nz))))
+    poses, psig = looped.classify([_pose_pattern(keys[sig[b]][0], keys[sig[b]][3]) for b in range(nb)])
+    src.append(looped.table('int', 'PSIG', psig))
+    for i, pose in enumerate(poses):
+        def pair(g, Zp, X, C, pose=pose):
+            Xc = looped.pose_in([X[k] if c is None else c for k, c in enumerate(pose)])
+            Z = screw_to_child((tuple(Zp[:3]), tuple(Zp[3:])), Xc)
+            return [[*Z[0], *Z[1]], project(Z, _columns_in(C, nz))]
+        src.append(looped.step(f'pair{i}', pair, (6, 12, len(nz))))
+    pair_loop = ' '.join(f'case {i}: for (int i = 0; i < na; i++) pair{i}({PAIR_ARGS}); break;'
+                         for i in range(len(poses)))
     body_call = looped.switch('SIG[b]', [f'body{i}' for i in range(len(keys))],
                               '&x, &xd, &xdd, K0 + 36 * b, p >= 0 ? V + 6 * p : ZERO6, p >= 0 ? A + 6 * p : base, '
                               'X + 12 * b, V + 6 * b, A + 6 * b, COLS, yb')
@@ -264,8 +283,7 @@ void lie_kernel(const double *const *in, const double *const *par, double *out)
     {body_call}
     double *const zb = Z + ZL[b];
     const int na = p >= 0 ? AD[p] : 0;
-    for (int i = 0; i < na; i++)
-      pair(Z + ZL[p] + 6 * i, X + 12 * b, COLS, zb + 6 * i, out + (size_t)PJ[i] * 10 * NB + 10 * b);
+    switch (PSIG[b]) {{ {pair_loop} }}
     if (j >= 0) {{ memcpy(zb + 6 * na, K0 + 36 * b + 30, 6 * sizeof(double)); PJ[na] = j; }}
   }}
 {free}}}
