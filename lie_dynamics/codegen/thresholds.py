@@ -110,7 +110,14 @@ THRESHOLDS = {
     # chains (tip link) the float kernel beats the vectorised form for one state up to ~96 bodies,
     # 1.3-1.6x at 64 where a build takes 0.1-0.2 s (0.3 s at 128); on the arm the loop/rows
     # crossover is 24-40 states, the vectorised form never faster in between.
-    'jacobian': Limits(64, 64, 32, 32),
+    # native_max: no looped form, the O(depth) source stays small (the tip of a 200-body chain:
+    # 13,000 nodes for J, 22,000 for J̇q̇). `python -m bench.looped --families jacobian,jacobian_dot`
+    # (deepest link, cap lifted, load 2.8-3): first use 0.6-2.4 s on chains of 32-200 bodies, 0.1-0.65 s
+    # on binary trees of 64-200; J 0.54-0.82x pin.computeFrameJacobian on those chains, J̇q̇ 0.3-0.5x
+    # its classical acceleration, 0.06-0.2x on the trees (J 1.7-2x there: Pinocchio's ~1-2 us
+    # against the Python call path's ~1 us over the kernel). Above 256 bodies, native_nodes still
+    # bounds a deep link's kernel (~110 nodes per body of depth for J̇q̇).
+    'jacobian': Limits(64, 64, 32, 32, native_max=256),
     # Batch runner: states per chunk, large enough that each ufunc's ~0.5 us fixed cost is
     # small next to its per-element work, small enough that the rows stay in cache (at most
     # ~8 MB of registers and inputs per chunk).
