@@ -94,6 +94,18 @@ def test_looped_regressor_runs_and_agrees(robot):
     _check(m, ref, robot.oracle, *_states(m, 4, seed=1))
 
 
+def test_threads_give_identical_results(robot):
+    """A batch cut among threads (native.set_threads) equals the one-thread batch, bit for bit."""
+    m = robot.model
+    q, qd, qdd = _states(m, 2 * 64 + 3, seed=10)
+    one = m.regressor(q, qd, qdd)
+    previous = native.set_threads(2, min_rows=64)   # cut even this batch
+    try:
+        assert np.array_equal(runtime.native(m, SPEC)(q, qd, qdd), one)
+    finally:
+        native.set_threads(previous)
+
+
 def test_out_buffers(robot):
     """The bound kernel's `out=` (the Model method has none): a good buffer is written and
     returned, a bad one declined (None), the kernel's own result unchanged."""
