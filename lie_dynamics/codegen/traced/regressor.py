@@ -193,7 +193,7 @@ def _columns_in(C, nz):
     return [(tuple(flat[6 * k:6 * k + 3]), tuple(flat[6 * k + 3:6 * k + 6])) for k in range(10)]
 
 
-PAIR_ARGS = 'Z + ZL[p] + 6 * i, X + 12 * b, COLS, zb + 6 * i, out + (size_t)PJ[i] * 10 * NB + 10 * b'
+_PAIR_ARGS = 'Z + ZL[p] + 6 * i, X + 12 * b, COLS, zb + 6 * i, out + (size_t)PJ[i] * 10 * NB + 10 * b'
 
 
 def _pose_pattern(revolute, pat):
@@ -254,7 +254,7 @@ def looped_regressor(fr):
             Z = screw_to_child((tuple(Zp[:3]), tuple(Zp[3:])), Xc)
             return [[*Z[0], *Z[1]], project(Z, _columns_in(C, nz))]
         src.append(looped.step(f'pair{i}', pair, (6, 12, len(nz))))
-    pair_loop = ' '.join(f'case {i}: for (int i = 0; i < na; i++) pair{i}({PAIR_ARGS}); break;'
+    pair_loop = ' '.join(f'case {i}: for (int i = 0; i < na; i++) pair{i}({_PAIR_ARGS}); break;'
                          for i in range(len(poses)))
     body_call = looped.switch('SIG[b]', [f'body{i}' for i in range(len(keys))],
                               '&x, &xd, &xdd, K0 + 36 * b, p >= 0 ? V + 6 * p : ZERO6, p >= 0 ? A + 6 * p : base, '
