@@ -10,4 +10,5 @@ benchmarks `python -m bench` runs: `python -m bench.probes.<name>`.
   node_trace      the dynamics node with its joint_states callbacks and log lines timed (bench.node_loads --trace)
   sched_trace     the kernel's scheduler record of the node's waits for a CPU during bench.node_loads
   latency_split   the round trip cut into DDS, the node's Python to the command, the way back and the work after
+  contact_answers  why each wrong or ambiguous isolation answer of bench.contact happens, push by push
 """
