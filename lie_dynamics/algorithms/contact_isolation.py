@@ -182,11 +182,11 @@ def lever(jacobian_local):
     1.0 when no such axis lies off the origin. It scales with the unit of length, so the rank
     decision of `solve_wrench` does not depend on it."""
     J = np.asarray(jacobian_local, dtype=float)
-    w = np.linalg.norm(J[3:], axis=0)
-    rev = w > _EXACT * max(float(w.max(initial=0.0)), 1.0)
-    d = np.linalg.norm(J[:3, rev], axis=0) / w[rev]
-    L = float(np.sqrt(np.mean(d * d))) if d.size else 0.0
-    return L if L > 0 else 1.0
+    sq = J * J
+    w2, v2 = sq[3:].sum(axis=0), sq[:3].sum(axis=0)
+    rev = w2 > _EXACT * _EXACT * max(float(w2.max(initial=0.0)), 1.0)
+    L2 = float(np.mean(v2[rev] / w2[rev])) if rev.any() else 0.0
+    return math.sqrt(L2) if L2 > 0 else 1.0
 
 
 def solve_wrench(jacobian_local, r, rcond=RCOND):
@@ -198,12 +198,13 @@ def solve_wrench(jacobian_local, r, rcond=RCOND):
     rcond = _rcond(rcond)
     r = np.asarray(r, dtype=float)
     L = lever(J)
-    D = np.array([1.0 / L] * 3 + [1.0] * 3)                 # w = D w', w' = (L f, m)
+    D = np.ones(6)
+    D[:3] = 1.0 / L                                         # w = D w', w' = (L f, m)
     A = J.T * D                                             # J^T D: r = A w'
     U, s, Vt = np.linalg.svd(A, full_matrices=False)        # A = U diag(s) Vt, U (n, 6)
     keep = s >= rcond * s[0] if s.size and s[0] > 0 else np.zeros(s.shape, dtype=bool)
     k = int(keep.sum())
-    P = D[:, None] * (Vt[:k].T @ (U[:, :k] / s[:k]).T)     # w = P r
+    P = (Vt[:k].T * D[:, None]) @ (U[:, :k] / s[:k]).T      # w = P r
     w = P @ r
     Ur = U[:, s > _EXACT * s[0]] if s.size else U[:, :0]   # the range of J^T, to rounding
     V = np.linalg.svd(A)[2] if J.shape[1] < 6 else Vt      # all six directions when J^T has fewer rows
