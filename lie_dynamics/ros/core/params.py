@@ -233,10 +233,12 @@ PARAMS = (
     ParamSpec('contact.strict_isolation', 'bool', False,
               'Name a link only if no point contact within contact.link_radius of a link further out could give '
               'the same external torques with that link\'s own joints quiet (else: ambiguous). false: the most '
-              'proximal link that explains the torques.', True),
+              'proximal link that explains the torques (ambiguous where its wrench, fully seen, is a force whose '
+              'line may pass through the next link\'s joint axis).', True),
     ParamSpec('contact.link_radius', 'double', RADIUS,
-              'contact.strict_isolation: a point contact lies within this distance (m) of the segments from a '
-              'link\'s origin to its frames and next joints.', True, (1e-3, 10.0), unit='m'),
+              'A point contact lies within this distance (m) of the segments from a link\'s origin to its frames '
+              'and next joints (contact.strict_isolation, and the next-link check of a fully seen wrench).', True,
+              (1e-3, 10.0), unit='m'),
     # dynamics terms for other nodes (dynamics_topics.py)
     ParamSpec('dynamics.publish', 'string_array', None,
               'Dynamics terms published on ~/dynamics/<term> after each command: gravity (g(q)), coriolis '
