@@ -1,5 +1,6 @@
-"""Looped native kernels (codegen/looped.py): the mass matrix and the ABA (and forward dynamics,
-method='cholesky', which takes the looped ABA) rendered as per-body steps looped in C, forced on
+"""Looped native kernels (codegen/looped.py): the mass matrix, the ABA (and forward dynamics,
+method='cholesky', which takes the looped ABA) and the derivatives of inverse dynamics (with
+wrenches, and the Coriolis matrix, their dtau/dqd half) rendered as per-body steps looped in C, forced on
 small robots by THRESHOLDS looped_from = 1 so that they compile in a fraction of a second. Checked
 against the Python kernels (the same model with the native backend off), the straight-line
 native kernels and Pinocchio, single states and batches, with payload, gravity, armature and
@@ -10,12 +11,14 @@ import pytest
 from lie_dynamics.codegen import kernel, native, runtime
 from lie_dynamics.codegen.traced import aba as t_aba
 from lie_dynamics.codegen.traced import crba as t_crba
+from lie_dynamics.codegen.traced import derivatives as t_der
 from dyn_cases import quiet_load as _load, rel_max as _rel
 from oracle import Oracle
 from robots import random_urdf
 
 TOL = 1e-12
-LIMITS = ('mass_matrix', 'aba')
+LIMITS = ('mass_matrix', 'aba', 'inverse_dynamics_derivatives')
+DERIVATIVES = (t_der.INVERSE_DYNAMICS_DERIVATIVES, t_der.INVERSE_DYNAMICS_DERIVATIVES_WRENCH, t_der.CORIOLIS)
 
 pytestmark = pytest.mark.skipif(native.module() is None, reason='no working C compiler')
 
@@ -34,7 +37,7 @@ def looped_everywhere():
 
 
 class Robot:
-    """A model whose M and ABA are looped, its Python twin (native off) and Pinocchio."""
+    """A model whose M, ABA and derivatives are looped, its Python twin (native off) and Pinocchio."""
 
     def __init__(self, xml, **kw):
         self.xml = xml
@@ -66,6 +69,34 @@ def _check_solve(got, want, ref, q, qd, tau):
     assert _rel(got, want) <= max(TOL, 1e-15 * np.linalg.cond(M))
 
 
+def _wrenches(m, N, seed):
+    """Body wrenches on two links, one per state."""
+    rng = np.random.default_rng(seed)
+    links = [nm for nm, (b, _) in m.link_frames.items() if b >= 0]
+    return {links[-1]: rng.uniform(-2, 2, (N, 6)), links[len(links) // 2]: rng.uniform(-2, 2, (N, 6))}
+
+
+def _check_derivatives(m, ref, oracle, q, qd, qdd):
+    """The looped derivative kernels (ID derivatives, with wrenches, the Coriolis matrix) against the
+    Python twin and Pinocchio, one state at a time and as one batch."""
+    D = m.inverse_dynamics_derivatives(q, qd, qdd)
+    C = m.coriolis_matrix(q, qd, method='recursive')
+    w = _wrenches(m, len(q), seed=len(q))
+    W, Wref = m.inverse_dynamics_derivatives(q, qd, qdd, w), ref.inverse_dynamics_derivatives(q, qd, qdd, w)
+    assert _rel(W[0], D[0]) > 1e-6   # the wrenches enter dtau/dq
+    for i in range(len(q)):
+        d = m.inverse_dynamics_derivatives(q[i], qd[i], qdd[i])
+        for k in range(2):
+            assert np.array_equal(D[k][i], d[k])
+            assert _rel(d[k], ref.inverse_dynamics_derivatives(q[i], qd[i], qdd[i])[k]) <= TOL
+            assert _rel(d[k], oracle.rnea_derivatives(q[i], qd[i], qdd[i])[k]) <= TOL
+            assert _rel(W[k][i], Wref[k][i]) <= TOL
+        c = m.coriolis_matrix(q[i], qd[i], method='recursive')
+        assert np.array_equal(C[i], c)
+        assert _rel(c, ref.coriolis_matrix(q[i], qd[i], method='recursive')) <= TOL
+        assert _rel(c, oracle.coriolis_matrix(q[i], qd[i])) <= TOL
+
+
 def _check_all(m, ref, oracle, q, qd, qdd):
     """Every looped family of m on states (N, n) against the Python twin and Pinocchio, one state
     at a time and as one batch (the batch's rows equal the single calls)."""
@@ -73,6 +104,7 @@ def _check_all(m, ref, oracle, q, qd, qdd):
     M = m.mass_matrix(q)
     A = m.forward_dynamics(q, qd, tau, method='aba')
     C = m.forward_dynamics(q, qd, tau)
+    _check_derivatives(m, ref, oracle, q, qd, qdd)
     for i in range(len(q)):
         s = (q[i], qd[i], tau[i])
         Mi = m.mass_matrix(q[i])
@@ -89,7 +121,7 @@ def _check_all(m, ref, oracle, q, qd, qdd):
 
 def test_looped_kernels_run_and_agree(robot):
     m, ref = robot.model, robot.ref
-    for spec in (t_crba.MASS_MATRIX, t_aba.spec(m)):
+    for spec in (t_crba.MASS_MATRIX, t_aba.spec(m)) + DERIVATIVES:
         assert runtime.looped(m, spec) and not runtime.looped(ref, spec)
         assert runtime.native(m, spec) is not None
     _check_all(m, ref, robot.oracle, *_states(m, 4, seed=1))
@@ -122,6 +154,11 @@ def test_parameters_change_without_recompiling(robot):
         tau = ref.inverse_dynamics(q, qd, qdd)
         for i in range(len(q)):
             assert _rel(m.mass_matrix(q[i]), ref.mass_matrix(q[i])) <= TOL
+            for k in range(2):
+                assert _rel(m.inverse_dynamics_derivatives(q[i], qd[i], qdd[i])[k],
+                            ref.inverse_dynamics_derivatives(q[i], qd[i], qdd[i])[k]) <= TOL
+            assert _rel(m.coriolis_matrix(q[i], qd[i], method='recursive'),
+                        ref.coriolis_matrix(q[i], qd[i], method='recursive')) <= TOL
             for method in ('aba', 'cholesky'):
                 s = (q[i], qd[i], tau[i])
                 _check_solve(m.forward_dynamics(*s, method=method), ref.forward_dynamics(*s, method='aba'), ref, *s)
@@ -181,11 +218,17 @@ def test_looped_equals_straight_line(looped_everywhere):
         q, qd, qdd = _states(m, 3, seed=6)
         tau = straight.inverse_dynamics(q, qd, qdd)
         M, A = straight.mass_matrix(q), straight.forward_dynamics(q, qd, tau, method='aba')
+        D = straight.inverse_dynamics_derivatives(q, qd, qdd)
+        C = straight.coriolis_matrix(q, qd, method='recursive')
         assert not runtime.looped(straight, t_crba.MASS_MATRIX)
+        assert not any(runtime.looped(straight, s) for s in DERIVATIVES)
     finally:
         T.update(saved)
     assert runtime.looped(m, t_crba.MASS_MATRIX)
     assert _rel(m.mass_matrix(q), M) <= TOL
+    for got, want in zip(m.inverse_dynamics_derivatives(q, qd, qdd), D, strict=True):
+        assert _rel(got, want) <= TOL
+    assert _rel(m.coriolis_matrix(q, qd, method='recursive'), C) <= TOL
     assert _rel(m.forward_dynamics(q, qd, tau, method='aba'), A) <= max(TOL, 1e-15 * max(
         np.linalg.cond(x) for x in M))
 
@@ -196,11 +239,16 @@ def test_mimic_joints_keep_todays_routes(looped_everywhere):
     m = _load(xml)
     assert not t_aba.supports(m)   # a mimic joint was drawn
     assert not runtime.looped(m, t_crba.MASS_MATRIX)
+    assert not any(runtime.looped(m, s) for s in DERIVATIVES)
+    assert all(s.looped(runtime.frames(m)) is None for s in DERIVATIVES)
     ref = _load(xml)
     runtime.use_native(ref, False)
     q = _states(m, 1, seed=7)[0][0]
     assert _rel(m.mass_matrix(q), ref.mass_matrix(q)) <= TOL
     assert _rel(m.mass_matrix(q), Oracle(xml, joints=m.joint_names).crba(q)) <= TOL
+    for got, want in zip(m.inverse_dynamics_derivatives(q, q, q), ref.inverse_dynamics_derivatives(q, q, q),
+                         strict=True):
+        assert _rel(got, want) <= TOL
 
 
 def test_looped_kernels_load_from_the_disk_cache(looped_everywhere):
@@ -208,13 +256,15 @@ def test_looped_kernels_load_from_the_disk_cache(looped_everywhere):
     rendering it again; its key differs from the straight-line kernel's (another name)."""
     xml = random_urdf(36, 5)
     q = _states(_load(xml), 1, seed=8)[0][0]
-    first = _load(xml).mass_matrix(q)
+    m = _load(xml)
+    first = m.mass_matrix(q), m.coriolis_matrix(q, q, method='recursive')
     runtime.clear()
     compiled, rendered = native.compile_count(), kernel.builds()
     m = _load(xml)
-    assert np.array_equal(m.mass_matrix(q), first)
+    assert np.array_equal(m.mass_matrix(q), first[0])
+    assert np.array_equal(m.coriolis_matrix(q, q, method='recursive'), first[1])
     assert native.compile_count() == compiled and kernel.builds() == rendered
-    assert runtime.looped(m, t_crba.MASS_MATRIX)
+    assert runtime.looped(m, t_crba.MASS_MATRIX) and runtime.looped(m, t_der.CORIOLIS)
 
 
 def test_looped_from_counts_pairs_and_takes_over_above_the_caps():

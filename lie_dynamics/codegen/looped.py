@@ -130,3 +130,13 @@ def sym6_in(vals):
 def sym6_out(K):
     """The 21 upper entries of a symmetric 6x6."""
     return [K[i][j] for i in range(6) for j in range(i, 6)]
+
+
+def pose_in(v):
+    """A transform (R, t) from its 12 values in a register: R row-major, then t."""
+    return tuple(tuple(v[3 * r:3 * r + 3]) for r in range(3)), tuple(v[9:12])
+
+
+def pose_flat(X):
+    """The 12 values of a transform (R, t): R row-major, then t."""
+    return [e for row in X[0] for e in row] + list(X[1])

@@ -81,7 +81,15 @@ THRESHOLDS = {
     # compiler CPU (the 64-body tree's 59,000 nodes), 0.1-0.4x Pinocchio's computeRNEADerivatives
     # (computeCoriolisMatrix 0.1-0.2x, 1.4x in a load spike); a 64-body chain (160,000 nodes) is
     # above native_nodes.
-    'inverse_dynamics_derivatives': Limits(16, 16, 4, 128, native_max=64),
+    # looped_from (`python -m bench.looped --families inverse_dynamics_derivatives,coriolis`, load
+    # 1.3-2.9, one state, medians of per-round ratios; C takes the same kernel's route): looped /
+    # straight-line 1.03-1.3 on chains of 6-8 bodies, 0.9-1.0 from 10-16 bodies (chains, trees,
+    # Talos reduced), 0.6-1.7 at 24-64 (noisy under that load); first use 0.15-0.5 s looped against
+    # 0.4-2.3 s up to 16 bodies, 3-9 s at 24-32 and 6-20 s at 48-64. Hence looped from 12 bodies,
+    # and at any size above the caps: 0.35-0.6x Pinocchio's computeRNEADerivatives (C: 0.35-0.6x
+    # computeCoriolisMatrix) on 12-64 bodies, 0.8 / 1.0x on chains of 100 / 200 bodies and
+    # 0.6 / 0.9x on trees of 100 / 200 (C: 0.75 / 0.8x and 0.6 / 0.7x).
+    'inverse_dynamics_derivatives': Limits(16, 16, 4, 128, native_max=64, looped_from=12),
     # Derivatives of forward dynamics (the derivative kernel's cap); crossovers on the arm
     # ~8 (loop) and ~80 (rows).
     # Native: O(n^3) source (M^-1 times the RNEA derivatives): 25,000-85,000 nodes on Baxter, PR2,
@@ -129,7 +137,8 @@ THRESHOLDS = {
     # those robots go native (the largest, forward-dynamics derivatives of a 32-body tree,
     # 85,000 nodes, ~8 s of CPU, ~4 s on 2 quiet cores, once: the disk cache keeps it) but
     # the O(n^2) and O(n^3) families of long chains (64 bodies: 160,000-1,700,000 nodes): there the
-    # looped form runs where a family has one (looped_from: M, ABA, forward dynamics), else the
+    # looped form runs where a family has one (looped_from: M, ABA, forward dynamics, the ID
+    # derivatives and C), else the
     # vectorised reference (docs/architecture.md, "Looped native kernels").
     'native_nodes': 100000,
     # Native batches release the GIL from this many states (below, the release costs more

@@ -80,15 +80,6 @@ def _ic_flat(ic):
     return [ic[0], *ic[1], *ic[2]]
 
 
-def _X(v):
-    """(R, t) from 12 values: R row-major, then t."""
-    return tuple(tuple(v[3 * r:3 * r + 3]) for r in range(3)), tuple(v[9:12])
-
-
-def _X_flat(X):
-    return [e for row in X[0] for e in row] + list(X[1])
-
-
 def _F_flat(F):
     return [*F[0], *F[1]]
 
@@ -103,13 +94,15 @@ def looped_mass_matrix(fr):
     kinds, sig = looped.classify(list(fr.revolute))
     src = [looped.structure(fr), looped.table('int', 'SIG', sig),
            looped.table('int', 'AX', [2 if r else 5 for r in fr.revolute]),
-           looped.table('double', 'K0', [e for b in range(fr.nb) for e in _X_flat((fr.R[b], fr.t[b]))])]
+           looped.table('double', 'K0', [e for b in range(fr.nb) for e in looped.pose_flat((fr.R[b], fr.t[b]))])]
     for i, rev in enumerate(kinds):
-        src.append(looped.step(f'xform{i}', lambda g, x, K, rev=rev: [_X_flat(joint_transform(g, *_X(K), rev, x[0]))],
-                               (1, 12)))
+        src.append(looped.step(f'xform{i}', lambda g, x, K, rev=rev: [
+            looped.pose_flat(joint_transform(g, *looped.pose_in(K), rev, x[0]))], (1, 12)))
         src.append(looped.step(f'column{i}', lambda g, ic, rev=rev: [_F_flat(joint_wrench(rev, _ic(ic)))], (10,)))
-    src.append(looped.step('composite', lambda g, a, X, p: [_ic_flat(composite(_ic(a), _X(X), _ic(p)))], (10, 12, 10)))
-    src.append(looped.step('pair', lambda g, F, X: [_F_flat(la.wrench_to_parent((F[:3], F[3:]), *_X(X)))], (6, 12)))
+    src.append(looped.step('composite', lambda g, a, X, p: [
+        _ic_flat(composite(_ic(a), looped.pose_in(X), _ic(p)))], (10, 12, 10)))
+    src.append(looped.step('pair', lambda g, F, X: [
+        _F_flat(la.wrench_to_parent((F[:3], F[3:]), *looped.pose_in(X)))], (6, 12)))
     xform = looped.switch('SIG[b]', [f'xform{i}' for i in range(len(kinds))], '&x, K0 + 12 * b, X + 12 * b')
     column = looped.switch('SIG[b]', [f'column{i}' for i in range(len(kinds))], 'IC + 10 * b, F')
     decl, free = looped.work([('X', 12 * fr.nb), ('IC', 10 * fr.nb)], fr.n * fr.n)
