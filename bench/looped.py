@@ -1,7 +1,7 @@
 """Looped against straight-line native kernels, beside Pinocchio: where THRESHOLDS looped_from lies.
 
     python -m bench.looped [--robots chain8,chain16,...] [--families mass_matrix,aba,forward_dynamics,
-                           inverse_dynamics_derivatives,coriolis]
+                           inverse_dynamics_derivatives,coriolis,forward_dynamics_derivatives]
                            [--rounds 7] [--out DIR]
 
 For each robot (random revolute chains and binary trees, bench.common.robot_urdf; or a label of
@@ -11,7 +11,8 @@ reference runs), the looped one (looped_from 1) and Pinocchio's call on the same
 interleaved rounds (ratios: medians of per-round ratios). `forward_dynamics` is method='cholesky':
 straight-line, the Cholesky kernel; looped, the looped ABA that method takes from looped_from.
 `inverse_dynamics_derivatives` against Pinocchio's computeRNEADerivatives, `coriolis` (the
-recursive C, the dtau/dqd half of the same kernel) against computeCoriolisMatrix.
+recursive C, the dtau/dqd half of the same kernel) against computeCoriolisMatrix,
+`forward_dynamics_derivatives` against computeABADerivatives.
 First use: the first runtime.native call (trace or step tracing, render, compile, load). The
 1-minute load average is printed (2 cores: above ~0.5 the wall times include waiting).
 """
@@ -31,9 +32,11 @@ from bench.native_sizes import _arguments, pin_peer, robot_xml
 
 ROBOTS = ('chain8', 'chain16', 'chain24', 'chain32', 'chain48', 'chain64', 'chain100', 'chain200',
           'tree16', 'tree32', 'tree64', 'tree100', 'tree200')
-FAMILIES = ('mass_matrix', 'aba', 'forward_dynamics', 'inverse_dynamics_derivatives', 'coriolis')
+FAMILIES = ('mass_matrix', 'aba', 'forward_dynamics', 'inverse_dynamics_derivatives', 'coriolis',
+            'forward_dynamics_derivatives')
 LIMITS = {'mass_matrix': 'mass_matrix', 'aba': 'aba', 'forward_dynamics': 'aba',
-          'inverse_dynamics_derivatives': 'inverse_dynamics_derivatives', 'coriolis': 'inverse_dynamics_derivatives'}
+          'inverse_dynamics_derivatives': 'inverse_dynamics_derivatives', 'coriolis': 'inverse_dynamics_derivatives',
+          'forward_dynamics_derivatives': 'forward_dynamics_derivatives'}
 
 
 def _specs(model, fam):
@@ -45,6 +48,8 @@ def _specs(model, fam):
         return derivatives.INVERSE_DYNAMICS_DERIVATIVES, derivatives.INVERSE_DYNAMICS_DERIVATIVES
     if fam == 'coriolis':
         return derivatives.CORIOLIS, derivatives.CORIOLIS
+    if fam == 'forward_dynamics_derivatives':
+        return derivatives.FORWARD_DYNAMICS_DERIVATIVES, derivatives.FORWARD_DYNAMICS_DERIVATIVES
     if fam == 'aba':
         return aba.spec(model), aba.spec(model)
     return cholesky.FORWARD_DYNAMICS, aba.spec(model)

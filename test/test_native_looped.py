@@ -1,11 +1,13 @@
 """Looped native kernels (codegen/looped.py): the mass matrix, the ABA (and forward dynamics,
-method='cholesky', which takes the looped ABA) and the derivatives of inverse dynamics (with
-wrenches, and the Coriolis matrix, their dtau/dqd half) rendered as per-body steps looped in C, forced on
-small robots by THRESHOLDS looped_from = 1 so that they compile in a fraction of a second. Checked
-against the Python kernels (the same model with the native backend off), the straight-line
-native kernels and Pinocchio, single states and batches, with payload, gravity, armature and
-locked-joint changes, and without recompiling for parameter changes."""
+method='cholesky', which takes the looped ABA), the derivatives of inverse dynamics (with
+wrenches, and the Coriolis matrix, their dtau/dqd half) and of forward dynamics rendered as
+per-body steps looped in C, forced on small robots by THRESHOLDS looped_from = 1 so that they
+compile in a fraction of a second. Checked against the Python kernels (the same model with the
+native backend off), the straight-line native kernels and Pinocchio, single states and batches,
+with payload, gravity, armature and locked-joint changes, and without recompiling for parameter
+changes."""
 import numpy as np
+import pinocchio as pin
 import pytest
 
 from lie_dynamics.codegen import kernel, native, runtime
@@ -17,8 +19,9 @@ from oracle import Oracle
 from robots import random_urdf
 
 TOL = 1e-12
-LIMITS = ('mass_matrix', 'aba', 'inverse_dynamics_derivatives')
-DERIVATIVES = (t_der.INVERSE_DYNAMICS_DERIVATIVES, t_der.INVERSE_DYNAMICS_DERIVATIVES_WRENCH, t_der.CORIOLIS)
+LIMITS = ('mass_matrix', 'aba', 'inverse_dynamics_derivatives', 'forward_dynamics_derivatives')
+DERIVATIVES = (t_der.INVERSE_DYNAMICS_DERIVATIVES, t_der.INVERSE_DYNAMICS_DERIVATIVES_WRENCH, t_der.CORIOLIS,
+               t_der.FORWARD_DYNAMICS_DERIVATIVES)
 
 pytestmark = pytest.mark.skipif(native.module() is None, reason='no working C compiler')
 
@@ -76,9 +79,35 @@ def _wrenches(m, N, seed):
     return {links[-1]: rng.uniform(-2, 2, (N, 6)), links[len(links) // 2]: rng.uniform(-2, 2, (N, 6))}
 
 
+def _pin_aba_derivatives(oracle, q, qd, tau):
+    E = oracle.E
+    dq, dv, Minv = pin.computeABADerivatives(oracle.model, oracle.data, oracle.pin_q(q), oracle.pin_v(qd), E @ tau)
+    Minv = np.triu(Minv) + np.triu(Minv, 1).T
+    return E.T @ dq @ E, E.T @ dv @ E, E.T @ Minv @ E
+
+
+def _check_fd_derivatives(m, ref, oracle, q, qd, qdd):
+    """The looped forward-dynamics derivatives against the Python twin and Pinocchio (where its model
+    has our joints: locked joints move in Pinocchio's), one state at a time and as one batch:
+    solves with M, to eps cond(M) (at least TOL)."""
+    tau = ref.inverse_dynamics(q, qd, qdd)
+    D = m.forward_dynamics_derivatives(q, qd, tau)
+    for i in range(len(q)):
+        s = (q[i], qd[i], tau[i])
+        d = m.forward_dynamics_derivatives(*s)
+        tol = max(TOL, 1e-15 * np.linalg.cond(ref.mass_matrix(q[i])))
+        peers = _pin_aba_derivatives(oracle, *s) if oracle.E.shape[0] == m.n else (None,) * 3
+        for k, (want, peer) in enumerate(zip(ref.forward_dynamics_derivatives(*s), peers, strict=True)):
+            assert np.array_equal(D[k][i], d[k])
+            assert _rel(d[k], want) <= tol
+            if peer is not None:
+                assert _rel(d[k], peer) <= max(tol, 1e-10)
+
+
 def _check_derivatives(m, ref, oracle, q, qd, qdd):
-    """The looped derivative kernels (ID derivatives, with wrenches, the Coriolis matrix) against the
-    Python twin and Pinocchio, one state at a time and as one batch."""
+    """The looped derivative kernels (ID derivatives, with wrenches, the Coriolis matrix, forward
+    dynamics) against the Python twin and Pinocchio, one state at a time and as one batch."""
+    _check_fd_derivatives(m, ref, oracle, q, qd, qdd)
     D = m.inverse_dynamics_derivatives(q, qd, qdd)
     C = m.coriolis_matrix(q, qd, method='recursive')
     w = _wrenches(m, len(q), seed=len(q))
@@ -159,6 +188,10 @@ def test_parameters_change_without_recompiling(robot):
                             ref.inverse_dynamics_derivatives(q[i], qd[i], qdd[i])[k]) <= TOL
             assert _rel(m.coriolis_matrix(q[i], qd[i], method='recursive'),
                         ref.coriolis_matrix(q[i], qd[i], method='recursive')) <= TOL
+            s = (q[i], qd[i], tau[i])
+            tol = max(TOL, 1e-15 * np.linalg.cond(ref.mass_matrix(q[i])))
+            for got, want in zip(m.forward_dynamics_derivatives(*s), ref.forward_dynamics_derivatives(*s), strict=True):
+                assert _rel(got, want) <= tol
             for method in ('aba', 'cholesky'):
                 s = (q[i], qd[i], tau[i])
                 _check_solve(m.forward_dynamics(*s, method=method), ref.forward_dynamics(*s, method='aba'), ref, *s)
@@ -183,6 +216,9 @@ def test_armature(robot):
             assert _rel(m.mass_matrix(q[i]), ref.mass_matrix(q[i])) <= TOL
             s = (q[i], qd[i], tau[i])
             _check_solve(m.forward_dynamics(*s, method='aba'), ref.forward_dynamics(*s, method='aba'), ref, *s)
+            tol = max(TOL, 1e-15 * np.linalg.cond(ref.mass_matrix(q[i])))
+            for got, want in zip(m.forward_dynamics_derivatives(*s), ref.forward_dynamics_derivatives(*s), strict=True):
+                assert _rel(got, want) <= tol
     finally:
         for x in (m, ref):
             x.set_armature(np.zeros(m.n))
@@ -285,3 +321,18 @@ def test_looped_from_counts_pairs_and_takes_over_above_the_caps():
     finally:
         T['mass_matrix'] = saved
         runtime.clear()
+
+
+def test_forward_dynamics_derivatives_decline_a_singular_mass_matrix(looped_everywhere):
+    """A massless tip (M singular): the looped kernel's pivots (M = L^T D L) fail the test, state by
+    state and in batches, and the reference names the problem."""
+    from test_forward_dynamics import MASSLESS_TIP
+    m = _load(MASSLESS_TIP)
+    assert runtime.looped(m, t_der.FORWARD_DYNAMICS_DERIVATIVES)
+    z = np.zeros(2)
+    assert runtime.native(m, t_der.FORWARD_DYNAMICS_DERIVATIVES)(np.array([0.1, 0.2]), z, z) is None
+    with pytest.raises(ValueError, match='mass matrix is not positive definite'):
+        m.forward_dynamics_derivatives(np.array([0.1, 0.2]), z, z)
+    for N in (3, 60):
+        with pytest.raises(ValueError, match='mass matrix is not positive definite at state 0'):
+            m.forward_dynamics_derivatives(np.zeros((N, 2)), np.zeros((N, 2)), np.zeros((N, 2)))

@@ -8,6 +8,7 @@ from ..runtime import Spec
 from ..thresholds import PD_RTOL
 from ..tracer import Graph
 from .cholesky import trace_cho_solve, trace_forward_dynamics, trace_inputs
+from .crba import looped_mass_pass
 
 
 def trace_derivatives(fr, g, x, xd, xdd, params, a0, fext=None, center=0):
@@ -259,35 +260,75 @@ def _comp_flat(c):
 def looped_derivatives(fr, wrench=False, coriolis=False):
     """The looped native form of the derivative kernels (codegen/looped.py; same arguments and
     outputs as build_inverse_dynamics_derivatives(fr, wrench, coriolis=coriolis)), or None
-    (mimic joints). The fixed frame is the base frame (the formulas are covariant; the
-    straight-line trace's moving `center` frame would need a pass up the tree first). Steps:
-    the joint transform (frames.joint_transform) and `pose_down` then `forward`, per joint kind
-    and free or welded; backward, `body_terms`, `add_composite`, `products` and the diagonal,
-    then the composites added to the parent's, per free or welded and root or not; `pair` for
-    every (body, ancestor) with joints. Coriolis: only the dtau/dqd half, times 1/2, without
-    qdd and gravity (their terms, Y and Fc, pruned from the steps)."""
-    J = looped.joints_of(fr)
-    if J is None or (wrench and coriolis):
+    (mimic joints): the driver of `looped_passes`."""
+    if looped.joints_of(fr) is None or (wrench and coriolis):
         return None
     nb, n = fr.nb, fr.n
+    n_out = n * n if coriolis else 2 * n * n
+    decl, free = looped.work(_registers(nb, wrench), n_out)
+    if coriolis:
+        head = 'const double *q = in[0], *qd = in[1], *qdd = 0, *P = par[0], *A0 = 0, *E0 = par[1], *FX = 0;'
+    else:
+        head = ('const double *q = in[0], *qd = in[1], *qdd = in[2], ' + ('*FX = in[3], ' if wrench else '*FX = 0, ')
+                + '*P = par[0], *A0 = par[1], *E0 = par[2];')
+    src = [looped.structure(fr), looped_passes(fr, wrench, coriolis), f'''
+void lie_kernel(const double *const *in, const double *const *par, double *out)
+{{
+  {head}
+{decl}  der_forward(q, qd, qdd, E0, A0, FX, POSE, V, ACC, AZY, FXW);
+  der_backward(P, FXW, POSE, V, ACC, AZY, CMP, out);   /* after every read of the inputs: out may alias them */
+{free}}}
+''']
+    if coriolis:
+        states, par_lengths = (n, n), (10 * nb, sum(fr.offset))
+    else:
+        states, par_lengths = (n, n, n) + ((6 * nb,) if wrench else ()), (10 * nb, 3, sum(fr.offset))
+    return looped.rendered(''.join(src), states, par_lengths, n_out)
+
+
+def _registers(nb, wrench):
+    """The register blocks of the derivative passes (looped_passes)."""
+    return [('POSE', 12 * nb), ('V', 6 * nb), ('ACC', 6 * nb), ('AZY', 18 * nb), ('CMP', 31 * nb),
+            ('FXW', 6 * nb if wrench else 6)]
+
+
+def looped_passes(fr, wrench=False, coriolis=False, bias=False):
+    """C text of the derivative recursion's looped passes (after looped.structure's arrays), the
+    fixed frame the base frame (the formulas are covariant; the straight-line trace's moving
+    `center` frame would need a pass up the tree first):
+
+      der_forward(q, qd, qdd, E0, A0, FX, POSE, V, ACC, AZY, FXW): per body the joint transform
+        (frames.joint_transform), `pose_down` and `forward` (a step per joint kind, free or
+        welded), from the base at rest with acceleration -g (A0, None: 0); FX (wrench) copied to
+        FXW, so that every input is read in this pass;
+      der_backward(P, FXW, POSE, V, ACC, AZY, CMP, out): per body, leaves first, `body_terms`,
+        `add_composite`, `products` and the diagonal, the composites added to the parent's (a
+        step per free or welded, root or not), then `pair` for every (body, ancestor) with joints:
+        out = dtau/dq then dtau/dqd (coriolis: 1/2 dtau/dqd only; Y and Fc, which only dtau/dq
+        needs, are pruned from the steps);
+      der_bias(P, POSE, V, ACC, AZY, CMP, h) (bias): the same backward steps' `body_terms` and
+        `add_composite` for Fc alone, h_j = A^T Fc (the inverse dynamics of the forward pass: with
+        qdd = 0, the bias of the forward-dynamics derivatives).
+    """
+    J = looped.joints_of(fr)
+    nb = fr.nb
     zt = (ZERO3, ZERO3)
     fkeys, fsig = looped.classify([(fr.revolute[b], J[b] >= 0) for b in range(nb)])
     bkeys, bsig = looped.classify([(J[b] >= 0, fr.parent[b] < 0) for b in range(nb)])
-    src = [looped.structure(fr), looped.table('int', 'FSIG', fsig), looped.table('int', 'BSIG', bsig),
-           looped.table('double', 'K0', [e for b in range(nb) for e in looped.pose_flat((fr.R[b], fr.t[b]))])]
+    src = [looped.table('int', 'DER_FSIG', fsig), looped.table('int', 'DER_BSIG', bsig),
+           looped.table('double', 'DER_K0', [e for b in range(nb) for e in looped.pose_flat((fr.R[b], fr.t[b]))])]
     for i, (rev, free) in enumerate(fkeys):
         def fwd(g, x, xd, xdd, K, pp, Vp, ap, rev=rev, free=free):
             pose = pose_down(looped.pose_in(pp), joint_transform(g, *looped.pose_in(K), rev, x[0]))
             A, V, Z, Y, a = forward(rev, pose, _twist(Vp), zt if coriolis else _twist(ap), xd[0] if free else 0.0,
                                     xdd[0] if free and not coriolis else 0.0)
-            return [looped.pose_flat(pose), _flat(V), [] if coriolis else _flat(a), _flat(A, Z) if coriolis
-                    else _flat(A, Z, Y)]
-        src.append(looped.step(f'fwd{i}', fwd, (1, 1, 1, 12, 12, 6, 6)))
+            return [looped.pose_flat(pose), _flat(V), [] if coriolis else _flat(a),
+                    _flat(A, Z) if coriolis else _flat(A, Z, Y)]
+        src.append(looped.step(f'der_fwd{i}', fwd, (1, 1, 1, 12, 12, 6, 6)))
     for i, (free, root) in enumerate(bkeys):
         def back(g, P, pose, V, a, fx, Cm, AZY, Cp, free=free, root=root):
-            params = (P[0], tuple(P[1:4]), tuple(P[4:10]))
-            own = body_terms(params, looped.pose_in(pose), _twist(V), zt if coriolis else _twist(a),
-                             _twist(fx) if wrench else None)
+            own = body_terms((P[0], tuple(P[1:4]), tuple(P[4:10])), looped.pose_in(pose), _twist(V),
+                             zt if coriolis else _twist(a), _twist(fx) if wrench else None)
             comp = add_composite(_comp_in(Cm), own)
             out = [[], [], []]
             if free:
@@ -301,7 +342,15 @@ def looped_derivatives(fr, wrench=False, coriolis=False):
                 up = _comp_flat(add_composite(_comp_in(Cp), comp))
                 out[2] = up[:25] if coriolis else up    # Coriolis: no Fc
             return out
-        src.append(looped.step(f'back{i}', back, (10, 12, 6, 6, 6, 31, 18, 31)))
+        src.append(looped.step(f'der_back{i}', back, (10, 12, 6, 6, 6, 31, 18, 31)))
+        if bias:
+            def bias_step(g, P, pose, V, a, Cm, AZY, Cp, free=free, root=root):
+                own = body_terms((P[0], tuple(P[1:4]), tuple(P[4:10])), looped.pose_in(pose), _twist(V),
+                                 _twist(a), None)
+                comp = add_composite(_comp_in(Cm), own)
+                return [[la.dot6(_twist(AZY[:6]), comp[3])] if free else [],
+                        [] if root else _flat(add_composite(_comp_in(Cp), comp)[3])]
+            src.append(looped.step(f'der_bias{i}', bias_step, (10, 12, 6, 6, 31, 18, 31)))
 
     def pair_step(g, AZY, PR):
         A, Z, Y = _twist(AZY[:6]), _twist(AZY[6:12]), _twist(AZY[12:18])
@@ -312,51 +361,48 @@ def looped_derivatives(fr, wrench=False, coriolis=False):
         Pq, Pv = _twist(PR[:6]), _twist(PR[6:12])
         R, Rv = (_twist(PR[12:18]), _twist(PR[18:24])), (_twist(PR[24:30]), _twist(PR[30:36]))
         return [list(pair(A, Z, Y, Pq, Pv, R, Rv))]
-    src.append(looped.step('pair', pair_step, (18, 36)))
-    fwd_call = looped.switch('FSIG[b]', [f'fwd{i}' for i in range(len(fkeys))],
-                             '&x, &xd, &xdd, K0 + 12 * b, pp, vp, ap, POSE + 12 * b, V + 6 * b, ACC + 6 * b, '
-                             'AZY + 18 * b')
-    back_call = looped.switch('BSIG[m]', [f'back{i}' for i in range(len(bkeys))],
-                              'P + 10 * m, POSE + 12 * m, V + 6 * m, ACC + 6 * m, FXW + 6 * m, CMP + 31 * m, '
-                              'AZY + 18 * m, CMP + 31 * up, PR, d, CMP + 31 * up')
-    nn = n * n
-    n_out = nn if coriolis else 2 * nn
-    regs = [('POSE', 12 * nb), ('V', 6 * nb), ('ACC', 6 * nb), ('AZY', 18 * nb), ('CMP', 31 * nb),
-            ('FXW', 6 * nb if wrench else 6)]
-    decl, free_ = looped.work(regs, n_out)
+    src.append(looped.step('der_pair', pair_step, (18, 36)))
+
+    def sw(sig, name, keys, call):
+        return looped.switch(sig, [f'{name}{i}' for i in range(len(keys))], call)
+    fwd_call = sw('DER_FSIG[b]', 'der_fwd', fkeys, '&x, &xd, &xdd, DER_K0 + 12 * b, pp, vp, ap, POSE + 12 * b, '
+                                                   'V + 6 * b, ACC + 6 * b, AZY + 18 * b')
+    back_call = sw('DER_BSIG[m]', 'der_back', bkeys, 'P + 10 * m, POSE + 12 * m, V + 6 * m, ACC + 6 * m, '
+                                                     'FXW + 6 * m, CMP + 31 * m, AZY + 18 * m, CMP + 31 * up, PR, d, '
+                                                     'CMP + 31 * up')
     if coriolis:
-        ins, pars = 'const double *q = in[0], *qd = in[1], *P = par[0], *E0 = par[1];', '0.0, 0.0, 0.0'
-        write = ('out[jm * NJ + jm] = d[0];',
-                 'out[jk * NJ + jm] = r[0]; out[jm * NJ + jk] = r[1];')
+        write = ('out[jm * NJ + jm] = d[0];', 'out[jk * NJ + jm] = r[0]; out[jm * NJ + jk] = r[1];')
     else:
-        ins = ('const double *q = in[0], *qd = in[1], *qdd = in[2], '
-               + ('*FX = in[3], ' if wrench else '') + '*P = par[0], *A0 = par[1], *E0 = par[2];')
-        pars = 'A0[0], A0[1], A0[2]'
-        write = ('out[jm * NJ + jm] = d[0]; out[NN + jm * NJ + jm] = d[1];',
-                 'out[jk * NJ + jm] = r[0]; out[NN + jk * NJ + jm] = r[1]; '
-                 'out[jm * NJ + jk] = r[2]; out[NN + jm * NJ + jk] = r[3];')
-    xdd = '0.0' if coriolis else 'JNT[b] >= 0 ? qdd[JNT[b]] : 0.0'
-    copy_fx = '    memcpy(FXW + 6 * b, FX + 6 * b, 6 * sizeof(double));\n' if wrench else ''
+        write = ('out[jm * NJ + jm] = d[0]; out[NJ * NJ + jm * NJ + jm] = d[1];',
+                 'out[jk * NJ + jm] = r[0]; out[NJ * NJ + jk * NJ + jm] = r[1]; '
+                 'out[jm * NJ + jk] = r[2]; out[NJ * NJ + jm * NJ + jk] = r[3];')
     src.append(f'''
-#define NN {nn}
-void lie_kernel(const double *const *in, const double *const *par, double *out)
+static void der_forward(const double *q, const double *qd, const double *qdd, const double *E0, const double *A0,
+                        const double *FX, double *POSE, double *V, double *ACC, double *AZY, double *FXW)
 {{
-  {ins}
-{decl}  /* the base: identity pose, at rest, acceleration -g (its linear part) */
+  /* the base: identity pose, at rest, acceleration -g (its linear part) */
   const double BASE[24] = {{1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0,
-                            0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, {pars}}};
-  (void)E0; (void)ACC; (void)FXW;
+                            0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                            A0 ? A0[0] : 0.0, A0 ? A0[1] : 0.0, A0 ? A0[2] : 0.0}};
+  (void)E0; (void)ACC; (void)FXW; (void)FX;
   for (int b = 0; b < NB; b++) {{
     const int up = PAR[b];
     const double *pp = up >= 0 ? POSE + 12 * up : BASE, *vp = up >= 0 ? V + 6 * up : BASE + 12,
                  *ap = up >= 0 ? ACC + 6 * up : BASE + 18;
-    const double x = X_OF(q, E0, b), xd = JNT[b] >= 0 ? qd[JNT[b]] : 0.0, xdd = {xdd};
+    const double x = X_OF(q, E0, b), xd = JNT[b] >= 0 ? qd[JNT[b]] : 0.0,
+                 xdd = JNT[b] >= 0 && qdd ? qdd[JNT[b]] : 0.0;
     (void)xdd;
     {fwd_call}
-{copy_fx}  }}
-  /* every input read: out may alias them */
+    if (FX) memcpy(FXW + 6 * b, FX + 6 * b, 6 * sizeof(double));
+  }}
+}}
+
+static void der_backward(const double *P, const double *FXW, const double *POSE, const double *V,
+                         const double *ACC, const double *AZY, double *CMP, double *out)
+{{
+  (void)ACC; (void)FXW;
   memset(CMP, 0, 31 * NB * sizeof(double));
-  memset(out, 0, {n_out} * sizeof(double));
+  memset(out, 0, {1 if coriolis else 2} * NJ * NJ * sizeof(double));
   for (int m = NB - 1; m >= 0; m--) {{
     const int up = PAR[m] >= 0 ? PAR[m] : 0, jm = JNT[m];
     double PR[36], d[2];
@@ -367,17 +413,130 @@ void lie_kernel(const double *const *in, const double *const *par, double *out)
       const int jk = JNT[k];
       double r[4];
       if (jk < 0) continue;
-      pair(AZY + 18 * k, PR, r);
+      der_pair(AZY + 18 * k, PR, r);
       {write[1]}
     }}
   }}
-{free_}}}
+}}
 ''')
-    if coriolis:
-        states, par_lengths = (n, n), (10 * nb, sum(fr.offset))
-    else:
-        states, par_lengths = (n, n, n) + ((6 * nb,) if wrench else ()), (10 * nb, 3, sum(fr.offset))
-    return looped.rendered(''.join(src), states, par_lengths, n_out)
+    if bias:
+        bias_call = sw('DER_BSIG[m]', 'der_bias', bkeys, 'P + 10 * m, POSE + 12 * m, V + 6 * m, ACC + 6 * m, '
+                                                         'CMP + 31 * m, AZY + 18 * m, CMP + 31 * up, &t, '
+                                                         'CMP + 31 * up + 25')
+        src.append(f'''
+static void der_bias(const double *P, const double *POSE, const double *V, const double *ACC, const double *AZY,
+                     double *CMP, double *h)
+{{
+  memset(CMP, 0, 31 * NB * sizeof(double));
+  for (int m = NB - 1; m >= 0; m--) {{
+    const int up = PAR[m] >= 0 ? PAR[m] : 0;
+    double t = 0.0;
+    {bias_call}
+    if (JNT[m] >= 0) h[JNT[m]] = t;
+  }}
+}}
+''')
+    return ''.join(src)
+
+
+# The tree-sparse factorisation M = L^T D L (Featherstone, Rigid Body Dynamics Algorithms, sec. 6.5,
+# "LTDL") and its solves, as C loops over the structure arrays: the factorisation and solves
+# of a number matrix, which the straight-line kernel traces densely (traced/cholesky.py, its
+# zeros folded at trace time). Looped, the tree's zero pattern is PAR and JNT: eliminating the
+# leaves first, L has the zeros of M (no fill-in), and each update is one multiply-subtract, a
+# step too small to trace. A pivot D_j is S_j^T I^A_j S_j, the ABA's, positive exactly where the
+# dense Cholesky pivots are (both are the Schur complements of M after eliminating other joints).
+_LTDL = '''
+/* H <- L and D of H = L^T D L: L_ki (i an ancestor of k) in H's row k, D on the diagonal. */
+static void ltdl(double *H)
+{
+  for (int k = NB - 1; k >= 0; k--) {
+    const int jk = JNT[k];
+    if (jk < 0) continue;
+    for (int i = PAR[k]; i >= 0; i = PAR[i]) {
+      const int ji = JNT[i];
+      if (ji < 0) continue;
+      const double a = H[jk * NJ + ji] / H[jk * NJ + jk];
+      for (int j = i; j >= 0; j = PAR[j])
+        if (JNT[j] >= 0) H[ji * NJ + JNT[j]] -= a * H[jk * NJ + JNT[j]];
+      H[jk * NJ + ji] = a;
+    }
+  }
+}
+
+/* Row dst -= a row src, in each of `regions` blocks of NJ rows of `width`. */
+static void rows_sub(double *B, int width, int regions, int dst, int src, double a)
+{
+  for (int g = 0; g < regions; g++) {
+    double *d = B + (g * NJ + dst) * width;
+    const double *s = B + (g * NJ + src) * width;
+    for (int c = 0; c < width; c++) d[c] -= a * s[c];
+  }
+}
+
+/* B <- sign[g] (L^T D L)^-1 B in each block g (ltdl's factors in H). */
+static void ltdl_solve(const double *H, double *B, int width, int regions, const double *sign)
+{
+  for (int k = NB - 1; k >= 0; k--) {                /* L^T w = b: descendants first */
+    const int jk = JNT[k];
+    if (jk < 0) continue;
+    for (int i = PAR[k]; i >= 0; i = PAR[i])
+      if (JNT[i] >= 0) rows_sub(B, width, regions, JNT[i], jk, H[jk * NJ + JNT[i]]);
+  }
+  for (int j = 0; j < NJ; j++)                       /* z = D^-1 w */
+    for (int g = 0; g < regions; g++) {
+      double *r = B + (g * NJ + j) * width;
+      const double s = sign[g] / H[j * NJ + j];
+      for (int c = 0; c < width; c++) r[c] *= s;
+    }
+  for (int k = 0; k < NB; k++) {                     /* L x = z: ancestors first */
+    const int jk = JNT[k];
+    if (jk < 0) continue;
+    for (int i = PAR[k]; i >= 0; i = PAR[i])
+      if (JNT[i] >= 0) rows_sub(B, width, regions, jk, JNT[i], H[jk * NJ + JNT[i]]);
+  }
+}
+'''
+
+
+def looped_forward_dynamics_derivatives(fr):
+    """The looped native form of FORWARD_DYNAMICS_DERIVATIVES (same arguments and outputs as
+    build_forward_dynamics_derivatives, the pivots those of M = L^T D L), or None (mimic joints).
+    The driver composes the looped passes: the derivative recursion's forward pass at qdd = 0 and
+    its bias (looped_passes: h = C qd + g), M (crba.looped_mass_pass, with the armature), its
+    factorisation (_LTDL), qdd = M^-1 (tau - h), the forward pass again at qdd, the derivative
+    pass (dtau/dq, dtau/dqd) and one solve of [dtau/dq, dtau/dqd, 1] with the factors, negated
+    for the first two."""
+    if looped.joints_of(fr) is None:
+        return None
+    nb, n = fr.nb, fr.n
+    nn = n * n
+    n_out = 3 * nn + 2 * n
+    regs = _registers(nb, False) + [('X', 12 * nb), ('IC', 10 * nb), ('H', nn), ('HB', n), ('QDD', n), ('PV', n),
+                                    ('DG', n)]
+    decl, free = looped.work(regs, n_out)
+    src = [looped.structure(fr), looped_mass_pass(fr), looped_passes(fr, bias=True), _LTDL, f'''
+void lie_kernel(const double *const *in, const double *const *par, double *out)
+{{
+  const double *q = in[0], *qd = in[1], *tau = in[2], *P = par[0], *A0 = par[1], *E0 = par[2], *AR = par[3];
+  const double one[1] = {{1.0}}, signs[3] = {{-1.0, -1.0, 1.0}};
+{decl}  der_forward(q, qd, 0, E0, A0, 0, POSE, V, ACC, AZY, FXW);   /* qdd = 0: the bias h */
+  der_bias(P, POSE, V, ACC, AZY, CMP, HB);
+  crba_pass(q, P, E0, AR, X, IC, H);
+  for (int j = 0; j < NJ; j++) DG[j] = H[j * NJ + j];
+  ltdl(H);
+  for (int j = 0; j < NJ; j++) {{ PV[j] = H[j * NJ + j]; QDD[j] = tau[j] - HB[j]; }}
+  ltdl_solve(H, QDD, 1, 1, one);
+  der_forward(q, qd, QDD, E0, A0, 0, POSE, V, ACC, AZY, FXW);
+  der_backward(P, FXW, POSE, V, ACC, AZY, CMP, out);   /* after every read of the inputs: out may alias them */
+  memset(out + 2 * NJ * NJ, 0, NJ * NJ * sizeof(double));
+  for (int j = 0; j < NJ; j++) out[2 * NJ * NJ + j * NJ + j] = 1.0;
+  ltdl_solve(H, out, NJ, 3, signs);
+  memcpy(out + 3 * NJ * NJ, PV, NJ * sizeof(double));
+  memcpy(out + 3 * NJ * NJ + NJ, DG, NJ * sizeof(double));
+{free}}}
+''']
+    return looped.rendered(''.join(src), (n, n, n), (10 * nb, 3, sum(fr.offset), n), n_out)
 
 
 INVERSE_DYNAMICS_DERIVATIVES = Spec(
@@ -392,4 +551,5 @@ CORIOLIS = Spec('coriolis', lambda fr: build_inverse_dynamics_derivatives(fr, co
                 looped=lambda fr: looped_derivatives(fr, coriolis=True))
 FORWARD_DYNAMICS_DERIVATIVES = Spec(
     'forward_dynamics_derivatives', build_forward_dynamics_derivatives, ('inertia', 'gravity', 'offsets', 'armature'),
-    'forward_dynamics_derivatives', checked=True, result=lambda model: ((3 * model.n * model.n,), PD_RTOL))
+    'forward_dynamics_derivatives', checked=True, result=lambda model: ((3 * model.n * model.n,), PD_RTOL),
+    looped=looped_forward_dynamics_derivatives)
