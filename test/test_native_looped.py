@@ -336,3 +336,33 @@ def test_forward_dynamics_derivatives_decline_a_singular_mass_matrix(looped_ever
     for N in (3, 60):
         with pytest.raises(ValueError, match='mass matrix is not positive definite at state 0'):
             m.forward_dynamics_derivatives(np.zeros((N, 2)), np.zeros((N, 2)), np.zeros((N, 2)))
+
+
+def test_derivative_kernels_out_buffers(robot):
+    """The bound looped derivative kernels write into a good `out` (single states and batches) what
+    they return otherwise, and decline a bad one (None: the validating path then names it)."""
+    m = robot.model
+    q, qd, qdd = _states(m, 3, seed=10)
+    tau = robot.ref.inverse_dynamics(q, qd, qdd)
+    for spec, args in ((t_der.INVERSE_DYNAMICS_DERIVATIVES, (q, qd, qdd)), (t_der.CORIOLIS, (q, qd)),
+                       (t_der.FORWARD_DYNAMICS_DERIVATIVES, (q, qd, tau))):
+        fn = runtime.native(m, spec)
+        for a in ([x[0] for x in args], list(args)):
+            want = fn(*a)
+            buf = np.full(want.shape, np.nan)
+            assert fn(*a, buf) is buf and np.array_equal(buf, want), spec.name
+            for bad in (np.empty(want.shape, np.float32), np.empty(want.shape[:-1] + (want.shape[-1] + 1,))):
+                assert fn(*a, bad) is None
+
+
+def test_talos_reduced_derivatives(looped_everywhere):
+    """Every looped derivative family on a real humanoid (Talos reduced, 32 bodies, example-robot-data)
+    against the Python kernels and Pinocchio, single states and a batch."""
+    from dyn_cases import ERD_ROBOTS
+    if ERD_ROBOTS is None:
+        pytest.skip('example-robot-data is not installed')
+    with open(f'{ERD_ROBOTS}/talos_data/robots/talos_reduced.urdf', encoding='utf-8') as fh:
+        talos = Robot(fh.read())
+    m = talos.model
+    assert m.nb >= 30 and all(runtime.looped(m, s) for s in DERIVATIVES)
+    _check_derivatives(m, talos.ref, talos.oracle, *_states(m, 2, seed=11))
