@@ -462,11 +462,12 @@ static void ltdl(double *H)
   }
 }
 
-/* The solves in column blocks of LTDL_CB (in cache at every size) and, on x86-64 with gcc, a
-   vectorised clone for AVX2 where the CPU has it: the same operations per element in the same
-   order (-ffp-contract=off: no fused multiply-add), so the same bits. */
+/* The solves in column blocks of LTDL_CB (in cache at every size) and, on x86-64 with gcc and
+   glibc (which resolves the clone at load: an ifunc), a vectorised clone for AVX2 where the CPU
+   has it: the same operations per element in the same order (-ffp-contract=off: no fused
+   multiply-add), so the same bits. */
 #define LTDL_CB 32
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && defined(__GLIBC__)
 #define LTDL_VECTOR __attribute__((target_clones("avx2", "default"), optimize("O3")))
 #else
 #define LTDL_VECTOR
