@@ -204,8 +204,11 @@ class DynamicsNode(Node):
                 background.swap_in()   # a new model swaps in here, between two commands (cheap: none)
                 features.before_command(core)
                 done = fused.command(msg, self.outputs.writers(len(core.layout), core.layout))
-            if done is not None:   # the fused path's command (core/fused.py)
-                self.outputs.publish(*done)
+            if done is not None:   # the fused path's command (core/fused.py), then the core's bookkeeping
+                try:
+                    self.outputs.publish(*done)
+                finally:
+                    fused.accepted()
             else:                  # the Python path decides (and after a declined fused path)
                 try:
                     sample = self._decoder.read(msg) if isinstance(msg, bytes) else sample_of(msg)

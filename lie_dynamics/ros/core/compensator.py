@@ -185,7 +185,7 @@ class Compensator(Configuration):
         if reader is None:  # no model: the node said once at start-up that it waits for one
             self.result = SampleResult.reject(stamp, 'no_model', 'no robot model loaded')
             return None
-        if stamp and stamp < self.last_stamp and not self.watchdog.stale:
+        if self.refuses_stamp(stamp):
             return self._reject('old', f'stamp {stamp * 1e-9:.9f} s is older than the last accepted state '
                                        f'({self.last_stamp * 1e-9:.9f} s)', stamp)
         try:
@@ -231,19 +231,21 @@ class Compensator(Configuration):
             return None
         return law
 
+    def refuses_stamp(self, stamp):
+        """Is a joint_states stamp (ns, 0: none) refused: older than the last accepted one while
+        the input is live?"""
+        return stamp and stamp < self.last_stamp and not self.watchdog.stale
+
     def on_fast_command(self, law, stamp, q, tau, velocity, effort, now):
         """A command the fused command path computed by law `law` (fast_law at `now`) from a
-        joint_states message whose positions q passed the checks and whose tau passed the clamp
-        unchanged: the bookkeeping of on_joint_state's accepted state. False (nothing changed):
-        its stamp is older than the last accepted one, the Python path refuses it."""
-        if stamp and stamp < self.last_stamp and not self.watchdog.stale:
-            return False
+        joint_states message whose stamp is not refused (refuses_stamp), whose positions q passed
+        the checks and whose tau passed the clamp unchanged: the bookkeeping of on_joint_state's
+        accepted state (after the command went out: nothing in it changes the command)."""
         self.clamped = None
         self.count.received += 1
         self.law = law
         self.ramp.note(tau)
         self._accepted(stamp, q, tau, velocity, effort, now)
-        return True
 
     def _accepted(self, stamp, q, tau, velocity, effort, now):
         """An accepted joint_states state and its command tau (ramped and clamped): the state

@@ -48,12 +48,13 @@ class FusedCommand:
         self._key = None
         self._path = None    # the native Command for the key, or None: decline
         self._views = None   # (count, offset) of the velocity and effort arrays
+        self._pending = None  # the command made, until `accepted`
         self.taken = self.declined = 0
 
     def command(self, buf, writers):
         """(command bytes, ~/commanded_efforts bytes or None) for the serialized joint_states
-        `buf`, the core's state updated as on_sample would, or None (declined: nothing changed).
-        writers: Outputs.writers' pair for the core's layout."""
+        `buf`, or None (declined: nothing changed, the Python path takes it). The caller
+        publishes them, then calls `accepted`. writers: Outputs.writers' pair for the core's layout."""
         core = self.core
         now = core.clock()
         law = core.fast_law(now)
@@ -68,17 +69,21 @@ class FusedCommand:
             self._key = key
         path = self._path
         r = path(buf) if path is not None else None
-        if r is None:
+        if r is None or core.refuses_stamp(r[0]):
             self.declined += 1
             return None
-        stamp, q, tau, cmd, js = r
+        self._pending = (law, buf, r, now)
+        return r[3], r[4]
+
+    def accepted(self):
+        """After the command of `command` went out: the core keeps its state as on_sample would
+        (Compensator.on_fast_command; nothing in it changes the command)."""
+        law, buf, (stamp, q, tau, _, _), now = self._pending
+        self._pending = None
         (n1, o1), (n2, o2) = self._views
-        if not core.on_fast_command(law, stamp, q, tau, np.frombuffer(buf, _F8_LE, n1, o1),
-                                    np.frombuffer(buf, _F8_LE, n2, o2), now):
-            self.declined += 1
-            return None
+        self.core.on_fast_command(law, stamp, q, tau, np.frombuffer(buf, _F8_LE, n1, o1),
+                                  np.frombuffer(buf, _F8_LE, n2, o2), now)
         self.taken += 1
-        return cmd, js
 
     def _make(self, law, model, reader, layout, writers):
         """The native Command for this key, or None when the fused path does not cover it."""
