@@ -286,3 +286,16 @@ def test_without_a_native_kernel_the_python_path(arm, monkeypatch):
     monkeypatch.setattr(fused_module.native, 'module', lambda: None)   # no C compiler
     p.set(kp=[1.0])   # a new key: the fused command is made again, without the backend
     assert not any(p.feed(p.state()) for _ in range(3))
+
+
+
+def test_switched_off_there_is_none(ctx, monkeypatch):
+    """LIE_DYNAMICS_FUSED_COMMAND=0 (node.FUSED_COMMAND): no fused path, the Python path for every state."""
+    from lie_dynamics.ros import node as node_module
+    monkeypatch.setattr(node_module, 'FUSED_COMMAND', False)
+    node = DynamicsNode('fused_switched_off', context=ctx,
+                        parameter_overrides=[Parameter('urdf_path', value=default_urdf_path())])
+    try:
+        assert node.fused is None
+    finally:
+        node.destroy_node()
