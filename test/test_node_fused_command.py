@@ -189,12 +189,13 @@ def wide_arm(tmp_path_factory):
 
 @pytest.mark.parametrize('mode,params', COVERED)
 def test_the_same_bytes_on_the_arm(arm, wide_arm, mode, params):
-    """Every state after the first (which sets the layout) is taken and gives the Python path's bytes."""
+    """Every state after the first two (a new layout, then the layout repeated) is taken and gives
+    the Python path's bytes."""
     p = arm(urdf=wide_arm, mode=mode, **params)
     if mode != 'gravity':
         p.desired()
     took = [p.feed(p.state(order=ARM_JOINTS[::-1])) for _ in range(30)]
-    assert took == [False] + [True] * 29
+    assert took == [False, False] + [True] * 28
     if mode != 'gravity':   # a new desired state: a new fused command, the same bytes
         p.desired()
         assert all(p.feed(p.state(order=ARM_JOINTS[::-1])) for _ in range(5))
@@ -208,16 +209,16 @@ def test_the_same_bytes_on_a_30_joint_tree_with_locked_joints(ctx, big, mode):
         if mode != 'gravity':
             p.desired()
         took = [p.feed(p.state()) for _ in range(20)]
-        assert took == [False] + [True] * 19
+        assert took == [False, False] + [True] * 18
     finally:
         p.close()
 
 
 def test_each_unusual_state_is_declined_and_decided_by_the_python_path(arm):
     p = arm()
-    assert [p.feed(p.state()) for _ in range(3)] == [False, True, True]
-    # a layout change: the new layout's first state is read by the Python path, then taken again
-    assert [p.feed(p.state(order=ARM_JOINTS[::-1])) for _ in range(3)] == [False, True, True]
+    assert [p.feed(p.state()) for _ in range(3)] == [False, False, True]
+    # a layout change: the new layout's first two states by the Python path, then taken again
+    assert [p.feed(p.state(order=ARM_JOINTS[::-1])) for _ in range(4)] == [False, False, True, True]
     q = np.zeros(7)
     q[2] = np.nan   # non-finite position: refused by the Python path
     assert not p.feed(p.state(order=ARM_JOINTS[::-1], q=q))
@@ -235,16 +236,29 @@ def test_each_unusual_state_is_declined_and_decided_by_the_python_path(arm):
     assert p.on.core.result.reason == 'old'
     p.k += 10
     assert p.feed(p.state(order=ARM_JOINTS[::-1]))
-    # rclpy's serialize_message leaves padding undefined: where it differs from the last message's,
-    # the layout is not known to repeat (the decoder walks the message)
-    p.names = [f'joint{i}' for i in (1, 2, 3, 4, 5, 6, 7)]
-    took = [p.feed(p.state(rclpy_bytes=True)) for _ in range(5)]
-    assert not took[0]
+
+
+
+def test_a_layout_that_never_repeats_makes_no_fused_command(arm):
+    """A publisher whose padding bytes change from message to message (rclpy's serialize_message
+    leaves them undefined) never repeats its layout: the decoder walks every message, and no fused
+    command is made for one (it would be made for nothing at every message)."""
+    p = arm()
+    made = []
+    make = p.on.fused._make
+    p.on.fused._make = lambda *args: made.append(1) or make(*args)
+    took = []
+    for k in range(10):
+        buf = bytearray(p.state())
+        buf[17] = k + 1   # the padding after the empty frame_id
+        took.append(p.feed(bytes(buf)))
+    assert not any(took) and not made
+    assert [p.feed(p.state()) for _ in range(3)] == [False, False, True] and made == [1]
 
 
 def test_the_clamp_and_the_ramp_are_the_python_paths(arm):
     p = arm()
-    assert [p.feed(p.state()) for _ in range(2)] == [False, True]
+    assert [p.feed(p.state()) for _ in range(3)] == [False, False, True]
     p.set(effort_limit_scale=1e-3)   # every command clamped
     assert not any(p.feed(p.state()) for _ in range(3))
     assert p.on.core.count.clamp_count == 3 and p.on.core.clamped
@@ -257,7 +271,7 @@ def test_the_clamp_and_the_ramp_are_the_python_paths(arm):
 def test_a_mode_it_does_not_cover_and_a_fallback_are_declined(arm, wide_arm):
     p = arm(urdf=wide_arm, mode='feedforward', desired_timeout=0.5)
     p.desired()
-    assert [p.feed(p.state()) for _ in range(2)] == [False, True]
+    assert [p.feed(p.state()) for _ in range(3)] == [False, False, True]
     p.set(mode='pd')
     assert not any(p.feed(p.state()) for _ in range(2))
     p.set(mode='feedforward')
@@ -272,7 +286,7 @@ def test_a_mode_it_does_not_cover_and_a_fallback_are_declined(arm, wide_arm):
 
 def test_without_a_native_kernel_the_python_path(arm, monkeypatch):
     p = arm()
-    assert [p.feed(p.state()) for _ in range(2)] == [False, True]
+    assert [p.feed(p.state()) for _ in range(3)] == [False, False, True]
     for node in p.nodes:   # this model's kernels: the Python ones (built now, not deferred)
         use_native(node.core.model, False)
     native.invalidate()

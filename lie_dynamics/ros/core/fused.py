@@ -14,7 +14,9 @@ counts, logs and publishes as without it: a layout change, a check failing, a mo
 it does not cover, no native kernel, no C compiler.
 
 A Command is made for one key (the law, settings, model and its version, the reader's map and
-locked values, the desired state, the layout, the writers); a change of any makes the next.
+locked values, the desired state, the layout, the writers); a change of any makes the next. A new
+layout's first two messages take the Python path (its first is walked by the decoder, the second
+read by its fast path shows that the layout repeats).
 """
 import sys
 
@@ -49,6 +51,10 @@ class FusedCommand:
         self._path = None    # the native Command for the key, or None: decline
         self._views = None   # (count, offset) of the velocity and effort arrays
         self._pending = None  # the command made, until `accepted`
+        # the decoder's layout at the last call: a Command is made for a layout the decoder read
+        # twice in a row (by its fast path the second time), not for one it walks at every
+        # message (a publisher whose padding bytes change: rclpy's serialize_message)
+        self._layout = None
         self.taken = self.declined = 0
 
     def command(self, buf, writers):
@@ -62,6 +68,10 @@ class FusedCommand:
             self.declined += 1
             return None
         model, reader, layout = core.model, core.reader, self.decoder.layout
+        if layout is not self._layout or layout is None:   # a layout read once: made when it repeats
+            self._layout = layout
+            self.declined += 1
+            return None
         key = (law, core.settings, model, model.version, reader, reader.map.names, reader.last_locked, core.desired,
                layout, writers[0], writers[1], core.limits)
         if not _same(key, self._key):
