@@ -35,7 +35,7 @@ typedef struct {
     const char *cmd_parts[3], *js_parts[5];
     Py_ssize_t cmd_len[3], js_len[5];
     int js;                        /* ~/commanded_efforts written too */
-    PyObject *keep;
+    PyObject *keep, *desired_keep;
 } Command;
 
 static PyTypeObject CommandType;
@@ -248,8 +248,42 @@ static void command_dealloc(PyObject *self)
     Py_XDECREF(c->method);
     Py_XDECREF(c->model);
     Py_XDECREF(c->keep);
+    Py_XDECREF(c->desired_keep);
     Py_TYPE(self)->tp_free(self);
 }
+
+/* a float64 vector of n values (or None where allowed: *out NULL) */
+static int vector_arg(PyObject *o, Py_ssize_t n, int none_ok, const double **out);
+
+/* desired(base, q_d, qd_d, qdd_d): a new desired state (feedforward: its model term `base` too),
+ * without making the Command again (a desired state may come at every state) */
+static PyObject *command_desired(PyObject *self, PyObject *args)
+{
+    Command *c = (Command *)self;
+    PyObject *base, *q_d, *qd_d, *qdd_d;
+    if (!PyArg_ParseTuple(args, "OOOO", &base, &q_d, &qd_d, &qdd_d))
+        return NULL;
+    const double *b, *p, *v, *a;
+    if (c->law == LAW_GRAVITY || !vector_arg(base, c->n, c->law != LAW_FEEDFORWARD, &b) ||
+        !vector_arg(q_d, c->n, 0, &p) || !vector_arg(qd_d, c->n, 0, &v) || !vector_arg(qdd_d, c->n, 0, &a)) {
+        PyErr_SetString(PyExc_ValueError, "desired: not the fused command's desired state");
+        return NULL;
+    }
+    PyObject *keep = PyTuple_Pack(4, base, q_d, qd_d, qdd_d);
+    if (!keep)
+        return NULL;
+    c->base = b;
+    c->q_d = p;
+    c->qd_d = v;
+    c->qdd_d = a;
+    Py_XSETREF(c->desired_keep, keep);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef command_methods[] = {
+    {"desired", command_desired, METH_VARARGS, "A new desired state: desired(base, q_d, qd_d, qdd_d)."},
+    {NULL, NULL, 0, NULL},
+};
 
 static PyTypeObject CommandType = {
     PyVarObject_HEAD_INIT(NULL, 0)
@@ -259,6 +293,7 @@ static PyTypeObject CommandType = {
     .tp_vectorcall_offset = offsetof(Command, vectorcall),
     .tp_call = PyVectorcall_Call,
     .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_VECTORCALL,
+    .tp_methods = command_methods,
     .tp_doc = "The node's fused command path: call(joint_states bytes) -> (stamp, q, tau, command, "
               "joint state) or None (fused.py)",
 };
@@ -332,7 +367,7 @@ static PyObject *command_path(PyObject *mod, PyObject *args)
     if (!c)
         return NULL;
     c->vectorcall = command_call;
-    c->method = c->model = c->keep = NULL;
+    c->method = c->model = c->keep = c->desired_keep = NULL;
     c->length = length;
     c->key_end = 12 + key_len;
     c->v_at = v_at;

@@ -14,7 +14,8 @@ counts, logs and publishes as without it: a layout change, a check failing, a mo
 it does not cover, no native kernel, no C compiler.
 
 A Command is made for one key (the law, settings, model and its version, the reader's map and
-locked values, the desired state, the layout, the writers); a change of any makes the next. A new
+locked values, the layout, the writers); a change of any makes the next. A new desired state is
+handed to the Command made (Command.desired): one may come at every state. A new
 layout's first two messages take the Python path (its first is walked by the decoder, the second
 read by its fast path shows that the layout repeats).
 """
@@ -48,6 +49,7 @@ class FusedCommand:
     def __init__(self, core, decoder):
         self.core, self.decoder = core, decoder
         self._key = None
+        self._desired = None  # the core's desired state the Command has
         self._path = None    # the native Command for the key, or None: decline
         self._views = None   # (count, offset) of the velocity and effort arrays
         self._pending = None  # the command made, until `accepted`
@@ -72,12 +74,16 @@ class FusedCommand:
             self._layout = layout
             self.declined += 1
             return None
-        key = (law, core.settings, model, model.version, reader, reader.map.names, reader.last_locked, core.desired,
-               layout, writers[0], writers[1], core.limits)
+        key = (law, core.settings, model, model.version, reader, reader.map.names, reader.last_locked, layout,
+               writers[0], writers[1], core.limits)
+        desired = core.desired
         if not _same(key, self._key):
             self._path = self._make(law, model, reader, layout, writers)
-            self._key = key
+            self._key, self._desired = key, desired
         path = self._path
+        if desired is not self._desired and path is not None:   # (not a new Command: one may come at every state)
+            path.desired(*self._desired_arrays(law, model))
+            self._desired = desired
         r = path(buf) if path is not None else None
         if r is None or core.refuses_stamp(r[0]):
             self.declined += 1
@@ -119,12 +125,9 @@ class FusedCommand:
             return None
         if js_w is not None and (js_w.where != [(3, 8 * n)] or js_w.stamp_part != 1 or len(js_w.parts) != 5):
             return None
-        desired = tuple(np.ascontiguousarray(a, dtype=float) for a in core.desired) if law != 'gravity' else None
-        base = method = None
-        if law == 'feedforward':   # the law's model term, ID(desired) + f(qd_d): the law without its gains
-            base = np.ascontiguousarray(LAWS[law](model, None, None, desired, None, None, core.friction,
-                                                  s.include_velocity_terms), dtype=float)
-        else:
+        base, q_d, qd_d, qdd_d = self._desired_arrays(law, model)
+        method = None
+        if law != 'feedforward':
             method = type(model).gravity if law == 'gravity' else type(model).inverse_dynamics
         b = reader.bounds
         lower = upper = None
@@ -137,7 +140,6 @@ class FusedCommand:
         gains = [None if g is None else np.ascontiguousarray(np.broadcast_to(g, (n,)), dtype=float)
                  for g in (core.kp, core.kd)]
         bound = np.ascontiguousarray(core.limits.bound, dtype=float)
-        q_d, qd_d, qdd_d = desired if desired is not None else (None, None, None)
         friction = core.friction if law != 'feedforward' else None   # (feedforward's is at qd_d: in base)
         viscous = coulomb = None
         if friction is not None:
@@ -155,3 +157,17 @@ class FusedCommand:
             return None
         self._views = ((n1, o1), (n2, o2))
         return path
+
+    def _desired_arrays(self, law, model):
+        """(base, q_d, qd_d, qdd_d) of the core's desired state for law `law`: None each for
+        gravity; base, feedforward's model term ID(desired) + f(qd_d), by the law itself without
+        its gains (None for computed torque)."""
+        if law == 'gravity':
+            return None, None, None, None
+        core = self.core
+        desired = tuple(np.ascontiguousarray(a, dtype=float) for a in core.desired)
+        base = None
+        if law == 'feedforward':
+            base = np.ascontiguousarray(LAWS[law](model, None, None, desired, None, None, core.friction,
+                                                  core.settings.include_velocity_terms), dtype=float)
+        return (base, *desired)
