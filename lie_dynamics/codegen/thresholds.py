@@ -102,8 +102,9 @@ THRESHOLDS = {
     # reduced (156 pairs, 1.03 once its pair steps fold the constant entries of the body's pose;
     # 2.2 before), 0.6-0.7 on chains of 24-32 (300-528 pairs); first use 0.1-0.7 s against 1-10 s.
     # Hence looped from 64 pairs (an 11-body chain): the arms keep their straight-line kernel, and
-    # above native_max whatever the pairs. The looped regressor runs 0.26-0.3x Pinocchio on chains
-    # of 48-200 bodies, 0.9-0.96x on binary trees of 100-200. Mimic joints: no looped form.
+    # above native_max whatever the pairs. The looped regressor runs 0.15-0.3x Pinocchio on chains
+    # of 48-200 bodies, 0.6-0.96x on binary trees of 100-200 (two runs, load 3-6; docs/benchmarks.md).
+    # Mimic joints: no looped form (every such robot of example-robot-data is within native_max).
     'regressor': Limits(300, 128, 6, 80, size='pairs', large=64, rows_from_large=192, native_max=600,
                         looped_from=64),
     # Frame Jacobians and J̇q̇ (one kernel per kind, frame and body, O(depth) source): on random
