@@ -1,6 +1,6 @@
 """Excitation design: condition number of the optimised excitation against the random one.
 
-    python -m bench.calibration_excitation [--quick] [--out DIR]
+    python -m bench.calibration_excitation [--quick] [--iterations N] [--out DIR]
 
 For each robot and duration: the condition number of the column-scaled structural base
 calibration regressor (calibration.excitation.condition_number) along
@@ -9,8 +9,8 @@ calibration regressor (calibration.excitation.condition_number) along
              velocity limits), as it comes;
   random in limits  the same series shrunk about its centre until it also meets the optimised
              excitation's limits (0.8 of the velocity limits, 5 rad/s^2, 0.8 of the effort limits);
-  optimised  excitation_trajectory(optimize=True, seed 0) with its defaults (the CLI's: 400 L-BFGS-B
-             iterations, harmonics growing with the duration), limits checked on its 100 Hz samples;
+  optimised  excitation_trajectory(optimize=True, seed 0) with its defaults (the CLI's: 1,500 L-BFGS-B
+             iterations or --iterations, harmonics growing with the duration), limits checked on its 100 Hz samples;
   uniform states  1000 states drawn uniformly over the box the limits allow (positions less the
              margin, 0.8 of the velocity limits, 5 rad/s^2), free of any trajectory: what spreading
              the samples alone gives (efforts not checked);
@@ -90,7 +90,7 @@ def uniform_states(model, count=1000, seed=0):
             (2 * u[2] - 1) * LIMITS['acceleration'])
 
 
-def run(quick=False, out=None):
+def run(quick=False, out=None, iterations=None):
     rows = []
     for name, path in robots(quick).items():
         model = load_urdf(path)
@@ -102,7 +102,8 @@ def run(quick=False, out=None):
             t0 = time.perf_counter()
             _, q, qd, qdd = excitation_trajectory(model, duration=duration, rate=RATE, optimize=True, seed=0,
                                                   **{k: v for k, v in LIMITS.items() if k != 'margin'},
-                                                  **({'iterations': 10} if quick else {}))
+                                                  **({'iterations': 10} if quick else {}),
+                                                  **({'iterations': iterations} if iterations else {}))
             seconds = time.perf_counter() - t0
             c_opt = condition_number(model, q, qd, qdd)
             rows.append({'robot': name, 'duration': duration, 'random': c_random, 'random_in_limits': c_within,
@@ -168,9 +169,10 @@ def write(rows, out):
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='python -m bench.calibration_excitation', description=__doc__.split('\n')[0])
     ap.add_argument('--quick', action='store_true')
+    ap.add_argument('--iterations', type=int, default=None, help='L-BFGS-B iterations (default: the library\'s)')
     ap.add_argument('--out', default=os.path.join(os.path.dirname(os.path.abspath(__file__)), 'out'))
     args = ap.parse_args(argv)
-    print(markdown(run(quick=args.quick, out=args.out)))
+    print(markdown(run(quick=args.quick, out=args.out, iterations=args.iterations)))
     return 0
 
 

@@ -31,8 +31,11 @@ ROBOTS = ('pr2', 'baxter', 'talos_reduced', 'tree32', 'chain32', 'tree64', 'chai
 
 
 def robot_xml(label):
-    """The URDF text of a robot label: a REAL key, or chainN / treeN (random, seed N)."""
+    """The URDF text of a robot label: a REAL key, arm7 (the bundled arm) or chainN / treeN (random,
+    seed N)."""
     from bench import robots
+    if label == 'arm7':
+        return common.arm_xml()
     if label in REAL:
         with open(os.path.join(robots.robot_dir(), REAL[label]), encoding='utf-8') as fh:
             return fh.read()

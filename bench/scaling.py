@@ -22,19 +22,22 @@ SIZES = (2, 4, 6, 8, 16, 32, 64, 100, 200)
 SIZES_QUICK = (2, 8)   # the smoke test: two sizes give the slope; every family compiles per size
 ALGOS = ('RNEA', 'RNEA batched (per state)', 'gravity', 'M CRBA', 'M closed form', 'C Christoffel',
          'FD Cholesky', 'FD ABA', 'ID derivatives', 'C recursive', 'FD derivatives', 'regressor',
+         'Jacobian', 'J̇q̇',
          'Pinocchio rnea', 'Pinocchio crba', 'Pinocchio aba', 'Pinocchio derivatives', 'Pinocchio gravity',
-         'Pinocchio coriolis', 'Pinocchio aba derivatives', 'Pinocchio regressor')
+         'Pinocchio coriolis', 'Pinocchio aba derivatives', 'Pinocchio regressor', 'Pinocchio Jacobian',
+         'Pinocchio J̇q̇')
 # each family of ours against Pinocchio's counterpart (the ratio chart)
 RATIOS = {'RNEA': 'Pinocchio rnea', 'gravity': 'Pinocchio gravity', 'M CRBA': 'Pinocchio crba',
           'FD Cholesky': 'Pinocchio aba', 'FD ABA': 'Pinocchio aba', 'ID derivatives': 'Pinocchio derivatives',
           'C recursive': 'Pinocchio coriolis', 'FD derivatives': 'Pinocchio aba derivatives',
-          'regressor': 'Pinocchio regressor'}
+          'regressor': 'Pinocchio regressor', 'Jacobian': 'Pinocchio Jacobian', 'J̇q̇': 'Pinocchio J̇q̇'}
 NB = 256
 # Pinocchio's counterparts share the colour of ours (dashed)
-COLORS = dict(zip(ALGOS[:12], ('C0', 'C1', 'C2', 'C3', 'C4', 'C5', 'C6', 'C7', 'C8', 'C9', 'navy', 'k')))
+COLORS = dict(zip(ALGOS[:14], ('C0', 'C1', 'C2', 'C3', 'C4', 'C5', 'C6', 'C7', 'C8', 'C9', 'navy', 'k', 'olive',
+                               'teal')))
 COLORS.update({'Pinocchio rnea': 'C0', 'Pinocchio crba': 'C3', 'Pinocchio aba': 'C7', 'Pinocchio derivatives': 'C8',
                'Pinocchio gravity': 'C2', 'Pinocchio coriolis': 'C9', 'Pinocchio aba derivatives': 'navy',
-               'Pinocchio regressor': 'k'})
+               'Pinocchio regressor': 'k', 'Pinocchio Jacobian': 'olive', 'Pinocchio J̇q̇': 'teal'})
 
 
 def _fns(model, xml, rng):
@@ -43,6 +46,13 @@ def _fns(model, xml, rng):
     q, qd, qdd = rng.uniform(-1, 1, (3, n))
     tau = model.inverse_dynamics(q, qd, qdd)
     Q, Qd, Qdd = rng.uniform(-1, 1, (3, NB, n))
+    deep = int(np.argmax(model.depth))   # the Jacobians: the deepest body's link, 'world_aligned'
+    link = next(nm for nm, (b, _) in model.link_frames.items() if b == deep)
+    fid, ref, zero = pm.getFrameId(link), pin.ReferenceFrame.LOCAL_WORLD_ALIGNED, np.zeros(n)
+
+    def pin_drift():
+        pin.forwardKinematics(pm, pd, q, qd, zero)
+        return pin.getFrameClassicalAcceleration(pm, pd, fid, ref).vector
     return {
         'RNEA': (lambda: model.inverse_dynamics(q, qd, qdd), 1),
         'RNEA batched (per state)': (lambda: model.inverse_dynamics(Q, Qd, Qdd), NB),
@@ -56,6 +66,8 @@ def _fns(model, xml, rng):
         'C recursive': (lambda: model.coriolis_matrix(q, qd, method='recursive'), 1),
         'FD derivatives': (lambda: model.forward_dynamics_derivatives(q, qd, tau), 1),
         'regressor': (lambda: model.regressor(q, qd, qdd), 1),
+        'Jacobian': (lambda: model.jacobian(q, link), 1),
+        'J̇q̇': (lambda: model.jacobian_dot_times_qd(q, qd, link), 1),
         'Pinocchio rnea': (lambda: pin.rnea(pm, pd, q, qd, qdd), 1),
         'Pinocchio crba': (lambda: pin.crba(pm, pd, q), 1),
         'Pinocchio aba': (lambda: pin.aba(pm, pd, q, qd, tau), 1),
@@ -64,6 +76,8 @@ def _fns(model, xml, rng):
         'Pinocchio coriolis': (lambda: pin.computeCoriolisMatrix(pm, pd, q, qd), 1),
         'Pinocchio aba derivatives': (lambda: pin.computeABADerivatives(pm, pd, q, qd, tau), 1),
         'Pinocchio regressor': (lambda: pin.computeJointTorqueRegressor(pm, pd, q, qd, qdd), 1),
+        'Pinocchio Jacobian': (lambda: pin.computeFrameJacobian(pm, pd, q, fid, ref), 1),
+        'Pinocchio J̇q̇': (pin_drift, 1),
     }
 
 

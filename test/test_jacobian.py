@@ -13,10 +13,11 @@ from dyn_cases import ARM, rel_err, states
 from lie_dynamics import load_urdf
 from lie_dynamics.algorithms import jacobian as jac
 from lie_dynamics.algorithms.kinematics import adjoints, spatial_motion, spatial_screws, world_poses
-from lie_dynamics.codegen import runtime
+from lie_dynamics.codegen import native, runtime
+from lie_dynamics.codegen.traced import jacobian as t_jac
 from lie_dynamics.spatial import log3
 from oracle import Oracle
-from robots import named_urdf
+from robots import named_urdf, random_urdf
 
 FRAMES = ('world_aligned', 'local', 'world')
 TOL = 1e-10
@@ -314,3 +315,28 @@ def test_eqs_13_to_15_as_corrected_in_the_architecture_notes():
     assert np.allclose(eq13(B, 1.0), fd, atol=1e-8)
     assert np.allclose(Ad(inv(M)) @ eq13(A, 1.0), fd, atol=1e-8)     # eqs 14-15
     assert not np.allclose(eq13(B, -1.0), fd, atol=1e-3)
+
+
+def test_native_kernels_above_the_python_cap():
+    """THRESHOLDS['jacobian'] native_max: a chain deeper than compile_max keeps native Jacobians
+    (no Python kernel: the vectorised reference is the comparison), equal to it and Pinocchio."""
+    if native.module() is None:
+        pytest.skip('no working C compiler')
+    xml = random_urdf(71, 70, fixed_links=False)
+    model = load_urdf(xml)
+    t = runtime.THRESHOLDS['jacobian']
+    assert t.compile_max < model.nb <= runtime.native_max(t)
+    oracle = Oracle(xml, joints=model.joint_names)
+    b = int(np.argmax(model.depth))
+    link = next(ln for ln, (bb, _) in model.link_frames.items() if bb == b)
+    q, qd, _ = states(model, N=2, seed=3)
+    for frame in ('world_aligned', 'local'):
+        J, a = model.jacobian(q, link, frame), model.jacobian_dot_times_qd(q, qd, link, frame)
+        for kind in ('jacobian', 'jacobian_dot'):
+            assert runtime.native(model, t_jac.spec(kind, frame, b)) is not None
+        assert rel_err(J, jac.jacobian(model, q, link, frame, mode='vectorized'), 1.0) < 1e-12
+        assert rel_err(a, jac.jacobian_dot_times_qd(model, q, qd, link, frame, mode='vectorized'), 1.0) < 1e-12
+        for i in range(len(q)):
+            assert rel_err(J[i], oracle.frame_jacobian(q[i], link, frame), 1.0) < 1e-10
+            a_ref = oracle.frame_classical_acceleration(q[i], qd[i], 0 * qd[i], link, frame)
+            assert rel_err(a[i][None], a_ref[None], 1.0) < 1e-10

@@ -227,12 +227,12 @@ def test_step_kernel_equals_the_reference_step_by_step(name, backend):
         if k in (40, 41):   # a NaN effort, then a repeated time: declined, nothing changes
             bad = tau.copy()
             bad[k % n] = np.nan
-            state = fast._state[:3 * n].copy()   # p(0), the integral, beta + r (then the dt slot)
+            state = fast.state   # p(0), the integral, beta + r
             assert fast.step(t, q, qd, bad) is None
-            assert fast.step(fast._t, q, qd, tau) is None
+            assert fast.step(fast.last_time, q, qd, tau) is None
             if backend == 'native':   # the C call takes float64 arrays only (the Python floats: lists too)
                 assert fast.step(t, q.tolist(), qd, tau) is None
-            np.testing.assert_array_equal(fast._state[:3 * n], state)
+            np.testing.assert_array_equal(fast.state, state)
             with pytest.raises(ValueError, match='tau_measured contains non-finite'):
                 fast.update(t, q, qd, bad)
             continue

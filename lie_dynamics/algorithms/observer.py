@@ -114,6 +114,16 @@ class MomentumObserver:
         self._state = np.zeros(3 * n + 1)
         self.estimate = np.zeros(n)
 
+    @property
+    def last_time(self):
+        """Time of the last accepted sample (None before the first, and after reset)."""
+        return self._t
+
+    @property
+    def state(self):
+        """A copy of the integration state: p(0), the integral and beta + r of the last sample (3 n values)."""
+        return self._state[:3 * self.model.n].copy()
+
     def momentum_terms(self, q, qd, tau_measured):
         """(p, beta) with p = M(q) qd and beta = tau + C^T qd - g, for one state (n,) or a batch."""
         m, n = self.model, self.model.n

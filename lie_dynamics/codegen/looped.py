@@ -133,10 +133,29 @@ def sym6_out(K):
 
 
 def pose_in(v):
-    """A transform (R, t) from its 12 values in a register: R row-major, then t."""
+    """A traced pose (R, t) from 12 values: R row-major, then t."""
     return tuple(tuple(v[3 * r:3 * r + 3]) for r in range(3)), tuple(v[9:12])
 
 
-def pose_flat(X):
-    """The 12 values of a transform (R, t): R row-major, then t."""
+def pose_out(X):
+    """The 12 values of a pose (R, t): R row-major, then t."""
     return [e for row in X[0] for e in row] + list(X[1])
+
+
+def exact(v):
+    """A constant a step folds (0, 1 or -1, as the straight-line trace folds it), else None: a
+    register of the step, so that bodies differing only there share one step."""
+    v = float(v)
+    return v + 0.0 if v in (0.0, 1.0, -1.0) else None
+
+
+def dfs_order(fr):
+    """The bodies in depth-first order (each parent before its children, a subtree contiguous):
+    a driver keeping one register block per depth along the current path reuses it for the
+    next subtree."""
+    order, stack = [], [b for b in reversed(range(fr.nb)) if fr.parent[b] < 0]
+    while stack:
+        b = stack.pop()
+        order.append(b)
+        stack.extend(reversed(fr.children[b]))
+    return order

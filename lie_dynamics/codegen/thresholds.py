@@ -113,12 +113,29 @@ THRESHOLDS = {
     # for 100-300 pairs (later for chains, earlier for branched trees).
     # Native: 5,000-51,000 nodes up to 528 pairs (a 32-body chain), 0.9-8.2 s of compiler CPU,
     # 0.1-0.6x Pinocchio's computeJointTorqueRegressor; a 64-body chain (2,080 pairs) has 200,000.
-    'regressor': Limits(300, 128, 6, 80, size='pairs', large=64, rows_from_large=192, native_max=600),
+    # looped_from (`python -m bench.looped --families regressor`, load 2.4-4, one state, medians of
+    # 7-21 interleaved rounds): looped / straight-line 1.13-1.17 on the arm (28 pairs), 0.9-1.07 on
+    # chains of 8-16 bodies (36-136 pairs), binary trees of 16-100 bodies (50-486 pairs) and Talos
+    # reduced (156 pairs, 1.03 once its pair steps fold the constant entries of the body's pose;
+    # 2.2 before), 0.6-0.7 on chains of 24-32 (300-528 pairs); first use 0.1-0.7 s against 1-10 s.
+    # Hence looped from 64 pairs (an 11-body chain): the arms keep their straight-line kernel, and
+    # above native_max whatever the pairs. The looped regressor runs 0.15-0.3x Pinocchio on chains
+    # of 48-200 bodies, 0.6-0.96x on binary trees of 100-200 (two runs, load 3-6; docs/benchmarks.md).
+    # Mimic joints: no looped form (every such robot of example-robot-data is within native_max).
+    'regressor': Limits(300, 128, 6, 80, size='pairs', large=64, rows_from_large=192, native_max=600,
+                        looped_from=64),
     # Frame Jacobians and J̇q̇ (one kernel per kind, frame and body, O(depth) source): on random
     # chains (tip link) the float kernel beats the vectorised form for one state up to ~96 bodies,
     # 1.3-1.6x at 64 where a build takes 0.1-0.2 s (0.3 s at 128); on the arm the loop/rows
     # crossover is 24-40 states, the vectorised form never faster in between.
-    'jacobian': Limits(64, 64, 32, 32),
+    # native_max: no looped form, the O(depth) source stays small (the tip of a 200-body chain:
+    # 13,000 nodes for J, 22,000 for J̇q̇). `python -m bench.looped --families jacobian,jacobian_dot`
+    # (deepest link, cap lifted, load 2.8-3): first use 0.6-2.4 s on chains of 32-200 bodies, 0.1-0.65 s
+    # on binary trees of 64-200; J 0.54-0.82x pin.computeFrameJacobian on those chains, J̇q̇ 0.3-0.5x
+    # its classical acceleration, 0.06-0.2x on the trees (J 1.7-2x there: Pinocchio's ~1-2 us
+    # against the Python call path's ~1 us over the kernel). Above 256 bodies, native_nodes still
+    # bounds a deep link's kernel (~110 nodes per body of depth for J̇q̇).
+    'jacobian': Limits(64, 64, 32, 32, native_max=256),
     # Batch runner: states per chunk, large enough that each ufunc's ~0.5 us fixed cost is
     # small next to its per-element work, small enough that the rows stay in cache (at most
     # ~8 MB of registers and inputs per chunk).
@@ -146,9 +163,9 @@ THRESHOLDS = {
     # those robots go native (the largest, forward-dynamics derivatives of a 32-body tree,
     # 85,000 nodes, ~8 s of CPU, ~4 s on 2 quiet cores, once: the disk cache keeps it) but
     # the O(n^2) and O(n^3) families of long chains (64 bodies: 160,000-1,700,000 nodes): there the
-    # looped form runs where a family has one (looped_from: M, ABA and forward dynamics, both
-    # derivative families and C), else the vectorised reference (the regressor; docs/architecture.md,
-    # "Looped native kernels").
+    # looped form runs where a family has one (looped_from: M, ABA and forward dynamics, the
+    # regressor, both derivative families and C; docs/architecture.md, "Looped native kernels"),
+    # else the vectorised reference.
     'native_nodes': 100000,
     # Native batches release the GIL from this many states (below, the release costs more
     # than other threads gain).

@@ -109,10 +109,10 @@ def looped_mass_pass(fr):
     the mass matrix's driver and the forward-dynamics derivatives' (traced/derivatives.py)."""
     kinds, sig = looped.classify(list(fr.revolute))
     src = [looped.table('int', 'CRBA_SIG', sig), looped.table('int', 'CRBA_AX', [2 if r else 5 for r in fr.revolute]),
-           looped.table('double', 'CRBA_K0', [e for b in range(fr.nb) for e in looped.pose_flat((fr.R[b], fr.t[b]))])]
+           looped.table('double', 'CRBA_K0', [e for b in range(fr.nb) for e in looped.pose_out((fr.R[b], fr.t[b]))])]
     for i, rev in enumerate(kinds):
         src.append(looped.step(f'crba_xform{i}', lambda g, x, K, rev=rev: [
-            looped.pose_flat(joint_transform(g, *looped.pose_in(K), rev, x[0]))], (1, 12)))
+            looped.pose_out(joint_transform(g, *looped.pose_in(K), rev, x[0]))], (1, 12)))
         src.append(looped.step(f'crba_column{i}', lambda g, ic, rev=rev: [_F_flat(joint_wrench(rev, _ic(ic)))],
                                (10,)))
     src.append(looped.step('crba_composite', lambda g, a, X, p: [

@@ -316,13 +316,13 @@ def looped_passes(fr, wrench=False, coriolis=False, bias=False):
     fkeys, fsig = looped.classify([(fr.revolute[b], J[b] >= 0) for b in range(nb)])
     bkeys, bsig = looped.classify([(J[b] >= 0, fr.parent[b] < 0) for b in range(nb)])
     src = [looped.table('int', 'DER_FSIG', fsig), looped.table('int', 'DER_BSIG', bsig),
-           looped.table('double', 'DER_K0', [e for b in range(nb) for e in looped.pose_flat((fr.R[b], fr.t[b]))])]
+           looped.table('double', 'DER_K0', [e for b in range(nb) for e in looped.pose_out((fr.R[b], fr.t[b]))])]
     for i, (rev, free) in enumerate(fkeys):
         def fwd(g, x, xd, xdd, K, pp, Vp, ap, rev=rev, free=free):
             pose = pose_down(looped.pose_in(pp), joint_transform(g, *looped.pose_in(K), rev, x[0]))
             A, V, Z, Y, a = forward(rev, pose, _twist(Vp), zt if coriolis else _twist(ap), xd[0] if free else 0.0,
                                     xdd[0] if free and not coriolis else 0.0)
-            return [looped.pose_flat(pose), _flat(V), [] if coriolis else _flat(a),
+            return [looped.pose_out(pose), _flat(V), [] if coriolis else _flat(a),
                     _flat(A, Z) if coriolis else _flat(A, Z, Y)]
         src.append(looped.step(f'der_fwd{i}', fwd, (1, 1, 1, 12, 12, 6, 6)))
     for i, (free, root) in enumerate(bkeys):
