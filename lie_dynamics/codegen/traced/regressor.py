@@ -222,13 +222,14 @@ def looped_regressor(fr):
          for b in range(nb)]
     keys, sig = looped.classify([(fr.revolute[b], J[b] >= 0, fr.parent[b] < 0, tuple(looped.exact(v) for v in K[b]))
                                  for b in range(nb)])
+    order = looped.dfs_order(fr)
     depth, active = [0] * nb, [0] * nb      # the body's depth, its moving bodies from the root (itself included)
-    for b in looped.dfs_order(fr):
+    for b in order:
         p = fr.parent[b]
         depth[b] = depth[p] + 1 if p >= 0 else 0
         active[b] = (active[p] if p >= 0 else 0) + (J[b] >= 0)
     levels = max(depth) + 1
-    src = [looped.structure(fr), looped.table('int', 'SIG', sig), looped.table('int', 'ORD', looped.dfs_order(fr)),
+    src = [looped.structure(fr), looped.table('int', 'SIG', sig), looped.table('int', 'ORD', order),
            looped.table('int', 'AD', active), looped.table('int', 'ZL', [3 * d * (d + 1) for d in depth]),
            looped.table('double', 'K0', [v for k in K for v in k])]
     for i, (rev, fre, root, pat) in enumerate(keys):
