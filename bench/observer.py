@@ -136,24 +136,33 @@ def _messages(rec, n, convention='total'):
     return msgs
 
 
-def node_cost(rec, rounds, per_round):
-    """Per-message times (us) of the node's joint_states callback, observer off / total / gravity_removed."""
-    import rclpy
+# The cases of node_cost (bench.probes.observer_node too): parameters beyond bench_node's
+CASES = {'observer off (peer)': {'observer.enabled': False}, 'observer, total': {},
+         'observer, gravity_removed': {'measured_effort': 'gravity_removed'}}
+
+
+def bench_node(model, ctx, name, extra):
+    """A DynamicsNode on the bundled arm with the recording's friction (the simulator's damping),
+    parameters `extra` beyond that, in rclpy context ctx."""
     from rclpy.parameter import Parameter
 
     from lie_dynamics.ros.node import DynamicsNode
+    params = {'urdf_path': default_urdf_path(), 'friction.viscous': model.damping.tolist(),
+              'friction.coulomb': [0.0], 'stale_timeout': 60.0, **extra}
+    return DynamicsNode(name, context=ctx, parameter_overrides=[Parameter(p, value=v) for p, v in params.items()])
+
+
+def node_cost(rec, rounds, per_round):
+    """Per-message times (us) of the node's joint_states callback, observer off / total / gravity_removed."""
+    import rclpy
     model = rec[0]
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
-    cases = {'observer off (peer)': {'observer.enabled': False}, 'observer, total': {},
-             'observer, gravity_removed': {'measured_effort': 'gravity_removed'}}
+    cases = CASES
     nodes = {}
     try:
         for k, (name, extra) in enumerate(cases.items()):
-            params = {'urdf_path': default_urdf_path(), 'friction.viscous': model.damping.tolist(),
-                      'friction.coulomb': [0.0], 'stale_timeout': 60.0, **extra}
-            nodes[name] = DynamicsNode(f'observer_bench_{k}', context=ctx,
-                                       parameter_overrides=[Parameter(p, value=v) for p, v in params.items()])
+            nodes[name] = bench_node(model, ctx, f'observer_bench_{k}', extra)
         msgs = {name: _messages(rec, rounds * per_round, extra.get('measured_effort', 'total'))
                 for name, extra in cases.items()}
         times = {name: [] for name in cases}
