@@ -32,9 +32,14 @@ def joint_columns(names, joints):
 def in_joint_order(values, columns):
     """A message's or a trajectory's array read in the joints' order: values[..., columns] as
     float64 (columns: JointColumns.columns)."""
+    if type(values) is np.ndarray and values.dtype is _F8 and values.ndim == 1:
+        return values[columns]   # one state's float64 array (every joint_states message): no conversion
     a = np.asarray(values, dtype=float)
-    # one state (every joint_states message): a plain index, 5x cheaper than with the ellipsis
+    # a plain index for one state, 5x cheaper than with the ellipsis
     return a[columns] if a.ndim == 1 else a[..., columns]
+
+
+_F8 = np.dtype(float)   # the native float64 dtype (a singleton: compared by identity)
 
 
 def broadcast_joints(values, n):

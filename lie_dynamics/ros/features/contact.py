@@ -297,7 +297,7 @@ class ContactMonitor:
         self.samples += 1
         self.state = 'running'
         rl = r.tolist()
-        top = max(max(rl), -min(rl))
+        top = max(map(abs, rl))
         if top > self._window_max:
             k = [abs(x) for x in rl].index(top)
             self._window_max, self._window_joint = top, self.layout[k] if self.layout else str(k)
