@@ -1,7 +1,8 @@
 """Looped against straight-line native kernels, beside Pinocchio: where THRESHOLDS looped_from lies.
 
     python -m bench.looped [--robots chain8,chain16,...]
-                           [--families mass_matrix,aba,forward_dynamics,regressor,jacobian,jacobian_dot]
+                           [--families mass_matrix,aba,forward_dynamics,regressor,jacobian,jacobian_dot,
+                                       inverse_dynamics_derivatives,coriolis,forward_dynamics_derivatives]
                            [--rounds 7] [--out DIR]
 
 For each robot (random revolute chains and binary trees, bench.common.robot_urdf; or a label of
@@ -10,6 +11,9 @@ bench.native_sizes) and family, in a fresh temporary kernel cache: the straight-
 reference runs), the looped one (looped_from 1) and Pinocchio's call on the same URDF, one state,
 interleaved rounds (ratios: medians of per-round ratios). `forward_dynamics` is method='cholesky':
 straight-line, the Cholesky kernel; looped, the looped ABA that method takes from looped_from.
+`inverse_dynamics_derivatives` against Pinocchio's computeRNEADerivatives, `coriolis` (the
+recursive C, the dtau/dqd half of the same kernel) against computeCoriolisMatrix,
+`forward_dynamics_derivatives` against computeABADerivatives.
 First use: the first runtime.native call (trace or step tracing, render, compile, load). The
 frame Jacobians (`jacobian`, `jacobian_dot`: J̇q̇) have no looped form (an O(depth) source): their
 straight-line kernel of the deepest body's link, 'world_aligned', with its native cap lifted,
@@ -33,19 +37,28 @@ from bench.native_sizes import _arguments, pin_peer, robot_xml
 
 ROBOTS = ('chain8', 'chain16', 'chain24', 'chain32', 'chain48', 'chain64', 'chain100', 'chain200',
           'tree16', 'tree32', 'tree64', 'tree100', 'tree200')
-FAMILIES = ('mass_matrix', 'aba', 'forward_dynamics', 'regressor', 'jacobian', 'jacobian_dot')
+FAMILIES = ('mass_matrix', 'aba', 'forward_dynamics', 'regressor', 'jacobian', 'jacobian_dot',
+            'inverse_dynamics_derivatives', 'coriolis', 'forward_dynamics_derivatives')
 LIMITS = {'mass_matrix': 'mass_matrix', 'aba': 'aba', 'forward_dynamics': 'aba', 'regressor': 'regressor',
-          'jacobian': 'jacobian', 'jacobian_dot': 'jacobian'}
+          'jacobian': 'jacobian', 'jacobian_dot': 'jacobian',
+          'inverse_dynamics_derivatives': 'inverse_dynamics_derivatives', 'coriolis': 'inverse_dynamics_derivatives',
+          'forward_dynamics_derivatives': 'forward_dynamics_derivatives'}
 JACOBIANS = ('jacobian', 'jacobian_dot')
 
 
 def _specs(model, fam):
     """(straight-line spec, looped spec) of a family for this model."""
-    from lie_dynamics.codegen.traced import aba, cholesky, crba, regressor
+    from lie_dynamics.codegen.traced import aba, cholesky, crba, derivatives, regressor
     if fam == 'mass_matrix':
         return crba.MASS_MATRIX, crba.MASS_MATRIX
     if fam == 'regressor':
         return regressor.REGRESSOR, regressor.REGRESSOR
+    if fam == 'inverse_dynamics_derivatives':
+        return derivatives.INVERSE_DYNAMICS_DERIVATIVES, derivatives.INVERSE_DYNAMICS_DERIVATIVES
+    if fam == 'coriolis':
+        return derivatives.CORIOLIS, derivatives.CORIOLIS
+    if fam == 'forward_dynamics_derivatives':
+        return derivatives.FORWARD_DYNAMICS_DERIVATIVES, derivatives.FORWARD_DYNAMICS_DERIVATIVES
     if fam == 'aba':
         return aba.spec(model), aba.spec(model)
     return cholesky.FORWARD_DYNAMICS, aba.spec(model)

@@ -122,6 +122,23 @@ class JointStateSample(NamedTuple):
     effort: np.ndarray
 
 
+class Layout(NamedTuple):
+    """The layout of the last joint_states message a JointStateDecoder read (its fast path's
+    test, JointStateDecoder.layout): the message's length, its encapsulation (4 bytes), its bytes
+    from the frame_id's length to the position count (`key`, bytes 12..key_end), the velocity and
+    effort counts (`counts`, read by `count_struct` at the absolute offsets `count_at`), each
+    array's (count, absolute offset of its first value), the names."""
+    length: int
+    head: bytes
+    key: bytes
+    key_end: int
+    count_struct: struct.Struct
+    counts: tuple
+    arrays: tuple
+    names: tuple
+    count_at: tuple
+
+
 class JointStateDecoder:
     """Serialized sensor_msgs/JointState -> JointStateSample. Keeps the last name list (and its
     bytes), so that a stream naming the same joints decodes them once, and the last message's
@@ -136,9 +153,14 @@ class JointStateDecoder:
     def __init__(self):
         self._names_raw = None
         self._names = ()
-        # the last message's layout: (length, encapsulation, bytes 12..key_end, key_end, counts
-        # Struct, counts, (count, offset) per array, names); None after one that was not read
+        # the last message's Layout; None after one that was not read
         self._same = None
+
+    @property
+    def layout(self):
+        """The Layout the next message is read by without walking it (the last message's), or
+        None (none read yet, or the last one was not read or not little-endian)."""
+        return self._same
 
     def read(self, buf):
         """The sample of `buf` (bytes). Raises ValueError for a malformed or truncated message
@@ -170,8 +192,10 @@ class JointStateDecoder:
             key_end = 4 + at[0][0] + 4   # the bytes from the frame_id's length to the position count
             v, e = 4 + at[1][0], 4 + at[2][0]
             counts = struct.Struct(f'<{v}xI{e - v - 4}xI')   # the velocity and effort counts
-            self._same = (len(buf), bytes(buf[:4]), bytes(buf[12:key_end]), key_end, counts, counts.unpack_from(buf),
-                          tuple((len(a), 4 + start) for a, (_, start) in zip(arrays, at, strict=True)), names)
+            self._same = Layout(len(buf), bytes(buf[:4]), bytes(buf[12:key_end]), key_end, counts,
+                                counts.unpack_from(buf),
+                                tuple((len(a), 4 + start) for a, (_, start) in zip(arrays, at, strict=True)), names,
+                                (v, e))
         return JointStateSample(stamp_ns(sec, nanosec), names, *arrays)
 
     def _read_names(self, b, buf, pos):

@@ -107,7 +107,8 @@ def test_colcon_build_and_ros2_run_resolution(tmp_path):
         assert os.path.isfile(path) and os.access(path, os.X_OK), other
     assert os.path.isfile(site / 'lie_dynamics' / 'data' / 'arm7.urdf')  # the embedded default model
     assert os.path.isfile(site / 'lie_dynamics' / 'codegen' / 'native_call.c')  # the native call path's source
-    assert os.path.isfile(site / 'lie_dynamics' / 'codegen' / 'native_method.c')  # included by native_call.c
+    for part in ('native_method.c', 'native_command.c'):   # included by native_call.c
+        assert os.path.isfile(site / 'lie_dynamics' / 'codegen' / part)
     for f in ('config/arm7_gravity.yaml', 'config/wall_mount_payload.yaml', 'config/arm7.urdf',
               'launch/dynamics.launch.py', 'package.xml'):
         assert os.path.isfile(os.path.join(share, f)), f

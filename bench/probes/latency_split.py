@@ -9,7 +9,8 @@ published and when it returns, with its thread's CPU time. Per state, then:
   back          command published -> reply in the driver   (DDS back, the driver's dispatch)
   after         command published -> callback return   (the work after the command)
 
-and per candidate, each thread of the node's process: CPU time and context switches during the
+and the share of the commands the fused command path made (ros/core/fused.py; the rest by the
+Python path), and per candidate, each thread of the node's process: CPU time and context switches during the
 measured stream (/proc), so a thread that wakes beside the callback shows. Candidates run in
 interleaved rounds, the node on its own core (as bench.node_latency):
 
@@ -57,20 +58,32 @@ def serve_dynamics(bare):
     published = [0]
     on_joint_state, command = node_module.DynamicsNode.on_joint_state, Outputs.command
 
+    publish = getattr(Outputs, 'publish', None)   # the fused command path's (a checkout before it: none)
+
     def timed_callback(self, msg):
         t0, c0 = now(), cpu()
         published[0] = 0
+        fused = getattr(self, 'fused', None)
+        taken = fused.taken if fused is not None else 0
         try:
             return on_joint_state(self, msg)
         finally:
-            rows.append((_stamp(msg), t0, published[0], now(), cpu() - c0))
+            rows.append((_stamp(msg), t0, published[0], now(), cpu() - c0,
+                         (fused.taken if fused is not None else 0) - taken))
 
     def timed_command(self, tau, names, stamp=None):
         out = command(self, tau, names, stamp)
         published[0] = now()
         return out
+
+    def timed_publish(self, *args):
+        out = publish(self, *args)
+        published[0] = now()
+        return out
     node_module.DynamicsNode.on_joint_state = timed_callback
     Outputs.command = timed_command
+    if publish is not None:
+        Outputs.publish = timed_publish
     if bare:
         node_module.FEATURES = ()
         defaults = list(node_module.DynamicsNode.__init__.__defaults__)
@@ -104,7 +117,7 @@ def serve_echo():
         pub.publish(out)
         t1 = now()
         s = msg.header.stamp
-        rows.append((s.sec * 1_000_000_000 + s.nanosec, t0, t1, now(), cpu() - c0))
+        rows.append((s.sec * 1_000_000_000 + s.nanosec, t0, t1, now(), cpu() - c0, 0))
 
     node.create_subscription(JointState, 'joint_states', on_js, JOINT_STATES_QOS, event_callbacks=NO_SUB_EVENTS)
     ex, _ = make_executor()
@@ -226,7 +239,7 @@ def measure(names, seconds, rounds, rate, robot, before=None):
                 finally:
                     nl.stop(proc)
                 with open(trace) as fh:
-                    rows = np.array(json.load(fh), dtype=np.int64).reshape(-1, 5)
+                    rows = np.array(json.load(fh), dtype=np.int64).reshape(-1, 6)
                 key = keys['echo' if kind == 'echo' else 'dynamics']
                 res[label]['parts'].append(parts(rows, sent[W:], replies, key, Q, stamped.stamps))
                 res[label]['threads'].append({tid: (v[0], v[1] - t_before.get(tid, (0, 0, 0))[1],
@@ -240,7 +253,8 @@ def measure(names, seconds, rounds, rate, robot, before=None):
 
 
 def parts(rows, sent, replies, keys, Q, stamps):
-    """Per answered measured state: (to callback, to command, back, after, total, callback cpu) in µs."""
+    """Per answered measured state: (to callback, to command, back, after, total, callback cpu) in µs,
+    and 1 where the fused command path made the command (else 0)."""
     by_stamp = {int(r[0]): r for r in rows}
     out = []
     for t, data in replies:
@@ -252,8 +266,8 @@ def parts(rows, sent, replies, keys, Q, stamps):
             continue
         t_reply = int(t * 1e9)   # perf_counter and perf_counter_ns: the same clock
         out.append(((r[1] - r[0]) / 1e3, (r[2] - r[1]) / 1e3, (t_reply - r[2]) / 1e3, (r[3] - r[2]) / 1e3,
-                    (t_reply - r[0]) / 1e3, r[4] / 1e3))
-    return np.array(out).reshape(-1, 6)
+                    (t_reply - r[0]) / 1e3, r[4] / 1e3, r[5]))
+    return np.array(out).reshape(-1, 7)
 
 
 def report(res, rate, seconds):
@@ -270,6 +284,8 @@ def report(res, rate, seconds):
             else:
                 ratio = '- | -'
             lines.append(f'| {name} ({len(a)} replies) | {c} | {p50:.1f} | {p99:.1f} | {ratio} |')
+        if a[:, 6].any():
+            lines.append(f'| {name} | commands by the fused path | {100 * a[:, 6].mean():.0f} % | | | |')
     lines += ['', f'Threads of each candidate, summed over the rounds (CPU %, context switches per second of '
               f'the {seconds:g} s stream at {rate:g} Hz, warm-up included):', '',
               '| candidate | thread | CPU % | switches/s |', '|---|---|---:|---:|']

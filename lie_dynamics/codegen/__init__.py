@@ -15,7 +15,8 @@ numpy call at all) and on numpy rows with one entry per state for a batch.
   kernel.py   Trace (a traced kernel and its argument roles) and Kernel (the one kernel type:
               the trace and its float, rows and native renderings)
   native.py   the native backend: compiler, loading, binding; native_call.c its call path
-              (native_method.c: the Model methods that call it from C)
+              (native_method.c: the Model methods that call it from C; native_command.c: the
+              dynamics node's fused command path, ros/core/fused.py)
   disk_cache.py  the native backend's disk cache: names, checks, bound
   algebra.py  3-vectors, 3x3 matrices and spatial algebra on tuples, for tracing
   frames.py   per-structure constants: body frames with every joint axis along z

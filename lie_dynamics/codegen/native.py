@@ -195,10 +195,13 @@ def _compile(source, key, suffix, flags):
 def _call_module():
     """The extension module of the call path (native_call.c), built or loaded once."""
     texts = {}
-    for name in ('native_call.c', 'native_method.c'):   # the second is included by the first
+    parts = ('native_method.c', 'native_command.c')   # included by native_call.c
+    for name in ('native_call.c',) + parts:
         with open(os.path.join(HERE, name), encoding='utf-8') as fh:
             texts[name] = fh.read()
-    source = texts['native_call.c'].replace('#include "native_method.c"', texts['native_method.c'])
+    source = texts['native_call.c']
+    for name in parts:
+        source = source.replace(f'#include "{name}"', texts[name])
     incs = [sysconfig.get_paths()['include'], np.get_include()]
     flags = FLAGS + ('-pthread',) + tuple(f'-I{i}' for i in incs)   # set_threads: POSIX threads
     key = _key(flags, source, sys.version, np.__version__)

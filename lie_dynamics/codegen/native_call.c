@@ -18,6 +18,7 @@
 #include <Python.h>
 #define NPY_NO_DEPRECATED_API NPY_1_7_API_VERSION
 #include <numpy/arrayobject.h>
+#include <numpy/ufuncobject.h>
 #include <stddef.h>
 #include <stdint.h>
 #include <string.h>
@@ -341,6 +342,7 @@ static PyObject *bind(PyObject *mod, PyObject *args)
 
 
 #include "native_method.c"   /* Method: a Model method that runs its kernel from C */
+#include "native_command.c"  /* Command: the dynamics node's fused command path */
 
 /* set_threads(n, min_rows) -> the previous n */
 static PyObject *set_threads(PyObject *mod, PyObject *args)
@@ -364,6 +366,7 @@ static PyMethodDef methods[] = {
     {"set_threads", set_threads, METH_VARARGS, "Threads of the native batches (native.set_threads)."},
     {"method", method_new, METH_VARARGS, "A Model method that runs its native kernel first (dispatch.native_first)."},
     {"invalidate", invalidate, METH_NOARGS, "Every Method resolves its kernel again."},
+    {"command_path", command_path, METH_VARARGS, "The dynamics node's fused command path (ros/core/fused.py)."},
     {NULL, NULL, 0, NULL},
 };
 
@@ -372,7 +375,8 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "lie_dynamics_native"
 PyMODINIT_FUNC PyInit_lie_dynamics_native(void)
 {
     import_array();
-    if (PyType_Ready(&BoundType) < 0 || PyType_Ready(&MethodType) < 0)
+    import_umath();
+    if (PyType_Ready(&BoundType) < 0 || PyType_Ready(&MethodType) < 0 || PyType_Ready(&CommandType) < 0)
         return NULL;
     str_version = PyUnicode_InternFromString("version");
     str_out = PyUnicode_InternFromString("out");

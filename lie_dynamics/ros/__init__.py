@@ -7,8 +7,9 @@ nothing else of ros/ (test/test_lint.py checks it).
     core/          the decision core: one sample per joint_states message (cdr), the settings and
                    parameter table (params, settings), the torque command with its ramp, watchdog
                    and diagnostics (compensator, its settings and models: configuration), what became
-                   of each message (sample), the log (log), descriptions into models and the update
-                   rule (descriptions), the pipe protocol of the child processes (pipe)
+                   of each message (sample), the fused command path of the common case (fused), the
+                   log (log), descriptions into models and the update rule (descriptions), the pipe
+                   protocol of the child processes (pipe)
     features/      per-sample features behind one interface (base.Feature): the dynamics topics,
                    the momentum observer and collision flag, the gravity source, payload services
     loading/       robot descriptions: sources, parameter changes, the build process, the loader thread

@@ -11,6 +11,7 @@ result to each of the FEATURES -> one event queue -> the paced log. The timer ru
 clock (a stopped /clock must not stop the watchdog). Heavy work runs off it: loading/, trajectories/.
 """
 import collections
+import os
 import sys
 import threading
 import time
@@ -22,6 +23,7 @@ from . import interfaces
 from .control import Control
 from .core.cdr import JointStateDecoder, read_joint_trajectory, sample_of
 from .core.compensator import Compensator
+from .core.fused import FusedCommand
 from .core.log import LOG_LINES_PER_CALLBACK, LOG_LINES_PER_S, LOG_THROTTLE_S, EventLog, guarded
 from .core.params import HELP_DESCRIPTION, HELP_EXAMPLE, PARAMS, help_rows
 from .core.watchdog import Every, tick_period
@@ -62,6 +64,10 @@ LATER_SLICE_S = 50e-6
 # callback once more than this many wait: the observer's steps are never dropped, and its backlog
 # must not grow; the input's depth-1 queue then drops states, as before.
 LATER_MAX_STEPS = 32
+# The fused command path (core/fused.py): a state repeating the last layout, in the common case,
+# from its bytes to the command's in one native call; off: the Python path for every state (the
+# same bytes). LIE_DYNAMICS_FUSED_COMMAND=0 turns it off (benchmarks compare the two).
+FUSED_COMMAND = os.environ.get('LIE_DYNAMICS_FUSED_COMMAND', '1').strip() != '0'
 
 
 class DynamicsNode(Node):
@@ -94,6 +100,8 @@ class DynamicsNode(Node):
         self.lock = threading.RLock()  # services/parameters vs. callbacks when spun by several threads
         self.sources = Sources()      # the running model's source, the last topic message
         self._decoder = JointStateDecoder()   # keeps the last name list: decoded once per stream
+        # the fused command path (None: off, the Python path for every message; FUSED_COMMAND)
+        self.fused = FusedCommand(self.core, self._decoder) if FUSED_COMMAND else None
         self.outputs = Outputs(self, self.core.settings.command_topic)
         self.event_log = EventLog(self.outputs.log_line, pace=LOG_LINES_PER_CALLBACK,   # lines per callback
                                   rate=LOG_LINES_PER_S)                               # and per second
@@ -187,19 +195,33 @@ class DynamicsNode(Node):
         self._samples += 1
         with self.lock, self.background.deferred():   # no kernel is built on the control path
             core = self.core
-            try:
-                sample = self._decoder.read(msg) if isinstance(msg, bytes) else sample_of(msg)
-            except ValueError as exc:
-                core.refuse_malformed('joint_states', str(exc))
-                self.drain_events()
-                return
             background = self.background
-            background.swap_in()   # a new model swaps in here, between two commands (cheap: none)
             features = self.features
-            features.before_command(core)
-            tau = core.on_sample(sample)
-            if tau is not None:
-                self.outputs.command(tau, core.layout, sample.stamp)   # the input's stamp (ns)
+            fused = self.fused
+            done = None
+            prepared = fused is not None and type(msg) is bytes and core.layout is not None
+            if prepared:
+                background.swap_in()   # a new model swaps in here, between two commands (cheap: none)
+                features.before_command(core)
+                done = fused.command(msg, self.outputs.writers(len(core.layout), core.layout))
+            if done is not None:   # the fused path's command (core/fused.py), then the core's bookkeeping
+                try:
+                    self.outputs.publish(*done)
+                finally:
+                    fused.accepted()
+            else:                  # the Python path decides (and after a declined fused path)
+                try:
+                    sample = self._decoder.read(msg) if isinstance(msg, bytes) else sample_of(msg)
+                except ValueError as exc:
+                    core.refuse_malformed('joint_states', str(exc))
+                    self.drain_events()
+                    return
+                if not prepared:
+                    background.swap_in()
+                    features.before_command(core)
+                tau = core.on_sample(sample)
+                if tau is not None:
+                    self.outputs.command(tau, core.layout, sample.stamp)   # the input's stamp (ns)
             # after the command, never delaying it: the features' work, then the loader's bookkeeping
             self._after_command(features)
             background.collect()

@@ -35,20 +35,34 @@ class Outputs:
             self.node.destroy_publisher(self._js_pub)
             self._js_pub = None
 
-    def command(self, tau, names, stamp=None):
-        """The command (names: the layout, the same list while it holds); stamp: the input's (ns), None: now."""
-        n = len(tau)
+    def writers(self, n, names):
+        """(command Writer, ~/commanded_efforts Writer or None while it is off) of n efforts in the
+        layout `names` (the same list while it holds): each made once per size or layout."""
         if n != self._cmd_size:   # the command's bytes but for the efforts: once per size
             t, slots = multi_array_template(n)
             self._cmd_writer, self._cmd_size = t.writer(slots), n
-        self._cmd_pub.publish(self._cmd_writer.message((tau,)))
-        if self._js_pub is not None:
-            if names is not self._js_names:   # its names: once per layout (the same list while it holds)
-                t, stamp_at, slots = joint_state_template(names, (0, 0, len(names)))
-                self._js_writer, self._js_names = t.writer(slots[2:], stamp_at), names
+        if self._js_pub is None:
+            return self._cmd_writer, None
+        if names is not self._js_names:   # its names: once per layout
+            t, stamp_at, slots = joint_state_template(names, (0, 0, len(names)))
+            self._js_writer, self._js_names = t.writer(slots[2:], stamp_at), names
+        return self._cmd_writer, self._js_writer
+
+    def command(self, tau, names, stamp=None):
+        """The command (names: the layout, the same list while it holds); stamp: the input's (ns), None: now."""
+        cmd, js = self.writers(len(tau), names)
+        self._cmd_pub.publish(cmd.message((tau,)))
+        if js is not None:
             if stamp is None:
                 stamp = self.node.get_clock().now().nanoseconds
-            self._js_pub.publish(self._js_writer.message((tau,), stamp))
+            self._js_pub.publish(js.message((tau,), stamp))
+
+    def publish(self, command, joint_state=None):
+        """A command already serialized by the writers' parts (the fused command path,
+        core/fused.py) and its ~/commanded_efforts (None: off)."""
+        self._cmd_pub.publish(command)
+        if joint_state is not None and self._js_pub is not None:
+            self._js_pub.publish(joint_state)
 
     def log_line(self, severity, text):
         """One line of the node's log (core/log.py decides which and when), through rclpy's C

@@ -80,44 +80,53 @@ def _ic_flat(ic):
     return [ic[0], *ic[1], *ic[2]]
 
 
-def _X(v):
-    """(R, t) from 12 values: R row-major, then t."""
-    return tuple(tuple(v[3 * r:3 * r + 3]) for r in range(3)), tuple(v[9:12])
-
-
-def _X_flat(X):
-    return [e for row in X[0] for e in row] + list(X[1])
-
-
 def _F_flat(F):
     return [*F[0], *F[1]]
 
 
 def looped_mass_matrix(fr):
-    """The looped native form of MASS_MATRIX (codegen/looped.py), or None (mimic joints). Steps:
-    the joint transform (frames.joint_transform, per joint kind), `composite` (backward), the
-    joint wrench (`joint_wrench`, per joint kind) and the ancestor walk (algebra.wrench_to_parent,
-    one step for every pair); the driver writes S_j^T F (`s_dot`: component 2 or 5 of F) into M."""
+    """The looped native form of MASS_MATRIX (codegen/looped.py), or None (mimic joints): the
+    driver of `looped_mass_pass`."""
     if looped.joints_of(fr) is None:
         return None
-    kinds, sig = looped.classify(list(fr.revolute))
-    src = [looped.structure(fr), looped.table('int', 'SIG', sig),
-           looped.table('int', 'AX', [2 if r else 5 for r in fr.revolute]),
-           looped.table('double', 'K0', [e for b in range(fr.nb) for e in _X_flat((fr.R[b], fr.t[b]))])]
-    for i, rev in enumerate(kinds):
-        src.append(looped.step(f'xform{i}', lambda g, x, K, rev=rev: [_X_flat(joint_transform(g, *_X(K), rev, x[0]))],
-                               (1, 12)))
-        src.append(looped.step(f'column{i}', lambda g, ic, rev=rev: [_F_flat(joint_wrench(rev, _ic(ic)))], (10,)))
-    src.append(looped.step('composite', lambda g, a, X, p: [_ic_flat(composite(_ic(a), _X(X), _ic(p)))], (10, 12, 10)))
-    src.append(looped.step('pair', lambda g, F, X: [_F_flat(la.wrench_to_parent((F[:3], F[3:]), *_X(X)))], (6, 12)))
-    xform = looped.switch('SIG[b]', [f'xform{i}' for i in range(len(kinds))], '&x, K0 + 12 * b, X + 12 * b')
-    column = looped.switch('SIG[b]', [f'column{i}' for i in range(len(kinds))], 'IC + 10 * b, F')
     decl, free = looped.work([('X', 12 * fr.nb), ('IC', 10 * fr.nb)], fr.n * fr.n)
-    src.append(f'''
+    src = [looped.structure(fr), looped_mass_pass(fr), f'''
 void lie_kernel(const double *const *in, const double *const *par, double *out)
 {{
-  const double *q = in[0], *P = par[0], *E0 = par[1], *AR = par[2];
-{decl}  double F[6];
+{decl}  crba_pass(in[0], par[0], par[1], par[2], X, IC, out);
+{free}}}
+''']
+    return looped.rendered(''.join(src), (fr.n,), (10 * fr.nb, sum(fr.offset), fr.n), fr.n * fr.n)
+
+
+def looped_mass_pass(fr):
+    """C text of `static void crba_pass(q, P, E0, AR, X, IC, M)`: the CRBA's looped passes writing
+    M (NJ x NJ, row-major; q is read before M is written, so M may alias it), with registers X (12
+    per body: the joint transforms) and IC (10 per body), after looped.structure's arrays. Steps:
+    the joint transform (frames.joint_transform, per joint kind), `composite` (backward), the
+    joint wrench (`joint_wrench`, per joint kind) and the ancestor walk (algebra.wrench_to_parent,
+    one step for every pair); the pass writes S_j^T F (`s_dot`: component 2 or 5 of F) into M. For
+    the mass matrix's driver and the forward-dynamics derivatives' (traced/derivatives.py)."""
+    kinds, sig = looped.classify(list(fr.revolute))
+    src = [looped.table('int', 'CRBA_SIG', sig), looped.table('int', 'CRBA_AX', [2 if r else 5 for r in fr.revolute]),
+           looped.table('double', 'CRBA_K0', [e for b in range(fr.nb) for e in looped.pose_out((fr.R[b], fr.t[b]))])]
+    for i, rev in enumerate(kinds):
+        src.append(looped.step(f'crba_xform{i}', lambda g, x, K, rev=rev: [
+            looped.pose_out(joint_transform(g, *looped.pose_in(K), rev, x[0]))], (1, 12)))
+        src.append(looped.step(f'crba_column{i}', lambda g, ic, rev=rev: [_F_flat(joint_wrench(rev, _ic(ic)))],
+                               (10,)))
+    src.append(looped.step('crba_composite', lambda g, a, X, p: [
+        _ic_flat(composite(_ic(a), looped.pose_in(X), _ic(p)))], (10, 12, 10)))
+    src.append(looped.step('crba_pair', lambda g, F, X: [
+        _F_flat(la.wrench_to_parent((F[:3], F[3:]), *looped.pose_in(X)))], (6, 12)))
+    xform = looped.switch('CRBA_SIG[b]', [f'crba_xform{i}' for i in range(len(kinds))],
+                          '&x, CRBA_K0 + 12 * b, X + 12 * b')
+    column = looped.switch('CRBA_SIG[b]', [f'crba_column{i}' for i in range(len(kinds))], 'IC + 10 * b, F')
+    src.append(f'''
+static void crba_pass(const double *q, const double *P, const double *E0, const double *AR, double *X, double *IC,
+                      double *M)
+{{
+  double F[6];
   (void)E0;
   memcpy(IC, P, 10 * NB * sizeof(double));
   for (int b = 0; b < NB; b++) {{
@@ -125,22 +134,22 @@ void lie_kernel(const double *const *in, const double *const *par, double *out)
     {xform}
   }}
   for (int b = NB - 1; b >= 0; b--)
-    if (PAR[b] >= 0) composite(IC + 10 * b, X + 12 * b, IC + 10 * PAR[b], IC + 10 * PAR[b]);
-  memset(out, 0, NJ * NJ * sizeof(double));
+    if (PAR[b] >= 0) crba_composite(IC + 10 * b, X + 12 * b, IC + 10 * PAR[b], IC + 10 * PAR[b]);
+  memset(M, 0, NJ * NJ * sizeof(double));
   for (int b = 0; b < NB; b++) {{
     const int jb = JNT[b];
     if (jb < 0) continue;
     {column}
-    out[jb * NJ + jb] = F[AX[b]] + AR[jb];
+    M[jb * NJ + jb] = F[CRBA_AX[b]] + AR[jb];
     for (int j = b; PAR[j] >= 0; ) {{
-      pair(F, X + 12 * j, F);
+      crba_pair(F, X + 12 * j, F);
       j = PAR[j];
-      if (JNT[j] >= 0) out[JNT[j] * NJ + jb] = out[jb * NJ + JNT[j]] = F[AX[j]];
+      if (JNT[j] >= 0) M[JNT[j] * NJ + jb] = M[jb * NJ + JNT[j]] = F[CRBA_AX[j]];
     }}
   }}
-{free}}}
+}}
 ''')
-    return looped.rendered(''.join(src), (fr.n,), (10 * fr.nb, sum(fr.offset), fr.n), fr.n * fr.n)
+    return ''.join(src)
 
 
 MASS_MATRIX = Spec('mass_matrix', build_mass_matrix, ('inertia', 'offsets', 'armature'), 'mass_matrix',

@@ -185,7 +185,7 @@ class Compensator(Configuration):
         if reader is None:  # no model: the node said once at start-up that it waits for one
             self.result = SampleResult.reject(stamp, 'no_model', 'no robot model loaded')
             return None
-        if stamp and stamp < self.last_stamp and not self.watchdog.stale:
+        if self.refuses_stamp(stamp):
             return self._reject('old', f'stamp {stamp * 1e-9:.9f} s is older than the last accepted state '
                                        f'({self.last_stamp * 1e-9:.9f} s)', stamp)
         try:
@@ -216,15 +216,50 @@ class Compensator(Configuration):
         if tau is None:
             return self._reject('nonfinite_output', f'non-finite torque computed at q={clip(str(q.tolist()), 300)}',
                                 stamp)
-        count.accepted += 1
+        return self._accepted(stamp, q, tau, velocity, effort, now)
+
+    def fast_law(self, now):
+        """The law of the next command when the fused command path (fused.py) may compute it:
+        the mode's own law (a mode other than gravity with a fresh desired state and no fallback
+        to say resumed), the command published as computed (not silent, no ramp under way);
+        None otherwise (the Python path decides)."""
+        if self.silent or not self.ramp.idle or self.reader is None:
+            return None
+        s = self.settings
+        law = s.mode
+        if law != 'gravity' and (self.desired_state.fallen or not fresh(self.desired_time, s.desired_timeout, now)):
+            return None
+        return law
+
+    def refuses_stamp(self, stamp):
+        """Is a joint_states stamp (ns, 0: none) refused: older than the last accepted one while
+        the input is live?"""
+        return stamp and stamp < self.last_stamp and not self.watchdog.stale
+
+    def on_fast_command(self, law, stamp, q, tau, velocity, effort, now):
+        """A command the fused command path computed by law `law` (fast_law at `now`) from a
+        joint_states message whose stamp is not refused (refuses_stamp), whose positions q passed
+        the checks and whose tau passed the clamp unchanged: the bookkeeping of on_joint_state's
+        accepted state (after the command went out: nothing in it changes the command)."""
+        self.clamped = None
+        self.count.received += 1
+        self.law = law
+        self.ramp.note(tau)
+        self._accepted(stamp, q, tau, velocity, effort, now)
+
+    def _accepted(self, stamp, q, tau, velocity, effort, now):
+        """An accepted joint_states state and its command tau (ramped and clamped): the state
+        kept, the result for the features, the watchdog fed; the command to publish or None."""
+        self.count.accepted += 1
         self.last_q = q
-        self.result = SampleResult.accept(stamp, q, self.model, self.layout, reader.map.idx, velocity, effort)
+        self.result = SampleResult.accept(stamp, q, self.model, self.layout, self.reader.map.idx, velocity, effort)
         if stamp:
             self.last_stamp = stamp
         if self.watchdog.feed(now):
             self.event('info', 'resumed', 'joint_states valid again: compensation resumed')
         if self.silent:
             return None
+        ramp = self.ramp
         if not ramp.idle:
             self.held = None  # input is back: the ramp runs on it, not on the timer
             if ramp.down:
