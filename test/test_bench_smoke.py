@@ -314,3 +314,15 @@ def test_calls_section_times_one_call_and_batches_beside_pinocchio(tmp_path):
     (batch,) = res['batches']
     assert batch['N'] == 100 and batch['vs_pin_loop'] > 0 and batch['vs_rnea_in_parallel_1'] > 0
     assert os.path.exists(tmp_path / 'calls.md')
+
+
+def test_jacobian_call_probe_times_the_four_paths():
+    """bench.probes.jacobian_call on the bundled arm: the method, its Python form and the bound kernel
+    agree to the bit before they are timed beside Pinocchio, one row per family."""
+    if native.module() is None:
+        pytest.skip('no working C compiler')
+    from bench.probes import jacobian_call
+    rows = jacobian_call.rows('arm7', 1)
+    assert [r['family'] for r in rows] == ['jacobian', 'jacobian_dot']
+    for r in rows:
+        assert r['n'] == 7 and all(r[f'{k}_us'] > 0 and r[f'{k}_ratio'] > 0 for k in ('method', 'python', 'kernel'))

@@ -2,7 +2,9 @@
 getFrameJacobian and getFrameClassicalAcceleration in its three reference frames, against finite
 differences of link_pose, and the root-frame forward pass; every execution path; the error cases."""
 import glob
+import inspect
 import os
+import re
 import sys
 import warnings
 
@@ -340,3 +342,106 @@ def test_native_kernels_above_the_python_cap():
             assert rel_err(J[i], oracle.frame_jacobian(q[i], link, frame), 1.0) < 1e-10
             a_ref = oracle.frame_classical_acceleration(q[i], qd[i], 0 * qd[i], link, frame)
             assert rel_err(a[i][None], a_ref[None], 1.0) < 1e-10
+
+
+# ------------------------------------------------------------------ the methods' C call (dispatch.native_keyed)
+def _count_python_path(monkeypatch):
+    """Counts the calls that reach the algorithm's Python function (the methods' slow path)."""
+    calls = []
+    for name in ('jacobian', 'jacobian_dot_times_qd'):
+        fn = getattr(jac, name)
+        monkeypatch.setattr(jac, name, lambda *a, _fn=fn, **k: calls.append(1) or _fn(*a, **k))
+    return calls
+
+
+@pytest.mark.parametrize('xml', [_read(ARM), named_urdf('tree20_mimic'), random_urdf(32, 32, tree=True)],
+                         ids=['arm7', 'tree20_mimic', 'tree32'])
+def test_methods_call_the_kernel_from_c_bit_for_bit(xml, monkeypatch):
+    """model.jacobian(q, link[, frame]) and model.jacobian_dot_times_qd(q, qd, link[, frame]) run
+    the link frame's kernel from C, positional or keyword, never reaching the Python function;
+    their results equal that function's (the previous path) to the bit."""
+    if native.module() is None:
+        pytest.skip('no working C compiler')
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore')
+        model = load_urdf(xml)
+    oracle = Oracle(xml, joints=model.joint_names)
+    links = [ln for ln, (b, _) in model.link_frames.items() if b >= 0][-3:]
+    q, qd, _ = states(model, N=4, seed=31)
+    expected = {(link, frame, i): (jac.jacobian(model, q[i], link, frame),
+                                   jac.jacobian_dot_times_qd(model, q[i], qd[i], link, frame))
+                for link in links for frame in FRAMES for i in range(len(q))}
+    for link in links:
+        for frame in FRAMES:
+            model.jacobian(q[0], link, frame), model.jacobian_dot_times_qd(q[0], qd[0], link, frame)   # resolved
+    calls = _count_python_path(monkeypatch)
+    for (link, frame, i), (J, a) in expected.items():
+        got = [model.jacobian(q[i], link, frame), model.jacobian(q[i], link, frame=frame),
+               model.jacobian_dot_times_qd(q[i], qd[i], link, frame),
+               model.jacobian_dot_times_qd(q[i], qd[i], link=link, frame=frame)]
+        if frame == 'world_aligned':
+            got += [model.jacobian(q[i], link), model.jacobian_dot_times_qd(q[i], qd[i], link)]
+        for r in got:
+            ref = J if r.ndim == 2 else a
+            assert r.shape == ref.shape and np.array_equal(r, ref), (link, frame, i)
+    assert not calls   # every call above ran from C
+    assert type(inspect.getattr_static(model, 'jacobian')).__name__ == 'Method'
+    for link in links[-1:]:
+        assert rel_err(model.jacobian(q[1], link, 'local')[None], oracle.frame_jacobian(q[1], link, 'local')[None],
+                       1.0) < TOL
+        a_ref = oracle.frame_classical_acceleration(q[1], qd[1], 0 * qd[1], link, 'world')
+        assert rel_err(model.jacobian_dot_times_qd(q[1], qd[1], link, 'world')[None], a_ref[None], 1.0) < TOL
+
+
+def test_methods_fall_back_to_the_validating_path(monkeypatch):
+    """What the C call cannot take runs the Python function: other dtypes, strides and batches
+    give the same results, bad states and unknown links or frames the same ValueErrors, each time;
+    a setter, another model and runtime.clear are followed."""
+    model = load_urdf(ARM)
+    other = load_urdf(ARM)
+    q, qd, _ = states(model, N=3, seed=32)
+    link = 'tool0'
+    J0, a0 = model.jacobian(q[0], link), model.jacobian_dot_times_qd(q[0], qd[0], link, 'local')
+    calls = _count_python_path(monkeypatch)
+    J_batch = model.jacobian(q, link)
+    assert np.array_equal(J_batch[0], J0) and calls
+    calls.clear()
+    assert np.array_equal(model.jacobian(q[0].tolist(), link), J0) and calls
+    strided = np.empty((model.n, 2))
+    strided[:, 0] = q[0]
+    assert np.array_equal(model.jacobian(strided[:, 0], link), J0)
+    assert np.array_equal(model.jacobian(np.zeros(7, dtype=int), link), model.jacobian(np.zeros(7), link))
+    assert np.array_equal(model.jacobian_dot_times_qd(q[0], qd[0].astype(np.float32).astype(float), link, 'local'),
+                          model.jacobian_dot_times_qd(q[0], qd[0].astype(np.float32), link, 'local'))
+    assert np.array_equal(model.jacobian_dot_times_qd(q[0], qd[0], link, 'local'), a0)
+    J_point = model.jacobian(q[0], link, point=(0.0, 0.0, 0.0))
+    assert rel_err(J_point[None], J0[None], 1.0) < 1e-12
+    for _ in range(2):   # a failing key is not remembered as a kernel
+        with pytest.raises(ValueError, match=r"unknown link 'tool1'; did you mean 'tool0'"):
+            model.jacobian(q[0], 'tool1')
+        with pytest.raises(ValueError, match=r'unknown link 3'):
+            model.jacobian(q[0], 3)
+        with pytest.raises(ValueError, match=r"unknown frame 'global'"):
+            model.jacobian_dot_times_qd(q[0], qd[0], link, frame='global')
+        with pytest.raises(ValueError, match=r'q must have shape \(7,\) or \(N, 7\)'):
+            model.jacobian(q[0, :6], link)
+        with pytest.raises(ValueError, match='q contains non-finite values'):
+            model.jacobian(np.full(7, np.nan), link)
+        with pytest.raises(ValueError, match='qd contains non-finite values'):
+            model.jacobian_dot_times_qd(q[0], np.full(7, np.inf), link)
+        bad = np.array(['a'] * 7)   # the same error as the Python function's, whatever it says
+        with pytest.raises(ValueError) as direct:
+            jac.jacobian(model, bad, link)
+        with pytest.raises(ValueError, match=f'^{re.escape(str(direct.value))}$'):
+            model.jacobian(bad, link)
+        with pytest.raises(TypeError):
+            model.jacobian(q[0], link, 'local', None, 1)
+    part = load_urdf(ARM, joints=model.joint_names[1:])
+    for value in (0.0, 0.3):   # a setter: the kernel's parameters change, the C call follows
+        part.set_locked({'joint1': value})
+        oracle = Oracle(_read(ARM), joints=part.joint_names, locked={'joint1': value})
+        assert rel_err(part.jacobian(q[0, 1:], link)[None],
+                       oracle.frame_jacobian(q[0, 1:], link, 'world_aligned')[None], 1.0) < TOL
+    assert np.array_equal(other.jacobian(q[0], link), J0)   # another model in turn
+    runtime.clear()
+    assert np.array_equal(other.jacobian(q[0], link), J0)

@@ -6,6 +6,7 @@ model swap from a new robot_description; and the plain-Python pieces the node's 
 import os
 import pickle
 import re
+import struct
 import threading
 import time
 
@@ -63,6 +64,21 @@ def node_in_context():
         order.append(('command', stamp))
         command(tau, names, stamp)
     node.outputs.command = recorded_command
+    # the fused command path (ros/core/fused.py) publishes bytes it made through Outputs.publish: its
+    # command is the one of the message being handled, whose stamp the header's first 8 bytes give
+    publish, on_joint_state, handling = node.outputs.publish, node.on_joint_state, [None]
+
+    def recorded_publish(command, joint_state=None):
+        order.append(('command', handling[0]))
+        publish(command, joint_state)
+
+    def handle(data):
+        if isinstance(data, bytes) and len(data) >= 12:
+            sec, nsec = struct.unpack_from('<iI', data, 4)
+            handling[0] = sec * 10**9 + nsec
+        return on_joint_state(data)
+    node.outputs.publish = recorded_publish
+    node.on_joint_state = handle
     lines = []
     emit = node.event_log.emit
     node.event_log.emit = lambda severity, text: (lines.append(text), emit(severity, text))

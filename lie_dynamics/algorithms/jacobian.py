@@ -36,7 +36,9 @@ Jacobian and drift.
 generated kernel (codegen/traced/jacobian.py, one per body and frame): its C form where the
 native backend has it (runtime.native; one state or a batch, X given once per state), else
 the Python kernel or the vectorised reference below, as codegen.runtime.route says
-(THRESHOLDS['jacobian']).
+(THRESHOLDS['jacobian']). Model.jacobian and Model.jacobian_dot_times_qd call the native
+kernel of a link frame straight from C (`kernel_of`, dispatch.native_keyed) and this module's
+functions when it declines.
 """
 import difflib
 
@@ -107,6 +109,18 @@ def _kernel_of(model, kind, link, frame):
     moves, no kernel); cached per version."""
     b, _, X, _ = target(model, link, frame, None)
     return (traced.spec(kind, frame, b), np.array(X)) if b >= 0 and X is not None else False
+
+
+def kernel_of(kind, model, link, frame='world_aligned', point=None):
+    """(spec, (X,)) of the native-first methods' kernel for these arguments (dispatch.native_keyed:
+    Model.jacobian and Model.jacobian_dot_times_qd look it up once per link and frame, then call
+    it from C with the states and X), or False: a point, a link no controlled joint moves, no
+    kernel. An unknown link or frame raises here as in `target`; the method then runs its
+    Python form, which raises the same."""
+    if point is not None or type(link) is not str or type(frame) is not str:
+        return False
+    k = runtime.derived(model, (kind, link, frame), lambda: _kernel_of(model, kind, link, frame))
+    return (k[0], (k[1],)) if k else False
 
 
 def _call(model, kind, states, link, frame, point, mode):

@@ -17,6 +17,8 @@ Every algorithm's public function is two steps:
 Model.inverse_dynamics and Model.gravity take one step less: `native_first` makes them C
 method descriptors (native_call.c Method) that call the model's bound native kernel from C
 for the plain call (the per-state arrays and `out=`), and the Python method otherwise.
+Model.jacobian and Model.jacobian_dot_times_qd do the same through `native_keyed`, their
+kernel looked up in C by the link and frame.
 """
 import enum
 import functools
@@ -215,10 +217,42 @@ class native_first:
         mod = _native.module()
         if mod is None:   # asked again next time: the backend may be switched on later in the process
             return self.method.__get__(obj, cls)
-        impl = mod.method(self.method, functools.partial(_resolve, self.spec), self.n_state)
+        impl = self._make(mod)
         if self.owner.__dict__.get(self.name) is self:
             setattr(self.owner, self.name, impl)
         return impl.__get__(obj, cls)
+
+    def _make(self, mod):
+        return mod.method(self.method, functools.partial(_resolve, self.spec), self.n_state)
+
+
+class native_keyed(native_first):
+    """native_first for a method whose arguments after the n_state per-state arrays choose the
+    kernel (a frame Jacobian's link, frame, point): kernel_of(model, *key, **kw) -> (spec, tuple
+    of arrays the kernel takes after the states) or False (no kernel for these arguments: the
+    Python method). The C method (native_call.c Method, keyed) resolves each key once per model
+    version, so a repeated call costs a dict look-up and the kernel's own checks in C; any call
+    it cannot serve (a batch, a bad argument, an unknown link) runs the Python method, which
+    validates and raises."""
+
+    def __init__(self, kernel_of, n_state):
+        super().__init__(None, n_state)
+        self.kernel_of = kernel_of
+
+    def _make(self, mod):
+        return mod.method(self.method, functools.partial(_resolve_keyed, self.kernel_of), self.n_state, True)
+
+
+def _resolve_keyed(kernel_of, model, *key, **kw):
+    """A keyed Method's kernel for this model and key: (native Bound, extras), False or None (as
+    _resolve). kernel_of raising (an argument it cannot take) is the C method's slow path."""
+    if not model.n:
+        return False
+    k = kernel_of(model, *key, **kw)
+    if not k:
+        return False
+    r = _resolve(k[0], model)
+    return (r, k[1]) if r else r
 
 
 def _resolve(spec, model):

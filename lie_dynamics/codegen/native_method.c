@@ -7,8 +7,18 @@
  * and the epoch of invalidate()), resolved by resolve(model) -> a Bound, False (no kernel: the
  * slow path, cached) or None (not now: the slow path, not cached). Any other call, a kernel that
  * declines (bad input, non-finite result), or a model without a cached kernel runs
- * slow(model, *args, **kwargs), the Python method, which validates and raises. */
+ * slow(model, *args, **kwargs), the Python method, which validates and raises.
+ *
+ * method(slow, resolve, n_state, 1) is keyed, for methods whose arguments after the per-state
+ * arrays choose the kernel (a frame Jacobian's link and frame): model.NAME(*states, *key, **kw)
+ * looks the key up in a dict held for the model as above (the key: the arguments after the
+ * states, then the keyword names), resolved on a miss by resolve(model, *key, **kw) -> (Bound,
+ * tuple of arrays passed after the states), False (the slow path, cached) or None (not cached);
+ * a key that cannot be hashed, or resolve raising, runs the slow path. The dict is emptied when
+ * it reaches KEYS_MAX keys (many distinct keys: a cache, not a record of every call). */
 static unsigned long epoch = 1;
+#define KEYS_MAX 256
+#define KEY_ARGS_MAX 8
 static PyObject *str_version, *str_out;
 
 typedef struct {
@@ -16,6 +26,7 @@ typedef struct {
     vectorcallfunc vectorcall;
     PyObject *slow, *resolve, *model_ref, *version, *kernel;
     Py_ssize_t n_state;
+    int keyed;
     unsigned long epoch;
 } Method;
 
@@ -35,7 +46,7 @@ static PyObject *method_kernel(Method *m, PyObject *model)
         if (same)
             return m->kernel;
     }
-    PyObject *k = PyObject_CallOneArg(m->resolve, model);
+    PyObject *k = m->keyed ? PyDict_New() : PyObject_CallOneArg(m->resolve, model);
     if (!k) {
         PyErr_Clear();
         return NULL;
@@ -56,15 +67,93 @@ static PyObject *method_kernel(Method *m, PyObject *model)
     }
     m->model_ref = ref;
     m->version = v;
-    m->kernel = k;   /* a Bound, or False */
+    m->kernel = k;   /* a Bound, or False; keyed: the dict of keys */
     m->epoch = epoch;
     return k;
+}
+
+/* keyed: the (Bound, extra arrays) of this call's key (args[1 + n_state:], then kwnames) in the dict d,
+ * resolved on a miss; a new reference, or NULL (no kernel, no error set) */
+static PyObject *method_keyed(Method *m, PyObject *d, PyObject *const *args, Py_ssize_t nargs, PyObject *kwnames)
+{
+    Py_ssize_t nkw = kwnames ? PyTuple_GET_SIZE(kwnames) : 0, npos = nargs - 1 - m->n_state;
+    Py_ssize_t nk = npos + nkw;
+    if (nk < 1 || nk > KEY_ARGS_MAX)
+        return NULL;
+    PyObject *key = PyTuple_New(nk + (nkw > 0));
+    if (!key) {
+        PyErr_Clear();
+        return NULL;
+    }
+    for (Py_ssize_t i = 0; i < nk; ++i) {
+        Py_INCREF(args[1 + m->n_state + i]);
+        PyTuple_SET_ITEM(key, i, args[1 + m->n_state + i]);
+    }
+    if (nkw) {
+        Py_INCREF(kwnames);
+        PyTuple_SET_ITEM(key, nk, kwnames);
+    }
+    PyObject *v = PyDict_GetItemWithError(d, key);   /* borrowed */
+    if (v) {
+        Py_INCREF(v);
+    } else if (!PyErr_Occurred()) {
+        PyObject *argv[1 + KEY_ARGS_MAX];
+        argv[0] = args[0];
+        for (Py_ssize_t i = 0; i < nk; ++i)
+            argv[1 + i] = args[1 + m->n_state + i];
+        v = PyObject_Vectorcall(m->resolve, argv, (size_t)(1 + npos), kwnames);
+        if (v == Py_None) {
+            Py_CLEAR(v);
+        } else if (v) {
+            if (PyDict_GET_SIZE(d) >= KEYS_MAX)
+                PyDict_Clear(d);
+            if (PyDict_SetItem(d, key, v) < 0)
+                Py_CLEAR(v);
+        }
+    }
+    Py_DECREF(key);
+    PyErr_Clear();   /* an unhashable key, resolve raising: the slow path says what is wrong */
+    return v;
+}
+
+/* keyed: run the (Bound, extras) v on the states and extras; a new reference: the result, None
+ * (declined) or NULL (an error raised) */
+static PyObject *method_run_keyed(Method *m, PyObject *v, PyObject *const *states)
+{
+    if (!PyTuple_Check(v) || PyTuple_GET_SIZE(v) != 2)
+        Py_RETURN_NONE;
+    PyObject *k = PyTuple_GET_ITEM(v, 0), *extras = PyTuple_GET_ITEM(v, 1);
+    if (Py_TYPE(k) != &BoundType || !PyTuple_Check(extras) || m->n_state + PyTuple_GET_SIZE(extras) > MAX_LISTS)
+        Py_RETURN_NONE;
+    PyObject *argv[MAX_LISTS];
+    Py_ssize_t n = 0;
+    for (Py_ssize_t i = 0; i < m->n_state; ++i)
+        argv[n++] = states[i];
+    for (Py_ssize_t i = 0; i < PyTuple_GET_SIZE(extras); ++i)
+        argv[n++] = PyTuple_GET_ITEM(extras, i);
+    return bound_call(k, argv, (size_t)n, NULL);
 }
 
 static PyObject *method_call(PyObject *self, PyObject *const *args, size_t nargsf, PyObject *kwnames)
 {
     Method *m = (Method *)self;
     Py_ssize_t nargs = PyVectorcall_NARGS(nargsf), nkw = kwnames ? PyTuple_GET_SIZE(kwnames) : 0;
+    if (m->keyed) {
+        PyObject *d = nargs >= 1 + m->n_state ? method_kernel(m, args[0]) : NULL, *v = NULL;
+        if (d && PyDict_Check(d)) {   /* held: hashing the key or resolve may run Python that replaces it */
+            Py_INCREF(d);
+            v = method_keyed(m, d, args, nargs, kwnames);
+            Py_DECREF(d);
+        }
+        if (v) {   /* v holds the Bound and extras while the kernel runs */
+            PyObject *r = method_run_keyed(m, v, args + 1);
+            Py_DECREF(v);
+            if (r != Py_None)
+                return r;
+            Py_DECREF(r);
+        }
+        return PyObject_Vectorcall(m->slow, args, nargsf, kwnames);
+    }
     if (nargs == 1 + m->n_state &&
         (nkw == 0 || (nkw == 1 && PyUnicode_Compare(PyTuple_GET_ITEM(kwnames, 0), str_out) == 0))) {
         PyObject *k = method_kernel(m, args[0]);
@@ -157,12 +246,13 @@ static PyTypeObject MethodType = {
     .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_VECTORCALL | Py_TPFLAGS_METHOD_DESCRIPTOR | Py_TPFLAGS_HAVE_GC,
 };
 
-/* method(slow, resolve, n_state) */
+/* method(slow, resolve, n_state[, keyed]) */
 static PyObject *method_new(PyObject *mod, PyObject *args)
 {
     PyObject *slow, *resolve;
     Py_ssize_t n_state;
-    if (!PyArg_ParseTuple(args, "OOn", &slow, &resolve, &n_state))
+    int keyed = 0;
+    if (!PyArg_ParseTuple(args, "OOn|p", &slow, &resolve, &n_state, &keyed))
         return NULL;
     if (n_state < 1 || n_state > MAX_LISTS) {
         PyErr_SetString(PyExc_ValueError, "method: n_state from 1 to 16");
@@ -178,6 +268,7 @@ static PyObject *method_new(PyObject *mod, PyObject *args)
     m->resolve = resolve;
     m->model_ref = m->version = m->kernel = NULL;
     m->n_state = n_state;
+    m->keyed = keyed;
     m->epoch = 0;
     PyObject_GC_Track((PyObject *)m);
     return (PyObject *)m;

@@ -21,7 +21,7 @@ from .batch import run_loop, run_rows
 from .cache import (build, cache_info, clear, deferred, derived, fingerprint, forget, frames, looped, native_max,
                     native_on, pairs, structural, use_native)
 from .dispatch import (Entry, Output, call, check_mode, check_out, deliver, evaluate, fast, native, native_first,
-                       route, run)
+                       native_keyed, route, run)
 from .spec import PARAMETERS, Bound, Result, Spec, accepts, as_rows, kernel, parameter, params, result_of
 from .thresholds import THRESHOLDS
 from ..validation import float_list as is_fast_single   # its name in earlier versions
@@ -29,7 +29,8 @@ from ..validation import float_list as is_fast_single   # its name in earlier ve
 __all__ = ['run_loop', 'run_rows', 'build', 'cache_info', 'clear', 'deferred', 'derived', 'fingerprint', 'forget',
            'frames', 'looped', 'native_max', 'native_on', 'pairs', 'structural', 'use_native', 'Entry', 'Output',
            'call',
-           'check_mode', 'check_out', 'deliver', 'evaluate', 'fast', 'native', 'native_first', 'route', 'run',
+           'check_mode', 'check_out', 'deliver', 'evaluate', 'fast', 'native', 'native_first', 'native_keyed',
+           'route', 'run',
            'PARAMETERS', 'Bound', 'Result', 'Spec', 'accepts', 'as_rows', 'kernel', 'parameter', 'params',
            'result_of', 'THRESHOLDS',
            'is_fast_single']

@@ -132,8 +132,9 @@ THRESHOLDS = {
     # 13,000 nodes for J, 22,000 for J̇q̇). `python -m bench.looped --families jacobian,jacobian_dot`
     # (deepest link, cap lifted, load 2.8-3): first use 0.6-2.4 s on chains of 32-200 bodies, 0.1-0.65 s
     # on binary trees of 64-200; J 0.54-0.82x pin.computeFrameJacobian on those chains, J̇q̇ 0.3-0.5x
-    # its classical acceleration, 0.06-0.2x on the trees (J 1.7-2x there: Pinocchio's ~1-2 us
-    # against the Python call path's ~1 us over the kernel). Above 256 bodies, native_nodes still
+    # its classical acceleration, 0.06-0.2x on the trees (J 1.7-2x there then: Pinocchio's ~1-2 us
+    # against the Python call path's ~1 us over the kernel; since the methods call the kernel from
+    # C, 0.72x and 0.85x on the trees of 32 and 64 bodies, load 3.9). Above 256 bodies, native_nodes still
     # bounds a deep link's kernel (~110 nodes per body of depth for J̇q̇).
     'jacobian': Limits(64, 64, 32, 32, native_max=256),
     # Batch runner: states per chunk, large enough that each ufunc's ~0.5 us fixed cost is

@@ -12,6 +12,8 @@ from ..algorithms import aba, aba_derivatives, crba, jacobian, lagrangian, regre
 from ..codegen import runtime
 from ..codegen.traced import rnea as traced_rnea
 
+_jacobian_kernel = jacobian.kernel_of   # in the class body `jacobian` is the method
+
 
 def _jointless(states, *shapes):
     """A robot without movable joints (a URDF that only welds links together) is a valid model:
@@ -67,6 +69,7 @@ class Algorithms:
         return rnea.inverse_dynamics(self, q, qd, np.zeros_like(np.asarray(qd, dtype=float)), None,
                                      with_gravity=False)
 
+    @runtime.native_keyed(functools.partial(_jacobian_kernel, 'jacobian'), 1)   # (q, link[, frame]) from C
     def jacobian(self, q, link, frame='world_aligned', point=None):
         """6 x n Jacobian of `link`'s frame, or of `point` fixed in it (in the link frame, m): maps q̇
         (columns in q's order) to the frame's velocity. (6, n) for q (n,), (N, 6, n) for (N, n).
@@ -79,6 +82,7 @@ class Algorithms:
         point: ValueError. Details: algorithms/jacobian.py."""
         return jacobian.jacobian(self, q, link, frame, point)
 
+    @runtime.native_keyed(functools.partial(_jacobian_kernel, 'jacobian_dot'), 2)
     def jacobian_dot_times_qd(self, q, qd, link, frame='world_aligned', point=None):
         """J̇q̇ for `jacobian(q, link, frame, point)`: (6,) or (N, 6), rows linear then angular. Equal
         to Pinocchio's getFrameClassicalAcceleration at q̈ = 0, so J q̈ + J̇q̇ is the classical
