@@ -291,6 +291,19 @@ def test_command_publish_probe_times_every_path():
     assert len(rows) == 5 and rows[0].endswith('| 1.00 |') and rows[2].endswith('| 1.00 |')
 
 
+def test_observer_node_probe_times_both_input_forms():
+    """bench.probes.observer_node runs (its own process: it starts rclpy), times the four ways a message
+    reaches the node, and the peer's ratio to itself is 1."""
+    import subprocess
+    import sys
+    done = subprocess.run([sys.executable, '-m', 'bench.probes.observer_node', '--rounds', '1', '--per-round', '20'],
+                          capture_output=True, text=True, timeout=180)
+    assert done.returncode == 0, done.stderr
+    rows = [ln for ln in done.stdout.splitlines() if ln.startswith('| objects') or ln.startswith('| serialized')]
+    assert len(rows) == 18, done.stdout   # 2 forms x (3 cases at once + 3 deferred, callback and total)
+    assert all('| 1.00 |' in ln for ln in rows if 'observer off' in ln)
+
+
 def test_record_gaps_probe_runs():
     """bench.probes.record_gaps runs (its own process: it starts rclpy) and reports the three phases,
     the recording written."""

@@ -83,7 +83,7 @@ def run(rounds=5, per_round=300):
     model = rec[0]
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
-    nodes, msgs, tasks = {}, {}, {}
+    nodes, msgs, tasks, extra_nodes = {}, {}, {}, []
     try:
         for form in ('objects', 'serialized'):
             for work in ('at once', 'deferred'):
@@ -114,10 +114,10 @@ def run(rounds=5, per_round=300):
                 total[key].append(np.array(b[10:]) * 1e6)
         fused = {k: nodes[k].fused.taken if nodes[k].fused is not None else 0 for k in nodes}
         samples = {k: nodes[k].contact_monitor.samples for k in nodes}
-        split = _split(bench_node(model, ctx, 'observer_probe_split', {}),
-                       [bytes(serialize_message(x)) for x in _messages(rec, rounds * per_round)])
+        extra_nodes.append(bench_node(model, ctx, 'observer_probe_split', {}))
+        split = _split(extra_nodes[-1], [bytes(serialize_message(x)) for x in _messages(rec, rounds * per_round)])
     finally:
-        for node in nodes.values():
+        for node in [*nodes.values(), *extra_nodes]:   # every node destroyed before the context goes
             node.destroy_node()
         rclpy.shutdown(context=ctx)
     peer = next(iter(CASES))
