@@ -32,8 +32,10 @@ residual's measured noise sigma_j (the std of the r decided on), NOISE_SIGMAS x 
   6. With 6 supporting joints or more on the named link (its wrench fully seen, rank 6) the line
      of a pure force is fixed: if it passes within `radius` of a next body's skeleton and through
      that body's own joints' axes (their torques within tol_j), a push there gives r as well:
-     ambiguous (`_point_force`). This catches a push on the next body whose line passes near its
-     axis, which step 5 cannot see below DOUBT x tol_j; a push on the named link itself rarely
+     ambiguous (`_pure_force_line`, `_line_fits`: in closed form, the line being fixed; step 7's
+     search would hold the node's thread for many control periods, test_node_loads). This catches
+     a push on the next body whose line passes near its axis, which step 5 cannot see below
+     DOUBT x tol_j; a push on the named link itself rarely
      has its line there. With fewer joints on the named link that line is free and nearly
      always fits: the check would make every such answer ambiguous, so it is left to strict.
   7. strict: the named link only if no pure force whose line passes within `radius` of a body
@@ -344,7 +346,8 @@ def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RC
     # on a next body, within `radius` of it and through its own joints' axes (within tol_j), a
     # push there gives r as well: ambiguous (with fewer joints on k such a line is nearly always
     # free, and the node names k as before; docs/benchmarks.md, section 11)
-    near = [c for c in nxt if _point_force(model, q, r, tol, c, radius)] if fits[k].rank == 6 else []
+    line = _pure_force_line(model, q, r, tol, k) if fits[k].rank == 6 and nxt else None
+    near = [c for c in nxt if _line_fits(model, q, r, tol, c, radius, line)] if line is not None else []
     if near:
         return ambiguous([k] + near, f"a push on link '{links[near[0]]}' whose line passes through the axis of "
                                      'its own joint gives these external torques as well')
@@ -376,15 +379,59 @@ def _segment_distance(p, o, ends):
     return float(np.sqrt(min(np.min(np.sum((near - p) ** 2, axis=1), initial=np.inf), (p - o) @ (p - o))))
 
 
+def _weighted_world_jacobian(model, q, r, tol, b):
+    """(V, W, rw): the 'world' Jacobian's linear and angular rows of body b's link as (n, 3) arrays
+    and r, each row weighted by 1 / tol_j: a force f at p gives the weighted torques (V + W x p) f."""
+    J = model.jacobian(q, model.body_link_names[b], 'world')
+    return J[:3].T / tol[:, None], J[3:].T / tol[:, None], r / tol
+
+
+def _pure_force_line(model, q, r, tol, k):
+    """(a point, the unit direction) of the line of the pure force that r implies on body k, whose
+    wrench is fully seen (rank 6): (f, m) about the root origin from r = V f + W m in least squares
+    (weighted by 1 / tol), then the line {p : p x f = m} (closest point f x m / |f|^2), or None
+    without a force. Closed form: the node decides at run time, where a search costs too much."""
+    V, W, rw = _weighted_world_jacobian(model, q, r, tol, k)
+    x = np.linalg.lstsq(np.hstack([V, W]), rw, rcond=None)[0]
+    f, m = x[:3], x[3:]
+    ff = float(f @ f)
+    if not ff > 0:
+        return None
+    return np.cross(f, m) / ff, f / np.sqrt(ff)
+
+
+def _line_fits(model, q, r, tol, b, radius, line):
+    """Whether the pure force on `line` (a point, a unit direction), where it passes within `radius`
+    of body b's skeleton, gives r within tol on every joint as a force on b (f in least squares,
+    weighted by 1 / tol, at the line's points nearest each segment of the skeleton)."""
+    p0, d = line
+    o, ends = _skeleton(model, q, b)
+    V, W, rw = _weighted_world_jacobian(model, q, r, tol, b)
+
+    def off(v):   # v's component across the line
+        return v - d * (d @ v)
+    for e in [np.zeros(3), *(ends - o)]:   # the origin, then each segment o -> o + e
+        u, w = off(o - p0), off(e)
+        ww = float(w @ w)
+        t = 0.0 if ww <= 0 else float(np.clip(-(u @ w) / ww, 0.0, 1.0))
+        x = o + t * e
+        if np.linalg.norm(off(x - p0)) > radius:
+            continue
+        p = p0 + d * (d @ (x - p0))   # the line's point nearest the skeleton's point x
+        A = V + np.cross(W, p)
+        f = np.linalg.lstsq(A, rw, rcond=None)[0]
+        if np.all(np.abs(A @ f - rw) <= 1.0):
+            return True
+    return False
+
+
 def _point_force(model, q, r, tol, b, radius):
     """Whether a pure force whose line passes within `radius` of body b's skeleton gives r within
     tol on every joint: the torques of a force f at p are a(p) f, a_j(p) = v_j + w_j x p (the
     'world' Jacobian's columns); f solved in least squares for each p (weighted by 1 / tol), p by
     Gauss-Newton from the skeleton's points, kept within the radius by a penalty."""
-    from scipy.optimize import least_squares   # only on this path (isolation decisions)
-    J = model.jacobian(q, model.body_link_names[b], 'world')
-    V, W = J[:3].T / tol[:, None], J[3:].T / tol[:, None]   # (n, 3) each, weighted
-    rw = r / tol
+    from scipy.optimize import least_squares   # only on this path (strict isolation decisions)
+    V, W, rw = _weighted_world_jacobian(model, q, r, tol, b)
     o, ends = _skeleton(model, q, b)
 
     def fit(p):
