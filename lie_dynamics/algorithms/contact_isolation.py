@@ -431,7 +431,7 @@ def _line_fits(model, q, r, tol, b, radius, line):
     p = best[1]
     # r's line was fitted to k's joints alone; a few damped Gauss-Newton steps on p (forward
     # differences) spread the misfit over b's joints too, as the strict rule's search does, within
-    # the radius: LINE_STEPS x 4 small least-squares fits, about a millisecond
+    # the radius: at most LINE_STEPS x 4 + 1 small least-squares fits
     h = 1e-4 * radius
     for _ in range(LINE_STEPS):
         res = misfit(p)
