@@ -54,6 +54,21 @@ static inline uint32_t u32_at(const char *p)
     return v;
 }
 
+/* base + Kp (q_d - q) + Kd (qd_d - qd) of joint i, the terms present, in laws.py's order (both laws') */
+static double with_feedback(const Command *c, Py_ssize_t i, const double *q, const double *qd, double base)
+{
+    if (!c->kp && !c->kd)
+        return base;
+    double fb = 0.0;
+    if (c->kp)
+        fb = c->kp[i] * (c->q_d[i] - q[i]);
+    if (c->kd) {
+        double d = c->kd[i] * (c->qd_d[i] - qd[i]);
+        fb = c->kp ? fb + d : d;
+    }
+    return base + fb;
+}
+
 /* the model's native kernel for this Method (its cache rule), run on one state; 0: declined */
 static int run_method(Command *c, const double *const *in, double *res)
 {
@@ -149,28 +164,12 @@ static PyObject *command_call(PyObject *self, PyObject *const *args, size_t narg
         break;
     }
     case LAW_FEEDFORWARD:   /* base = ID(desired) + f(qd_d); + Kp (q_d - q) + Kd (qd_d - qd) */
-        for (Py_ssize_t i = 0; i < n; ++i) {
-            double fb = 0.0;
-            if (c->kp)
-                fb = c->kp[i] * (c->q_d[i] - q[i]);
-            if (c->kd) {
-                double d = c->kd[i] * (c->qd_d[i] - qd[i]);
-                fb = c->kp ? fb + d : d;
-            }
-            tau[i] = c->kp || c->kd ? c->base[i] + fb : c->base[i];
-        }
+        for (Py_ssize_t i = 0; i < n; ++i)
+            tau[i] = with_feedback(c, i, q, qd, c->base[i]);
         break;
     case LAW_COMPUTED_TORQUE: {   /* ID(q, qd, qdd_d + Kp e + Kd de) */
-        for (Py_ssize_t i = 0; i < n; ++i) {
-            double fb = 0.0;
-            if (c->kp)
-                fb = c->kp[i] * (c->q_d[i] - q[i]);
-            if (c->kd) {
-                double d = c->kd[i] * (c->qd_d[i] - qd[i]);
-                fb = c->kp ? fb + d : d;
-            }
-            tmp[i] = c->kp || c->kd ? c->qdd_d[i] + fb : c->qdd_d[i];
-        }
+        for (Py_ssize_t i = 0; i < n; ++i)
+            tmp[i] = with_feedback(c, i, q, qd, c->qdd_d[i]);
         const double *in[3] = {q, qd, tmp};
         ok = run_method(c, in, tau);
         break;
