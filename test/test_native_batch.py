@@ -187,3 +187,56 @@ def test_lanes_of_a_kernel_with_scattered_outputs(tmp_path, monkeypatch):
         assert _rel(model.mass_matrix(q), np.array([Oracle(_xml('arm7')).crba(x) for x in q])) <= TOL
     finally:
         runtime.clear()
+
+
+@pytest.mark.parametrize('name', ['arm7', 'tree30'])
+def test_mass_matrix_forward_dynamics_and_derivatives_run_from_c(name):
+    """M, forward dynamics and both derivative families are C methods too (dispatch.native_first;
+    forward dynamics by the model's own kernel, the looped ABA from 24 bodies; the derivatives as
+    the tuple of (n, n) views the Python method cuts): equal to the Python path to the bit and
+    to Pinocchio; out= where the method has it, its bad buffers and the derivatives' lack of it
+    still answered by the Python method."""
+    if name == 'arm7':
+        xml = _xml('arm7')
+    else:
+        from robots import random_urdf
+        xml = random_urdf(30, 30, tree=True)
+    model = load_urdf(xml)
+    oracle = Oracle(xml)
+    n = model.n
+    q, qd, x = _states(model, 4, seed=11)
+    for s in (0, slice(None)):
+        a, b, c = q[s], qd[s], x[s]
+        M = model.mass_matrix(a)
+        assert np.array_equal(M, model.mass_matrix(a, 'crba'))
+        qdd = model.forward_dynamics(a, b, c)
+        assert np.array_equal(qdd, model.forward_dynamics(a, b, c, None))
+        d = model.inverse_dynamics_derivatives(a, b, c)
+        f = model.forward_dynamics_derivatives(a, b, c)
+        assert type(d) is tuple and len(d) == 2 and type(f) is tuple and len(f) == 3
+        for got, want in zip(d + f, model.inverse_dynamics_derivatives(a, b, c, None)
+                             + model.forward_dynamics_derivatives(a, b, c, None), strict=True):
+            assert got.shape == np.shape(a)[:-1] + (n, n) and got.flags.writeable and np.array_equal(got, want)
+    for method in ('mass_matrix', 'forward_dynamics', 'inverse_dynamics_derivatives', 'forward_dynamics_derivatives'):
+        assert type(inspect.getattr_static(model, method)).__name__ == 'Method', method   # installed by now
+    for i in range(len(q)):   # against Pinocchio, state by state (the batch equals them above)
+        M = model.mass_matrix(q[i])
+        assert _rel(M, oracle.crba(q[i])) <= TOL
+        assert _rel(model.forward_dynamics(q[i], qd[i], x[i]), oracle.aba(q[i], qd[i], x[i])) <= 1e-10
+        dq, dv = model.inverse_dynamics_derivatives(q[i], qd[i], x[i])
+        pq, pv = oracle.rnea_derivatives(q[i], qd[i], x[i])
+        assert _rel(dq, pq) <= TOL and _rel(dv, pv) <= TOL
+        assert _rel(model.forward_dynamics_derivatives(q[i], qd[i], x[i])[2] @ M, np.eye(n)) <= 1e-10
+    good = np.full((n, n), np.nan)
+    assert model.mass_matrix(q[0], out=good) is good and np.array_equal(good, model.mass_matrix(q[0]))
+    good = np.full(n, np.nan)
+    assert model.forward_dynamics(q[0], qd[0], x[0], out=good) is good
+    assert np.array_equal(good, model.forward_dynamics(q[0], qd[0], x[0]))
+    with pytest.raises(ValueError, match='^out must be'):
+        model.forward_dynamics(q[0], qd[0], x[0], out=np.empty(n, np.float32))
+    with pytest.raises(TypeError, match='out'):
+        model.inverse_dynamics_derivatives(q[0], qd[0], x[0], out=np.empty((2, n, n)))
+    with pytest.raises(ValueError, match='tau'):
+        model.forward_dynamics_derivatives(q[0], qd[0], x[0][:-1])
+    with pytest.raises(ValueError, match='q'):
+        model.mass_matrix(np.full(n, np.nan))

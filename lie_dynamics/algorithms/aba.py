@@ -81,6 +81,12 @@ def forward_dynamics_validated(model, arrays, wrenches=None, method='cholesky'):
     return out
 
 
+def forward_dynamics_spec(model):
+    """The kernel of forward_dynamics(q, qd, tau) with its defaults (Model.forward_dynamics's C
+    method, dispatch.native_first): method='cholesky', as `_spec` chooses it."""
+    return _spec(model, 'cholesky')
+
+
 def _spec(model, method):
     """The kernel of a forward-dynamics call without wrenches. method='cholesky' takes the ABA's
     where that one is looped (runtime.looped: the native backend, from THRESHOLDS['aba'].looped_from

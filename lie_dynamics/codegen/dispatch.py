@@ -14,9 +14,10 @@ Every algorithm's public function is two steps:
      algorithm's vectorised reference, which reports what the kernels declined; then deliver.
      Internal fallbacks call such validated functions, never a public function.
 
-Model.inverse_dynamics and Model.gravity take one step less: `native_first` makes them C
-method descriptors (native_call.c Method) that call the model's bound native kernel from C
-for the plain call (the per-state arrays and `out=`), and the Python method otherwise.
+Model.inverse_dynamics, gravity, mass_matrix, forward_dynamics and the two derivative families
+take one step less: `native_first` makes them C method descriptors (native_call.c Method) that
+call the model's bound native kernel from C for the plain call (the per-state arrays and `out=`
+where the method has it), and the Python method otherwise.
 Model.jacobian and Model.jacobian_dot_times_qd do the same through `native_keyed`, their
 kernel looked up in C by the link and frame.
 """
@@ -29,7 +30,7 @@ import numpy as np
 from . import native as _native
 from .batch import run_loop, run_rows
 from .cache import SLOTS, entry as _kernel_entry, later, size as _size, slot
-from .spec import accepts, bind, parameters, result_of
+from .spec import Spec, accepts, bind, parameters, result_of
 from .thresholds import THRESHOLDS
 from ..validation import float_lists
 
@@ -200,10 +201,15 @@ class native_first:
     native kernel straight from C for model.NAME(*states) and model.NAME(*states, out=buf),
     and the Python method for every other call and whenever the kernel declines. About
     0.3 us less than the Python fast path on a one-state call (three Python frames).
-    Installed on first use with the backend (built then); without it, the Python method."""
+    Installed on first use with the backend (built then); without it, the Python method.
 
-    def __init__(self, spec, n_state):
-        self.spec, self.n_state = spec, n_state
+    spec: a Spec, or a function (model) -> Spec for a method whose kernel depends on the model
+    (forward dynamics: the looped ABA on large models). split: k > 1 for a method that returns
+    k (n, n) matrices, the one kernel output (k n n,) cut as the Python method cuts it (it
+    takes no out=)."""
+
+    def __init__(self, spec, n_state, split=0):
+        self.spec, self.n_state, self.split = spec, n_state, split
 
     def __call__(self, method):
         self.method = method
@@ -223,7 +229,7 @@ class native_first:
         return impl.__get__(obj, cls)
 
     def _make(self, mod):
-        return mod.method(self.method, functools.partial(_resolve, self.spec), self.n_state)
+        return mod.method(self.method, functools.partial(_resolve, self.spec), self.n_state, False, self.split)
 
 
 class native_keyed(native_first):
@@ -260,6 +266,8 @@ def _resolve(spec, model):
     model's version changes) or None (not now: a build deferred)."""
     if not model.n:
         return False
+    if not isinstance(spec, Spec):
+        spec = spec(model)
     nk = native(model, spec)
     if nk is not None:
         return nk if fast(model, spec) is nk else None

@@ -15,7 +15,12 @@
  * states, then the keyword names), resolved on a miss by resolve(model, *key, **kw) -> (Bound,
  * tuple of arrays passed after the states), False (the slow path, cached) or None (not cached);
  * a key that cannot be hashed, or resolve raising, runs the slow path. The dict is emptied when
- * it reaches KEYS_MAX keys (many distinct keys: a cache, not a record of every call). */
+ * it reaches KEYS_MAX keys (many distinct keys: a cache, not a record of every call).
+ *
+ * method(slow, resolve, n_state, 0, k) with k > 1 is split, for methods that return k (n, n)
+ * matrices computed as one kernel output (the derivatives): model.NAME(*states) returns the
+ * tuple of views (k n n,) -> k (n, n), or (N, k n n) -> k (N, n, n), n the states' last
+ * dimension, as the Python method's reshape and slices give them; it takes no out=. */
 static unsigned long epoch = 1;
 #define KEYS_MAX 256
 #define KEY_ARGS_MAX 8
@@ -25,7 +30,7 @@ typedef struct {
     PyObject_HEAD
     vectorcallfunc vectorcall;
     PyObject *slow, *resolve, *model_ref, *version, *kernel;
-    Py_ssize_t n_state;
+    Py_ssize_t n_state, split;
     int keyed;
     unsigned long epoch;
 } Method;
@@ -134,6 +139,51 @@ static PyObject *method_run_keyed(Method *m, PyObject *v, PyObject *const *state
     return bound_call(k, argv, (size_t)n, NULL);
 }
 
+/* split: the tuple of m->split views of the kernel's result r (stolen), n from the state q; a new
+ * reference, or None (a shape that does not split: the slow path) */
+static PyObject *method_split(Method *m, PyObject *r, PyObject *q)
+{
+    if (!PyArray_Check(r) || !PyArray_Check(q)) {
+        Py_DECREF(r);
+        Py_RETURN_NONE;
+    }
+    PyArrayObject *a = (PyArrayObject *)r;
+    int nd = PyArray_NDIM(a);
+    npy_intp n = PyArray_DIM((PyArrayObject *)q, PyArray_NDIM((PyArrayObject *)q) - 1), k = m->split;
+    if ((nd != 1 && nd != 2) || PyArray_DIM(a, nd - 1) != k * n * n || !PyArray_IS_C_CONTIGUOUS(a)) {
+        Py_DECREF(r);
+        Py_RETURN_NONE;
+    }
+    PyObject *t = PyTuple_New(k);
+    npy_intp dims[3], strides[3], row = PyArray_DIM(a, nd - 1) * (npy_intp)sizeof(double);
+    int vd = 0;
+    if (nd == 2) {
+        dims[vd] = PyArray_DIM(a, 0);
+        strides[vd++] = row;
+    }
+    dims[vd] = dims[vd + 1] = n;
+    strides[vd] = n * (npy_intp)sizeof(double);
+    strides[vd + 1] = sizeof(double);
+    vd += 2;
+    for (npy_intp i = 0; t && i < k; ++i) {
+        PyArray_Descr *d = PyArray_DescrFromType(NPY_DOUBLE);
+        PyObject *v = PyArray_NewFromDescr(&PyArray_Type, d, vd, dims, strides,
+                                           (char *)PyArray_DATA(a) + i * n * n * (npy_intp)sizeof(double),
+                                           NPY_ARRAY_WRITEABLE, NULL);
+        if (v) {
+            Py_INCREF(r);
+            if (PyArray_SetBaseObject((PyArrayObject *)v, r) < 0)
+                Py_CLEAR(v);
+        }
+        if (!v)
+            Py_CLEAR(t);
+        else
+            PyTuple_SET_ITEM(t, i, v);
+    }
+    Py_DECREF(r);
+    return t;
+}
+
 static PyObject *method_call(PyObject *self, PyObject *const *args, size_t nargsf, PyObject *kwnames)
 {
     Method *m = (Method *)self;
@@ -154,13 +204,15 @@ static PyObject *method_call(PyObject *self, PyObject *const *args, size_t nargs
         }
         return PyObject_Vectorcall(m->slow, args, nargsf, kwnames);
     }
-    if (nargs == 1 + m->n_state &&
-        (nkw == 0 || (nkw == 1 && PyUnicode_Compare(PyTuple_GET_ITEM(kwnames, 0), str_out) == 0))) {
+    if (nargs == 1 + m->n_state && (nkw == 0 || (nkw == 1 && !m->split &&
+                                                 PyUnicode_Compare(PyTuple_GET_ITEM(kwnames, 0), str_out) == 0))) {
         PyObject *k = method_kernel(m, args[0]);
         if (k && Py_TYPE(k) == &BoundType) {
             Py_INCREF(k);   /* the cache may change while the kernel runs (another thread, the GIL released) */
             PyObject *r = bound_call(k, args + 1, (size_t)(m->n_state + nkw), NULL);
             Py_DECREF(k);
+            if (r && r != Py_None && m->split)
+                r = method_split(m, r, args[1]);
             if (r != Py_None)
                 return r;   /* the result, or NULL: an error already raised */
             Py_DECREF(r);
@@ -246,16 +298,20 @@ static PyTypeObject MethodType = {
     .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_VECTORCALL | Py_TPFLAGS_METHOD_DESCRIPTOR | Py_TPFLAGS_HAVE_GC,
 };
 
-/* method(slow, resolve, n_state[, keyed]) */
+/* method(slow, resolve, n_state[, keyed[, split]]) */
 static PyObject *method_new(PyObject *mod, PyObject *args)
 {
     PyObject *slow, *resolve;
-    Py_ssize_t n_state;
+    Py_ssize_t n_state, split = 0;
     int keyed = 0;
-    if (!PyArg_ParseTuple(args, "OOn|p", &slow, &resolve, &n_state, &keyed))
+    if (!PyArg_ParseTuple(args, "OOn|pn", &slow, &resolve, &n_state, &keyed, &split))
         return NULL;
     if (n_state < 1 || n_state > MAX_LISTS) {
         PyErr_SetString(PyExc_ValueError, "method: n_state from 1 to 16");
+        return NULL;
+    }
+    if (split < 0 || split == 1 || split > 16 || (split && keyed)) {
+        PyErr_SetString(PyExc_ValueError, "method: split 0 or 2 to 16, not keyed");
         return NULL;
     }
     Method *m = PyObject_GC_New(Method, &MethodType);
@@ -268,6 +324,7 @@ static PyObject *method_new(PyObject *mod, PyObject *args)
     m->resolve = resolve;
     m->model_ref = m->version = m->kernel = NULL;
     m->n_state = n_state;
+    m->split = split;
     m->keyed = keyed;
     m->epoch = 0;
     PyObject_GC_Track((PyObject *)m);

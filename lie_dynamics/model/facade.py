@@ -10,6 +10,8 @@ import numpy as np
 
 from ..algorithms import aba, aba_derivatives, crba, jacobian, lagrangian, regressor, rnea, rnea_derivatives
 from ..codegen import runtime
+from ..codegen.traced import crba as traced_crba
+from ..codegen.traced import derivatives as traced_derivatives
 from ..codegen.traced import rnea as traced_rnea
 
 _jacobian_kernel = jacobian.kernel_of   # in the class body `jacobian` is the method
@@ -92,6 +94,7 @@ class Algorithms:
         return jacobian.jacobian_dot_times_qd(self, q, qd, link, frame, point)
 
     # --- Lagrangian dynamics, forward dynamics, derivatives, regressor (lagrangian.py, crba.py, aba.py, ...)
+    @runtime.native_first(traced_crba.MASS_MATRIX, 1)   # (q[, out=]) straight from C
     @_jointless(('q',), (0, 0))
     def mass_matrix(self, q, method='crba', out=None):
         """M(q), (n, n) or (N, n, n). method: 'crba' (composite rigid body, O(n^2); a generated
@@ -142,17 +145,20 @@ class Algorithms:
         """1/2 qd^T M(q) qd (M with the armature: the rotors' energy included)."""
         return lagrangian.kinetic_energy(self, q, qd)
 
+    @runtime.native_first(aba.forward_dynamics_spec, 3)   # (q, qd, tau[, out=]) straight from C
     @_jointless(('q', 'qd', 'tau'), (0,))
     def forward_dynamics(self, q, qd, tau, wrenches=None, method='cholesky', out=None):
         """qdd with inverse_dynamics(q, qd, qdd, wrenches) = tau; method 'cholesky' or 'aba' (O(n)).
         out: as inverse_dynamics."""
         return aba.forward_dynamics(self, q, qd, tau, wrenches, method, out)
 
+    @runtime.native_first(traced_derivatives.INVERSE_DYNAMICS_DERIVATIVES, 3, split=2)   # from C
     @_jointless(('q', 'qd', 'qdd'), (0, 0), (0, 0))
     def inverse_dynamics_derivatives(self, q, qd, qdd, wrenches=None):
         """(dtau/dq, dtau/dqd), analytic (rnea_derivatives.py)."""
         return rnea_derivatives.inverse_dynamics_derivatives(self, q, qd, qdd, wrenches)
 
+    @runtime.native_first(traced_derivatives.FORWARD_DYNAMICS_DERIVATIVES, 3, split=3)   # from C
     @_jointless(('q', 'qd', 'tau'), (0, 0), (0, 0), (0, 0))
     def forward_dynamics_derivatives(self, q, qd, tau, wrenches=None):
         """(dqdd/dq, dqdd/dqd, dqdd/dtau = M^-1) at qdd = forward_dynamics(q, qd, tau)."""
