@@ -143,8 +143,11 @@ class Features:
             return
         for f in self.all:
             if f.active:
-                for step in f.steps(sample):
-                    step()
+                if type(f).steps is Feature.steps:   # the default: its one step, without a partial
+                    f.on_sample(sample)
+                else:
+                    for step in f.steps(sample):
+                        step()
 
     def steps(self, core):
         """feed's work, not done: [(feature, step)] in the order feed runs them (each feature's
