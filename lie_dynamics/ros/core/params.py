@@ -234,7 +234,8 @@ PARAMS = (
               'Name a link only if no point contact within contact.link_radius of a link further out could give '
               'the same external torques with that link\'s own joints quiet (else: ambiguous). false: the most '
               'proximal link that explains the torques (ambiguous where its wrench, fully seen, is a force whose '
-              'line may pass through the next link\'s joint axis).', True),
+              'line may pass through the next link\'s joint axis), strict only for a weak residual '
+              '(contact.strict_below).', True),
     ParamSpec('contact.link_radius', 'double', RADIUS,
               'A point contact lies within this distance (m) of the segments from a link\'s origin to its frames '
               'and next joints (contact.strict_isolation, and the next-link check of a fully seen wrench).', True,
