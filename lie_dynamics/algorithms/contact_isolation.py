@@ -108,8 +108,9 @@ NOISE_FLOOR = 0.2
 # noise at DOUBT x NOISE_SIGMAS: a quiet joint lands there in 5 % of decisions; the node decides
 # an ambiguous answer anew as its mean grows and the noise falls).
 DOUBT = 1.0 / 3.0
-# The node's weak tier (contact.strict_below): a residual whose largest |r_j| / th_j is below this
-# is decided by the strict rule (step 7). isolate's own default is 0 (off).
+# The weak tier's value for never naming a wrong link in docs/benchmarks.md, section 11
+# (contact.strict_below; off by default, 0, in isolate and in the node: a strict decision searches
+# for tens of milliseconds, bench.probes.isolation_decision).
 STRICT_BELOW = 2.0
 
 
