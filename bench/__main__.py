@@ -43,6 +43,7 @@ A failing section is reported and the others still run; the exit status is then 
 """
 import argparse
 import glob
+import importlib
 import os
 import shutil
 import sys
@@ -54,40 +55,18 @@ SECTIONS = ('core', 'calls', 'lagrangian', 'accuracy', 'scaling', 'stability', '
             'contact', 'jacobian', 'compile', 'signals', 'calibration', 'excitation')
 
 
+def _section(module):
+    """The section that is bench.<module>.run(quick=..., out=...): it prints and writes its own tables."""
+    def runner(quick, out):
+        importlib.import_module(f'bench.{module}').run(quick=quick, out=out)
+    runner.__name__ = f'_{module}'
+    return runner
+
+
 def _core(quick, out):
     from bench import core
     res = core.run(quick=quick)
     core.write(res, out)
-
-
-def _calls(quick, out):
-    from bench import calls
-    calls.run(quick=quick, out=out)
-
-
-def _lagrangian(quick, out):
-    from bench import lagrangian
-    lagrangian.run(quick=quick, out=out)
-
-
-def _accuracy(quick, out):
-    from bench import accuracy
-    accuracy.run(quick=quick, out=out)
-
-
-def _scaling(quick, out):
-    from bench import scaling
-    scaling.run(quick=quick, out=out)
-
-
-def _stability(quick, out):
-    from bench import stability
-    stability.run(quick=quick, out=out)
-
-
-def _robots(quick, out):
-    from bench import robots
-    robots.run(quick=quick, out=out)
 
 
 def _node(quick, out):
@@ -97,34 +76,9 @@ def _node(quick, out):
     node_latency.run(quick=quick, out=out)
 
 
-def _payload(quick, out):
-    from bench import payload
-    payload.run(quick=quick, out=out)
-
-
-def _observer(quick, out):
-    from bench import observer
-    observer.run(quick=quick, out=out)
-
-
-def _contact(quick, out):
-    from bench import contact
-    contact.run(quick=quick, out=out)
-
-
 def _jacobian(quick, out):
     from bench import jacobian
     print(jacobian.run(quick=quick, out=out))
-
-
-def _compile(quick, out):
-    from bench import compile as compile_bench
-    compile_bench.run(quick=quick, out=out)
-
-
-def _signals(quick, out):
-    from bench import signals
-    signals.run(quick=quick, out=out)
 
 
 def _calibration(quick, out):
@@ -139,11 +93,6 @@ def _calibration(quick, out):
         raise RuntimeError(status)
 
 
-def _excitation(quick, out):
-    from bench import calibration_excitation
-    calibration_excitation.run(quick=quick, out=out)
-
-
 def _small_copy(src, dst):
     """Copy a chart for committing: a 128-colour palette PNG is ~3x smaller and looks the same."""
     try:
@@ -156,11 +105,14 @@ def _small_copy(src, dst):
                                    dither=Image.Dither.NONE).save(dst, optimize=True)
 
 
-RUNNERS = {'core': _core, 'calls': _calls, 'lagrangian': _lagrangian, 'accuracy': _accuracy, 'scaling': _scaling,
-           'stability': _stability, 'robots': _robots, 'node': _node, 'payload': _payload,
-           'observer': _observer, 'contact': _contact, 'jacobian': _jacobian,
-           'compile': _compile, 'signals': _signals, 'calibration': _calibration,
-           'excitation': _excitation}
+# section -> runner; most are bench.<module>.run (the module named beside them in the docstring)
+RUNNERS = {'core': _core, 'node': _node, 'jacobian': _jacobian, 'calibration': _calibration,
+           **{name: _section(module) for name, module in (
+               ('calls', 'calls'), ('lagrangian', 'lagrangian'), ('accuracy', 'accuracy'), ('scaling', 'scaling'),
+               ('stability', 'stability'), ('robots', 'robots'), ('payload', 'payload'), ('observer', 'observer'),
+               ('contact', 'contact'), ('compile', 'compile'), ('signals', 'signals'),
+               ('excitation', 'calibration_excitation'))}}
+assert set(RUNNERS) == set(SECTIONS)
 
 
 def main(argv=None):

@@ -312,3 +312,23 @@ def section_main(argv, doc, run, markdown):
     args = ap.parse_args(argv)
     print(markdown(run(args.quick, args.out)))
     return 0
+
+
+def rows_main(argv, doc, name, head, line, measure, robots, families='', options=()):
+    """The command line of a table of one line per (robot, family) row: --robots, --families,
+    --rounds, --out DIR and `options` ((flag, argparse keywords), ...); prints head, then
+    measure(args) prints and returns the rows; with --out writes them (write_rows, as `name`)."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+    ap.add_argument('--robots', default=robots)
+    ap.add_argument('--families', default=families)
+    for flag, kw in options:
+        ap.add_argument(flag, **kw)
+    ap.add_argument('--rounds', type=int, default=7)
+    ap.add_argument('--out', default=None)
+    a = ap.parse_args(argv)
+    a.robots, a.families = a.robots.split(','), [f for f in a.families.split(',') if f]
+    print(head)
+    rows = measure(a)
+    if a.out:
+        write_rows(a.out, name, head, line, rows)
+    return 0

@@ -109,59 +109,85 @@ def body_link(model, link):
     return model.body_link_names[b]
 
 
+def pushable_links(model):
+    """The links a push may hit: those of bodies that some controlled joint moves."""
+    return [ln for ln, (b, _) in model.link_frames.items() if b >= 0 and ci.supporting_joints(model, ln).any()]
+
+
+def draw_push(model, links, th, rng):
+    """One random push, drawn in this order from rng: the held state q0, the link, the point p
+    (link axes, within 5 cm of its origin), the direction and the multiple of the threshold's
+    equivalent force. Returns (q0, link, p, f, multiple), or None for a direction no joint feels."""
+    q0 = random_state(model, rng)
+    link = links[rng.integers(len(links))]
+    p = rng.uniform(-0.05, 0.05, 3)
+    u = rng.normal(size=3)
+    u /= np.linalg.norm(u)
+    J = model.jacobian(q0, link, 'local', point=p)
+    per_newton = np.abs(J[:3].T @ u) / th
+    if per_newton.max() <= 0:
+        return None
+    mult = rng.uniform(1.0, 5.0)
+    return q0, link, p, mult / per_newton.max() * u, mult
+
+
+def run_push(model, settings, q0, link, wrench_mf, rng, noise, isos, seconds, on_sample):
+    """The plant holding q0 while wrench_mf pushes `link` from START for PUSH_S, the observer
+    (the node's ContactMonitor under `settings`) and each isolation of `isos` (adopted already)
+    fed every sample, for `seconds`. on_sample(t, sim, out, pubs): each observer sample, out the
+    monitor's (estimate, flag), pubs {key: the isolation's Published}."""
+    th = np.asarray(settings.collision.threshold)
+    mon = ContactMonitor()
+    mon.adopt(settings, model, make_friction(model.damping, None, settings.friction.coulomb_velocity_epsilon),
+              model.joint_names)
+    sim = ArmSim(model, DT, q0=q0, limits=False)   # no stops: their impulses would be contact too
+    sim.motor = model.gravity(q0)   # the drive's effort before the first step: the hold (not 0, a jolt)
+    sim.set_external(link, wrench_mf, START, PUSH_S)
+    kp, kd = hold_gains(model, q0)
+    for _ in range(int(round(seconds / DT))):
+        t = sim.t
+        motor = sim.motor + rng.normal(0.0, noise, model.n) * th
+        out = mon.on_state(sim.q, sim.qd, motor, stamp=1_000_000_000 + int(round(t * 1e9)))
+        if out is not None:
+            on_sample(t, sim, out, {m: iso.update(mon.last_stamp, sim.q, out[0], out[1], mon.threshold)
+                                    for m, iso in isos.items()})
+        sim.set_command(model.gravity(sim.q) + kp * (q0 - sim.q) - kd @ sim.qd)
+        sim.step()
+
+
 def simulate(model, settings, q0, link, wrench_mf, rng, noise, tool=''):
     """Run one push: for each isolation mode (default, strict) the links named during the push and
     the decision at its end; whether the flag rose; the last sample of the push (q, r, tool wrench)."""
     s = settings.replace({'contact.wrench_frame': tool})
-    th = np.asarray(s.collision.threshold)
-    friction = make_friction(model.damping, None, s.friction.coulomb_velocity_epsilon)
-    mon = ContactMonitor()
-    mon.adopt(s, model, friction, model.joint_names)
     isos = {}
     for mode in MODES:
         isos[mode] = ContactIsolation()
         isos[mode].adopt(s.replace({'contact.strict_isolation': mode == 'strict',
                                     'contact.wrench_frame': tool if mode == 'default' else ''}), model)
-    sim = ArmSim(model, DT, q0=q0, limits=False)   # no stops: their impulses would be contact too
-    sim.motor = model.gravity(q0)   # the drive's effort before the first step: the hold (not 0, a jolt)
-    sim.set_external(link, wrench_mf, START, PUSH_S)
-    kp, kd = hold_gains(model, q0)
-    named, flagged, last = {m: set() for m in MODES}, False, None
-    for _ in range(int(round((START + PUSH_S + AFTER_S) / DT))):
-        t = sim.t
-        motor = sim.motor + rng.normal(0.0, noise, model.n) * th
-        out = mon.on_state(sim.q, sim.qd, motor, stamp=1_000_000_000 + int(round(t * 1e9)))
-        if out is not None:
-            pubs = {m: iso.update(mon.last_stamp, sim.q, out[0], out[1], mon.threshold) for m, iso in isos.items()}
-            if START <= t < START + PUSH_S:
-                flagged |= out[1]
-                for m, pub in pubs.items():
-                    if pub.link:
-                        named[m].add(pub.link)
-                last = (sim.q.copy(), isos['default'].residual.copy(), {m: iso.isolation for m, iso in isos.items()},
-                        pubs['default'].tool)
-        sim.set_command(model.gravity(sim.q) + kp * (q0 - sim.q) - kd @ sim.qd)
-        sim.step()
-    return {'named': named, 'flagged': flagged, 'last': last}
+    res = {'named': {m: set() for m in MODES}, 'flagged': False, 'last': None}
+
+    def sample(t, sim, out, pubs):
+        if START <= t < START + PUSH_S:
+            res['flagged'] |= out[1]
+            for m, pub in pubs.items():
+                if pub.link:
+                    res['named'][m].add(pub.link)
+            res['last'] = (sim.q.copy(), isos['default'].residual.copy(), {m: iso.isolation for m, iso in isos.items()},
+                           pubs['default'].tool)
+    run_push(model, s, q0, link, wrench_mf, rng, noise, isos, START + PUSH_S + AFTER_S, sample)
+    return res
 
 
 def push_isolation(name, model, n_push, rng, noise):
     settings = settings_for(model)
     th = np.asarray(settings.collision.threshold)
-    links = [ln for ln, (b, _) in model.link_frames.items() if b >= 0 and ci.supporting_joints(model, ln).any()]
+    links = pushable_links(model)
     rows = []
     for _ in range(n_push):
-        q0 = random_state(model, rng)
-        link = links[rng.integers(len(links))]
-        p = rng.uniform(-0.05, 0.05, 3)
-        u = rng.normal(size=3)
-        u /= np.linalg.norm(u)
-        J = model.jacobian(q0, link, 'local', point=p)
-        per_newton = np.abs(J[:3].T @ u) / th
-        if per_newton.max() <= 0:
+        drawn = draw_push(model, links, th, rng)
+        if drawn is None:
             continue
-        mult = rng.uniform(1.0, 5.0)
-        f = mult / per_newton.max() * u
+        q0, link, p, f, mult = drawn
         res = simulate(model, settings, q0, link, np.concatenate([np.cross(p, f), f]), rng, noise)
         expected = body_link(model, link)
         q, r, final, _ = res['last']

@@ -21,7 +21,6 @@ through the Model's method beside pin.computeFrameJacobian (J̇q̇: pin.forwardK
 getFrameClassicalAcceleration); first use is the method's first call. The 1-minute load average
 is printed (2 cores: above ~0.5 the wall times include waiting).
 """
-import argparse
 import functools
 import os
 import shutil
@@ -180,17 +179,8 @@ HEAD = ('| robot | family | straight first use s | looped first use s | straight
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--robots', default=','.join(ROBOTS))
-    ap.add_argument('--families', default=','.join(FAMILIES))
-    ap.add_argument('--rounds', type=int, default=7)
-    ap.add_argument('--out', default=None)
-    a = ap.parse_args(argv)
-    print(HEAD)
-    rows = measure(a.robots.split(','), [f for f in a.families.split(',') if f], a.rounds)
-    if a.out:
-        common.write_rows(a.out, 'looped', HEAD, _line, rows)
-    return 0
+    return common.rows_main(argv, __doc__, 'looped', HEAD, _line, lambda a: measure(a.robots, a.families, a.rounds),
+                            ','.join(ROBOTS), ','.join(FAMILIES))
 
 
 if __name__ == '__main__':

@@ -12,7 +12,6 @@ rounds (ratio: median of per-round ratios). Robots: PR2, Baxter, Talos reduced
 (example-robot-data) and random revolute chains and binary trees (bench.common.robot_urdf).
 The 1-minute load average is printed (2 cores: above ~0.5 the wall times include waiting).
 """
-import argparse
 import functools
 import os
 import shutil
@@ -149,18 +148,10 @@ HEAD = ('| robot | family | nodes | first use s | compiler CPU s | µs | Pinocch
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--robots', default=','.join(ROBOTS))
-    ap.add_argument('--families', default='')
-    ap.add_argument('--nodes', type=int, default=400000, help='skip kernels above this many nodes')
-    ap.add_argument('--rounds', type=int, default=7)
-    ap.add_argument('--out', default=None)
-    a = ap.parse_args(argv)
-    print(HEAD)
-    rows = measure(a.robots.split(','), [f for f in a.families.split(',') if f], a.nodes, a.rounds)
-    if a.out:
-        common.write_rows(a.out, 'native_sizes', HEAD, _line, rows)
-    return 0
+    nodes = ('--nodes', dict(type=int, default=400000, help='skip kernels above this many nodes'))
+    return common.rows_main(argv, __doc__, 'native_sizes', HEAD, _line,
+                            lambda a: measure(a.robots, a.families, a.nodes, a.rounds), ','.join(ROBOTS),
+                            options=(nodes,))
 
 
 if __name__ == '__main__':

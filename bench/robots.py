@@ -6,7 +6,12 @@ fixed in the URDF costs. Both are timed here, each beside Pinocchio's model of t
 reduced robot (`buildReducedModel` with the fingers locked; the fixed-finger file as it is),
 interleaved in the same run; ratios are our time / Pinocchio's.
 
-    python -m bench.robots [--quick]
+--large adds the robots of 17-32 joints (Talos reduced, Baxter, PR2) and the Coriolis matrix, the
+regressor and the frame Jacobian of the deepest body's link to every robot: issue 32's "every
+family ≤ 1.0× Pinocchio" on those robots. Pinocchio's model there is its own of the same URDF (its
+mimic joints are joints, PR2's continuous joints two coordinates), at a state of its own.
+
+    python -m bench.robots [--quick] [--large]
 """
 import argparse
 import glob
@@ -21,6 +26,7 @@ from bench import common
 ROBOTS = ('panda_description/urdf/panda.urdf', 'ur_description/urdf/ur5_robot.urdf',
           'talos_data/robots/talos_left_arm.urdf', 'kinova_description/robots/kinova.urdf',
           'tiago_description/robots/tiago.urdf')
+LARGE = ('talos_data/robots/talos_reduced.urdf', 'baxter_description/urdf/baxter.urdf', 'pr2_description/urdf/pr2.urdf')
 PANDA_ARM = [f'panda_joint{k}' for k in range(1, 8)]
 FINGERS = ('panda_finger_joint1', 'panda_finger_joint2')
 
@@ -42,7 +48,7 @@ def fixed_fingers(xml):
     return xml
 
 
-def _cases(quick):
+def _cases(quick, large=False):
     from lie_dynamics import load_urdf
     import pinocchio as pin
 
@@ -65,33 +71,68 @@ def _cases(quick):
         if pm.nq != model.n:  # continuous joints or mimics: Pinocchio's coordinates differ
             continue
         out.append((rel.split('/')[0].replace('_description', '').replace('_data', ''), model, pm))
+    for rel in LARGE if large else ():
+        with open(os.path.join(root, rel), encoding='utf-8') as fh:
+            xml = fh.read()
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore')
+            model = load_urdf(xml)
+        out.append((os.path.basename(rel)[:-5], model, pin.buildModelFromXML(xml)))
     return out
 
 
-def run(quick=False, out=None, rounds=None):
+def _pin_state(pm, model, q, qd, qdd, tau):
+    """Pinocchio's state: ours where its coordinates are ours (its rnea agrees), else a state of its
+    own (random joint velocities integrated from its neutral configuration: other joint order,
+    mimic joints, continuous joints)."""
+    import pinocchio as pin
+    pd = pm.createData()
+    if pm.nq == model.n and pm.nv == model.n:
+        ptau = pin.rnea(pm, pd, q, qd, qdd)
+        if np.allclose(ptau, tau, atol=1e-9 * max(1, np.abs(ptau).max())):
+            return q, qd, qdd, tau
+    rng = np.random.default_rng(1)
+    pq = pin.integrate(pm, pin.neutral(pm), rng.uniform(-0.5, 0.5, pm.nv))
+    pv, pa = (rng.uniform(-1, 1, pm.nv) for _ in range(2))
+    return pq, pv, pa, pin.rnea(pm, pd, pq, pv, pa)
+
+
+def run(quick=False, out=None, rounds=None, large=False):
     import pinocchio as pin
 
     rounds = rounds or (3 if quick else 15)
     target = 0.002 if quick else 0.02
     rows = []
-    for label, model, pm in _cases(quick):
+    for label, model, pm in _cases(quick, large):
         pm.gravity.linear = model.gravity_vector
         pd = pm.createData()
         q, qd, qdd = common.random_states(model, 1, seed=1)
         q, qd, qdd = q[0], qd[0], qdd[0]
         tau = model.inverse_dynamics(q, qd, qdd)
-        assert np.allclose(tau, pin.rnea(pm, pd, q, qd, qdd), atol=1e-9 * max(1, np.abs(tau).max()))
+        pq, pv, pa, ptau = _pin_state(pm, model, q, qd, qdd, tau)
+        assert large or pq is q, f'{label}: Pinocchio disagrees with inverse_dynamics'
         py = common.python_kernels(model)
         calls = {
-            'inverse dynamics': (lambda m: m.inverse_dynamics(q, qd, qdd), lambda: pin.rnea(pm, pd, q, qd, qdd)),
-            'gravity': (lambda m: m.gravity(q), lambda: pin.computeGeneralizedGravity(pm, pd, q)),
-            'mass matrix': (lambda m: m.mass_matrix(q), lambda: pin.crba(pm, pd, q)),
-            'forward dynamics': (lambda m: m.forward_dynamics(q, qd, tau), lambda: pin.aba(pm, pd, q, qd, tau)),
+            'inverse dynamics': (lambda m: m.inverse_dynamics(q, qd, qdd), lambda: pin.rnea(pm, pd, pq, pv, pa)),
+            'gravity': (lambda m: m.gravity(q), lambda: pin.computeGeneralizedGravity(pm, pd, pq)),
+            'mass matrix': (lambda m: m.mass_matrix(q), lambda: pin.crba(pm, pd, pq)),
+            'forward dynamics': (lambda m: m.forward_dynamics(q, qd, tau), lambda: pin.aba(pm, pd, pq, pv, ptau)),
             'ID derivatives': (lambda m: m.inverse_dynamics_derivatives(q, qd, qdd),
-                               lambda: pin.computeRNEADerivatives(pm, pd, q, qd, qdd)),
+                               lambda: pin.computeRNEADerivatives(pm, pd, pq, pv, pa)),
             'FD derivatives': (lambda m: m.forward_dynamics_derivatives(q, qd, tau),
-                               lambda: pin.computeABADerivatives(pm, pd, q, qd, tau)),
+                               lambda: pin.computeABADerivatives(pm, pd, pq, pv, ptau)),
         }
+        if large:
+            link = model.body_link_names[int(np.argmax(model.depth))]   # the deepest body's
+            fid = pm.getFrameId(link)
+            calls.update({
+                'Coriolis matrix': (lambda m: m.coriolis_matrix(q, qd, method='recursive'),
+                                    lambda: pin.computeCoriolisMatrix(pm, pd, pq, pv)),
+                'regressor': (lambda m: m.regressor(q, qd, qdd),
+                              lambda: pin.computeJointTorqueRegressor(pm, pd, pq, pv, pa)),
+                'Jacobian': (lambda m: m.jacobian(q, link),
+                             lambda: pin.computeFrameJacobian(pm, pd, pq, fid, pin.LOCAL_WORLD_ALIGNED)),
+            })
         for op, (ours, peer) in calls.items():
             t = common.time_interleaved({'ours': lambda f=ours: f(model), 'python': lambda f=ours: f(py),
                                          'pin': peer}, rounds, target)
@@ -145,8 +186,9 @@ def main(argv=None):
     ap = argparse.ArgumentParser(prog='python -m bench.robots', description=__doc__.split('\n')[0])
     ap.add_argument('--quick', action='store_true')
     ap.add_argument('--out', default=os.path.join(os.path.dirname(os.path.abspath(__file__)), 'out'))
+    ap.add_argument('--large', action='store_true', help='also robots of 17-32 joints and three more families')
     args = ap.parse_args(argv)
-    run(quick=args.quick, out=args.out)
+    run(quick=args.quick, out=args.out, large=args.large)
 
 
 if __name__ == '__main__':

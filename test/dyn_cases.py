@@ -1,4 +1,5 @@
 """Shared robots, random states and comparison helpers for the Lagrangian/derivative tests."""
+import contextlib
 import functools
 import glob
 import os
@@ -94,3 +95,57 @@ def case_urdf(name):
         return named_urdf(name)
     with open(path, encoding='utf-8') as fh:
         return fh.read()
+
+
+def looped_from_one(limits):
+    """A generator for a module-scoped fixture: THRESHOLDS looped_from = 1 for the families
+    `limits` (their looped native kernels on small robots, which compile in a fraction of a
+    second), restored afterwards; the runtime's caches cleared both times."""
+    from lie_dynamics.codegen import runtime
+    T = runtime.THRESHOLDS
+    saved = {k: T[k] for k in limits}
+    for k in limits:
+        T[k] = T[k]._replace(looped_from=1)
+    runtime.clear()
+    yield
+    T.update(saved)
+    runtime.clear()
+
+
+class LoopedRobot:
+    """A model (loaded from xml with kw), its Python twin (the native backend off) and Pinocchio."""
+
+    def __init__(self, xml, **kw):
+        from lie_dynamics.codegen import runtime
+        self.xml = xml
+        self.model = quiet_load(xml, **kw)
+        self.ref = quiet_load(xml, **kw)
+        runtime.use_native(self.ref, False)
+        self.oracle = Oracle(xml, joints=self.model.joint_names, locked=self.model.locked_values)
+
+
+def uniform_states(model, N, seed):
+    """[q, qd, qdd], each (N, n) C-contiguous, uniform in [-1, 1]."""
+    rng = np.random.default_rng(seed)
+    return [np.ascontiguousarray(x) for x in rng.uniform(-1, 1, (3, N, model.n))]
+
+
+MOVED_GRAVITY = (0.5, -1.0, -9.0)
+
+
+@contextlib.contextmanager
+def payload_and_gravity(models):
+    """On each model: a 1.5 kg payload on the last link with a body and gravity MOVED_GRAVITY,
+    then restored (no payload, standard gravity). Yields that link's name. For the tests that a
+    parameter change reaches a compiled kernel without compiling again."""
+    m = models[0]
+    link = [nm for nm, (b, _) in m.link_frames.items() if b >= 0][-1]
+    try:
+        for x in models:
+            x.set_payload(link, 1.5, [0.05, 0.0, 0.1], [0.01, 0.0, 0.0, 0.02, 0.0, 0.03])
+            x.set_gravity(list(MOVED_GRAVITY))
+        yield link
+    finally:
+        for x in models:
+            x.clear_payload()
+            x.set_gravity([0.0, 0.0, -9.81])

@@ -240,3 +240,34 @@ def test_mass_matrix_forward_dynamics_and_derivatives_run_from_c(name):
         model.forward_dynamics_derivatives(q[0], qd[0], x[0][:-1])
     with pytest.raises(ValueError, match='q'):
         model.mass_matrix(np.full(n, np.nan))
+
+
+def test_methods_hold_several_models():
+    """A C method holds the kernels of up to four models (native_method.c HELD): models called in
+    turn each get their own kernel, a setter on one of them is seen, a fifth model and a model
+    that is gone take an entry without confusing the others."""
+    import gc
+    base, _ = _model('arm7')
+    q, qd, qdd = (x[0] for x in _states(base, 1, seed=12))
+    gravities = [(0.0, 0.0, -9.81 + k) for k in range(6)]
+    models = []
+    for g in gravities:
+        m = copy.deepcopy(base)
+        m.set_gravity(list(g))
+        models.append(m)
+    oracles = [Oracle(_xml('arm7'), gravity=g) for g in gravities]
+    link = base.body_link_names[-1]
+    for _ in range(3):
+        for m, o in zip(models, oracles, strict=True):   # six models in turn: more than are held
+            assert _rel(m.gravity(q), o.gravity(q)) <= TOL
+            assert _rel(m.forward_dynamics(q, qd, qdd), o.aba(q, qd, qdd)) <= 1e-10
+            assert _rel(m.jacobian(q, link), o.frame_jacobian(q, link, 'world_aligned')) <= TOL
+        for m, o in zip(models[:2], oracles[:2], strict=True):   # two in turn, both held
+            assert _rel(m.inverse_dynamics(q, qd, qdd), o.rnea(q, qd, qdd)) <= TOL
+    models[1].set_gravity(list(gravities[0]))   # a setter on a held model: its version changes
+    assert np.array_equal(models[1].gravity(q), models[0].gravity(q))
+    del models[2:]
+    gc.collect()   # held models gone: their entries are taken again
+    fresh = copy.deepcopy(base)
+    assert _rel(fresh.gravity(q), oracles[0].gravity(q)) <= TOL
+    assert _rel(models[0].gravity(q), oracles[0].gravity(q)) <= TOL

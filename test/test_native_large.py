@@ -17,7 +17,7 @@ from lie_dynamics.codegen.traced import crba as t_crba
 from lie_dynamics.codegen.traced import derivatives as t_der
 from lie_dynamics.codegen.traced import regressor as t_reg
 from lie_dynamics.codegen.traced import rnea as t_rnea
-from dyn_cases import quiet_load as _load, rel_max as _rel
+from dyn_cases import payload_and_gravity, quiet_load as _load, rel_max as _rel
 from oracle import Oracle
 from robots import random_urdf
 
@@ -138,20 +138,12 @@ def test_parameters_change_without_recompiling(robot):
     for f in _family_calls(m, q, qd, qdd, tau).values():
         f()
     before = native.compile_count()
-    link = [nm for nm, (b, _) in m.link_frames.items() if b >= 0][-1]
-    for x in (m, ref):
-        x.set_payload(link, 1.5, [0.05, 0.0, 0.1], [0.01, 0.0, 0.0, 0.02, 0.0, 0.03])
-        x.set_gravity([0.5, -1.0, -9.0])
-    try:
+    with payload_and_gravity((m, ref)):
         for i in range(len(q)):
             s = (q[i], qd[i], qdd[i], tau[i])
             ours, theirs = _family_calls(m, *s), _family_calls(ref, *s)
             for fam, f in ours.items():
                 _check(fam, f(), theirs[fam](), ref, s, (i, 'payload and gravity'))
-    finally:
-        for x in (m, ref):
-            x.clear_payload()
-            x.set_gravity([0.0, 0.0, -9.81])
     assert native.compile_count() == before
 
 

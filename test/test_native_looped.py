@@ -14,7 +14,8 @@ from lie_dynamics.codegen import kernel, native, runtime
 from lie_dynamics.codegen.traced import aba as t_aba
 from lie_dynamics.codegen.traced import crba as t_crba
 from lie_dynamics.codegen.traced import derivatives as t_der
-from dyn_cases import quiet_load as _load, rel_max as _rel
+from dyn_cases import (LoopedRobot, looped_from_one, payload_and_gravity, quiet_load as _load, rel_max as _rel,
+                       uniform_states)
 from oracle import Oracle
 from robots import random_urdf
 
@@ -29,25 +30,10 @@ pytestmark = pytest.mark.skipif(native.module() is None, reason='no working C co
 @pytest.fixture(scope='module')
 def looped_everywhere():
     """looped_from = 1 for the families with a looped form (restored after the module)."""
-    T = runtime.THRESHOLDS
-    saved = {k: T[k] for k in LIMITS}
-    for k in LIMITS:
-        T[k] = T[k]._replace(looped_from=1)
-    runtime.clear()
-    yield
-    T.update(saved)
-    runtime.clear()
+    yield from looped_from_one(LIMITS)
 
 
-class Robot:
-    """A model whose M, ABA and derivatives are looped, its Python twin (native off) and Pinocchio."""
-
-    def __init__(self, xml, **kw):
-        self.xml = xml
-        self.model = _load(xml, **kw)
-        self.ref = _load(xml, **kw)
-        runtime.use_native(self.ref, False)
-        self.oracle = Oracle(xml, joints=self.model.joint_names, locked=self.model.locked_values)
+Robot = LoopedRobot   # M, ABA and derivatives looped (the fixture above)
 
 
 # revolute, continuous and prismatic joints, fixed links merged into their parents
@@ -59,9 +45,7 @@ def robot(request, looped_everywhere):
     return Robot(CASES[request.param]())
 
 
-def _states(model, N, seed):
-    rng = np.random.default_rng(seed)
-    return [np.ascontiguousarray(x) for x in rng.uniform(-1, 1, (3, N, model.n))]
+_states = uniform_states
 
 
 def _check_solve(got, want, ref, q, qd, tau):
@@ -175,11 +159,7 @@ def test_parameters_change_without_recompiling(robot):
     q, qd, qdd = _states(m, 2, seed=3)
     _check_all(m, ref, robot.oracle, q, qd, qdd)
     before = native.compile_count()
-    link = [nm for nm, (b, _) in m.link_frames.items() if b >= 0][-1]
-    try:
-        for x in (m, ref):
-            x.set_payload(link, 1.5, [0.05, 0.0, 0.1], [0.01, 0.0, 0.0, 0.02, 0.0, 0.03])
-            x.set_gravity([0.5, -1.0, -9.0])
+    with payload_and_gravity((m, ref)):
         tau = ref.inverse_dynamics(q, qd, qdd)
         for i in range(len(q)):
             assert _rel(m.mass_matrix(q[i]), ref.mass_matrix(q[i])) <= TOL
@@ -195,10 +175,6 @@ def test_parameters_change_without_recompiling(robot):
             for method in ('aba', 'cholesky'):
                 s = (q[i], qd[i], tau[i])
                 _check_solve(m.forward_dynamics(*s, method=method), ref.forward_dynamics(*s, method='aba'), ref, *s)
-    finally:
-        for x in (m, ref):
-            x.clear_payload()
-            x.set_gravity([0.0, 0.0, -9.81])
     assert native.compile_count() == before
 
 

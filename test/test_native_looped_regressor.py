@@ -12,7 +12,8 @@ import pytest
 
 from lie_dynamics.codegen import native, runtime
 from lie_dynamics.codegen.traced import regressor as t_reg
-from dyn_cases import pin_body_permutation, quiet_load as _load, rel_max as _rel
+from dyn_cases import (MOVED_GRAVITY, LoopedRobot, looped_from_one, payload_and_gravity, pin_body_permutation,
+                       quiet_load as _load, rel_max as _rel, uniform_states)
 from oracle import Oracle
 from robots import random_urdf
 
@@ -29,13 +30,7 @@ ROOT = next(iter(glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-pac
 @pytest.fixture(scope='module')
 def looped_everywhere():
     """looped_from = 1 for the regressor (restored after the module)."""
-    T = runtime.THRESHOLDS
-    saved = T['regressor']
-    T['regressor'] = saved._replace(looped_from=1)
-    runtime.clear()
-    yield
-    T['regressor'] = saved
-    runtime.clear()
+    yield from looped_from_one(('regressor',))
 
 
 def _talos():
@@ -45,15 +40,7 @@ def _talos():
         return fh.read()
 
 
-class Robot:
-    """A model whose regressor is looped, its Python twin (native off) and Pinocchio."""
-
-    def __init__(self, xml, **kw):
-        self.xml = xml
-        self.model = _load(xml, **kw)
-        self.ref = _load(xml, **kw)
-        runtime.use_native(self.ref, False)
-        self.oracle = Oracle(xml, joints=self.model.joint_names, locked=self.model.locked_values)
+Robot = LoopedRobot   # the regressor looped (the fixture above)
 
 
 # revolute, continuous and prismatic joints with general axes, fixed links merged into their parents
@@ -65,9 +52,7 @@ def robot(request, looped_everywhere):
     return Robot(CASES[request.param]())
 
 
-def _states(model, N, seed):
-    rng = np.random.default_rng(seed)
-    return [np.ascontiguousarray(x) for x in rng.uniform(-1, 1, (3, N, model.n))]
+_states = uniform_states
 
 
 def _pin(m, oracle, q, qd, qdd):
@@ -128,17 +113,9 @@ def test_gravity_and_payload_change_without_recompiling(robot):
     q, qd, qdd = _states(m, 2, seed=3)
     _check(m, ref, robot.oracle, q, qd, qdd)
     before = native.compile_count()
-    link = [nm for nm, (b, _) in m.link_frames.items() if b >= 0][-1]
-    oracle = Oracle(robot.xml, joints=m.joint_names, gravity=(0.5, -1.0, -9.0))
-    try:
-        for x in (m, ref):
-            x.set_payload(link, 1.5, [0.05, 0.0, 0.1], [0.01, 0.0, 0.0, 0.02, 0.0, 0.03])
-            x.set_gravity([0.5, -1.0, -9.0])
+    oracle = Oracle(robot.xml, joints=m.joint_names, gravity=MOVED_GRAVITY)
+    with payload_and_gravity((m, ref)):
         _check(m, ref, oracle, q, qd, qdd)
-    finally:
-        for x in (m, ref):
-            x.clear_payload()
-            x.set_gravity([0.0, 0.0, -9.81])
     assert native.compile_count() == before
 
 

@@ -19,10 +19,7 @@ import numpy as np
 
 import bench.contact as bc
 from lie_dynamics.algorithms import contact_isolation as ci
-from lie_dynamics.laws import make_friction
-from lie_dynamics.ros.features.contact import ContactMonitor
 from lie_dynamics.ros.features.contact_link import ContactIsolation
-from lie_dynamics.sim.arm import ArmSim
 
 
 class _Recording(ContactIsolation):
@@ -43,30 +40,18 @@ class _Recording(ContactIsolation):
 
 
 def _push(model, settings, q0, link, wrench_mf, rng, noise):
-    th = np.asarray(settings.collision.threshold)
-    mon = ContactMonitor()
-    mon.adopt(settings, model, make_friction(model.damping, None, settings.friction.coulomb_velocity_epsilon),
-              model.joint_names)
     iso = _Recording()
     iso.adopt(settings, model)
-    sim = ArmSim(model, bc.DT, q0=q0, limits=False)
-    sim.motor = model.gravity(q0)
-    sim.set_external(link, wrench_mf, bc.START, bc.PUSH_S)
-    kp, kd = bc.hold_gains(model, q0)
-    named, final, tau = set(), None, None
-    for _ in range(int(round((bc.START + bc.PUSH_S + bc.AFTER_S) / bc.DT))):
-        t = sim.t
-        out = mon.on_state(sim.q, sim.qd, sim.motor + rng.normal(0.0, noise, model.n) * th,
-                           stamp=1_000_000_000 + int(round(t * 1e9)))
-        if out is not None:
-            pub = iso.update(mon.last_stamp, sim.q, out[0], out[1], mon.threshold)
-            if bc.START <= t < bc.START + bc.PUSH_S:
-                if pub.link:
-                    named.add(pub.link)
-                final, tau = iso.isolation, sim.external_torque.copy()
-        sim.set_command(model.gravity(sim.q) + kp * (q0 - sim.q) - kd @ sim.qd)
-        sim.step()
-    return named, final, tau, [d for d in iso.decided if bc.START <= d[0] < bc.START + bc.PUSH_S]
+    named, last = set(), [None, None]
+
+    def sample(t, sim, out, pubs):
+        if bc.START <= t < bc.START + bc.PUSH_S:
+            if pubs['default'].link:
+                named.add(pubs['default'].link)
+            last[:] = iso.isolation, sim.external_torque.copy()
+    bc.run_push(model, settings, q0, link, wrench_mf, rng, noise, {'default': iso},
+                bc.START + bc.PUSH_S + bc.AFTER_S, sample)
+    return named, last[0], last[1], [d for d in iso.decided if bc.START <= d[0] < bc.START + bc.PUSH_S]
 
 
 def run(pushes, above):
@@ -77,20 +62,13 @@ def run(pushes, above):
         settings = bc.settings_for(model)
         th = np.asarray(settings.collision.threshold)
         tree = ci.tree(model)
-        links = [ln for ln, (b, _) in model.link_frames.items() if b >= 0 and ci.supporting_joints(model, ln).any()]
+        links = bc.pushable_links(model)
         for noise in (0.0, bc.NOISE):
             for _ in range(pushes):   # the draws of bench.contact.push_isolation, in its order
-                q0 = bc.random_state(model, rng)
-                link = links[rng.integers(len(links))]
-                p = rng.uniform(-0.05, 0.05, 3)
-                u = rng.normal(size=3)
-                u /= np.linalg.norm(u)
-                J = model.jacobian(q0, link, 'local', point=p)
-                per_newton = np.abs(J[:3].T @ u) / th
-                if per_newton.max() <= 0:
+                drawn = bc.draw_push(model, links, th, rng)
+                if drawn is None:
                     continue
-                mult = rng.uniform(1.0, 5.0)
-                f = mult / per_newton.max() * u
+                q0, link, p, f, mult = drawn
                 named, final, tau, decided = _push(model, settings, q0, link, np.concatenate([np.cross(p, f), f]),
                                                    rng, noise)
                 expected = bc.body_link(model, link)

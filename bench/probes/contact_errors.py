@@ -22,39 +22,23 @@ import numpy as np
 
 import bench.contact as bc
 from lie_dynamics.algorithms import contact_isolation as ci
-from lie_dynamics.laws import make_friction
-from lie_dynamics.ros.features.contact import ContactMonitor
 from lie_dynamics.ros.features.contact_link import ContactIsolation
-from lie_dynamics.sim.arm import ArmSim
 
 
 def push(model, settings, q0, link, wrench_mf, rng, noise):
     """One push through the node's parts: (q, r, J^T F per sample of the push, the node's mean at the end)."""
-    th = np.asarray(settings.collision.threshold)
-    mon = ContactMonitor()
-    mon.adopt(settings, model, make_friction(model.damping, None, settings.friction.coulomb_velocity_epsilon),
-              model.joint_names)
     iso = ContactIsolation()
     iso.adopt(settings, model)
-    sim = ArmSim(model, bc.DT, q0=q0, limits=False)
-    sim.motor = model.gravity(q0)
-    sim.set_external(link, wrench_mf, bc.START, bc.PUSH_S)
-    kp, kd = bc.hold_gains(model, q0)
-    qs, rs, taus, mean = [], [], [], None
-    for _ in range(int(round((bc.START + bc.PUSH_S) / bc.DT))):
-        t = sim.t
-        out = mon.on_state(sim.q, sim.qd, sim.motor + rng.normal(0.0, noise, model.n) * th,
-                           stamp=1_000_000_000 + int(round(t * 1e9)))
-        if out is not None:
-            iso.update(mon.last_stamp, sim.q, out[0], out[1], mon.threshold)
-            if t >= bc.START:
-                qs.append(sim.q.copy())
-                rs.append(out[0].copy())
-                taus.append(sim.external_torque.copy())
-                mean = iso.residual.copy()
-        sim.set_command(model.gravity(sim.q) + kp * (q0 - sim.q) - kd @ sim.qd)
-        sim.step()
-    return np.array(qs), np.array(rs), np.array(taus), mean
+    qs, rs, taus, mean = [], [], [], [None]
+
+    def sample(t, sim, out, pubs):
+        if t >= bc.START:
+            qs.append(sim.q.copy())
+            rs.append(out[0].copy())
+            taus.append(sim.external_torque.copy())
+            mean[0] = iso.residual.copy()
+    bc.run_push(model, settings, q0, link, wrench_mf, rng, noise, {'default': iso}, bc.START + bc.PUSH_S, sample)
+    return np.array(qs), np.array(rs), np.array(taus), mean[0]
 
 
 def run(pushes, seed):
@@ -63,18 +47,15 @@ def run(pushes, seed):
         settings = bc.settings_for(model)
         th = np.asarray(settings.collision.threshold)
         tree = ci.tree(model)
-        links = [ln for ln, (b, _) in model.link_frames.items() if b >= 0 and ci.supporting_joints(model, ln).any()]
+        links = bc.pushable_links(model)
         stab = [0.0, 0.0]
         for noise in (0.0, bc.NOISE):
             err_inst, err_mean, own, ratio, misses = [], [], [], [], []
             for _ in range(pushes):
-                q0 = bc.random_state(model, rng)
-                link = links[rng.integers(len(links))]
-                p = rng.uniform(-0.05, 0.05, 3)
-                u = rng.normal(size=3)
-                u /= np.linalg.norm(u)
-                J = model.jacobian(q0, link, 'local', point=p)
-                f = rng.uniform(1.0, 5.0) / (np.abs(J[:3].T @ u) / th).max() * u
+                drawn = bc.draw_push(model, links, th, rng)
+                if drawn is None:
+                    continue
+                q0, link, p, f, _ = drawn
                 M = model.mass_matrix(q0)
                 kp, kd = bc.hold_gains(model, q0)
                 stab[0] = max(stab[0], bc.DT * np.abs(np.linalg.eigvals(np.linalg.solve(M, kd))).max())

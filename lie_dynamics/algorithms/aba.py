@@ -96,10 +96,7 @@ def _spec(model, method):
     which names the problem."""
     if method == 'aba':
         return traced_aba.spec(model)
-    t = runtime.THRESHOLDS['aba'].looped_from
-    if t is None or model.nb < t:
-        return traced_cholesky.FORWARD_DYNAMICS
-    return runtime.derived(model, 'cholesky_spec', lambda: _looped_aba(model))   # one lookup per call
+    return runtime.derived(model, 'cholesky_spec', lambda: _looped_aba(model))   # runtime.looped's rule, cached
 
 
 def _looped_aba(model):

@@ -3,8 +3,8 @@
 /* ------------------------------------------------------------------ Method: a model's method, native first
  * method(slow, resolve, n_state) is a method descriptor for a Model class. model.NAME(*states)
  * or model.NAME(*states, out=buf) runs the model's Bound kernel straight from C: the kernel
- * is cached in the Method for one model at a time (a weak reference to it, its `version` then,
- * and the epoch of invalidate()), resolved by resolve(model) -> a Bound, False (no kernel: the
+ * is cached in the Method for up to HELD models at a time (for each a weak reference, its
+ * `version` then, and the epoch of invalidate()), resolved by resolve(model) -> a Bound, False (no kernel: the
  * slow path, cached) or None (not now: the slow path, not cached). Any other call, a kernel that
  * declines (bad input, non-finite result), or a model without a cached kernel runs
  * slow(model, *args, **kwargs), the Python method, which validates and raises.
@@ -26,39 +26,75 @@ static unsigned long epoch = 1;
 #define KEY_ARGS_MAX 8
 static PyObject *str_version, *str_out;
 
+/* One model's cached kernel: a weak reference to the model, its `version` then, the kernel (a
+ * Bound, or False; keyed: the dict of keys) and the epoch of invalidate() then. */
+typedef struct {
+    PyObject *model_ref, *version, *kernel;
+    unsigned long epoch;
+} Held;
+
+/* Models held at once: a process that calls two or three models in turn (a robot and a
+ * calibrated copy, a benchmark's peer) resolves each once, not at every switch (~1.5 us). */
+#define HELD 4
+
 typedef struct {
     PyObject_HEAD
     vectorcallfunc vectorcall;
-    PyObject *slow, *resolve, *model_ref, *version, *kernel;
+    PyObject *slow, *resolve;
+    Held held[HELD];
+    int next;   /* the entry a new model takes when none is free */
     Py_ssize_t n_state, split;
     int keyed;
-    unsigned long epoch;
 } Method;
 
 static PyTypeObject MethodType;
 
+static void held_clear(Held *h)
+{
+    Py_CLEAR(h->model_ref);
+    Py_CLEAR(h->version);
+    Py_CLEAR(h->kernel);
+}
+
+/* the kernel held for `model` (borrowed), resolved on a miss; NULL: none now (no error set) */
 static PyObject *method_kernel(Method *m, PyObject *model)
 {
-    if (m->model_ref && m->epoch == epoch && PyWeakref_GET_OBJECT(m->model_ref) == model) {
+    Held *h = NULL, *free_h = NULL;
+    for (int i = 0; i < HELD; ++i) {
+        Held *c = &m->held[i];
+        PyObject *o = c->model_ref ? PyWeakref_GET_OBJECT(c->model_ref) : NULL;
+        if (o == model) {
+            h = c;
+            break;
+        }
+        if (!free_h && (!o || o == Py_None))   /* empty, or its model gone */
+            free_h = c;
+    }
+    if (h && h->epoch == epoch) {
         PyObject *v = PyObject_GetAttr(model, str_version);
         if (!v) {
             PyErr_Clear();
             return NULL;
         }
-        int same = v == m->version || PyObject_RichCompareBool(v, m->version, Py_EQ) == 1;
+        int same = v == h->version || PyObject_RichCompareBool(v, h->version, Py_EQ) == 1;
         Py_DECREF(v);
         PyErr_Clear();
         if (same)
-            return m->kernel;
+            return h->kernel;
+    }
+    if (!h) {
+        h = free_h ? free_h : &m->held[m->next];
+        if (!free_h)
+            m->next = (m->next + 1) % HELD;
     }
     PyObject *k = m->keyed ? PyDict_New() : PyObject_CallOneArg(m->resolve, model);
+    /* resolve ran Python: the entries may have changed (another call of this Method); h is
+     * still an entry of m, refilled below */
     if (!k) {
         PyErr_Clear();
         return NULL;
     }
-    Py_CLEAR(m->model_ref);
-    Py_CLEAR(m->version);
-    Py_CLEAR(m->kernel);
+    held_clear(h);
     if (k == Py_None) {
         Py_DECREF(k);
         return NULL;
@@ -70,10 +106,13 @@ static PyObject *method_kernel(Method *m, PyObject *model)
         PyErr_Clear();
         return NULL;
     }
-    m->model_ref = ref;
-    m->version = v;
-    m->kernel = k;   /* a Bound, or False; keyed: the dict of keys */
-    m->epoch = epoch;
+    for (int i = 0; i < HELD; ++i)   /* one entry per model: another call may have added it meanwhile */
+        if (&m->held[i] != h && m->held[i].model_ref && PyWeakref_GET_OBJECT(m->held[i].model_ref) == model)
+            held_clear(&m->held[i]);
+    h->model_ref = ref;
+    h->version = v;
+    h->kernel = k;
+    h->epoch = epoch;
     return k;
 }
 
@@ -235,9 +274,11 @@ static int method_traverse(PyObject *self, visitproc visit, void *arg)
     Method *m = (Method *)self;
     Py_VISIT(m->slow);
     Py_VISIT(m->resolve);
-    Py_VISIT(m->model_ref);
-    Py_VISIT(m->version);
-    Py_VISIT(m->kernel);
+    for (int i = 0; i < HELD; ++i) {
+        Py_VISIT(m->held[i].model_ref);
+        Py_VISIT(m->held[i].version);
+        Py_VISIT(m->held[i].kernel);
+    }
     return 0;
 }
 
@@ -246,9 +287,8 @@ static int method_clear(PyObject *self)
     Method *m = (Method *)self;
     Py_CLEAR(m->slow);
     Py_CLEAR(m->resolve);
-    Py_CLEAR(m->model_ref);
-    Py_CLEAR(m->version);
-    Py_CLEAR(m->kernel);
+    for (int i = 0; i < HELD; ++i)
+        held_clear(&m->held[i]);
     return 0;
 }
 
@@ -322,11 +362,11 @@ static PyObject *method_new(PyObject *mod, PyObject *args)
     Py_INCREF(resolve);
     m->slow = slow;
     m->resolve = resolve;
-    m->model_ref = m->version = m->kernel = NULL;
+    memset(m->held, 0, sizeof(m->held));
+    m->next = 0;
     m->n_state = n_state;
     m->split = split;
     m->keyed = keyed;
-    m->epoch = 0;
     PyObject_GC_Track((PyObject *)m);
     return (PyObject *)m;
 }
