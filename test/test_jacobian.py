@@ -490,7 +490,8 @@ def test_tree_kernels_write_only_the_path_columns(monkeypatch):
             model.jacobian(q[0, :-1], link)
         strided = np.repeat(q[0], 2)[::2]
         assert np.array_equal(model.jacobian(strided, link), model.jacobian(q[0], link))
-        assert len(calls) == (4 if b == deep else 2)   # these ran the Python function, the plain calls did not
+        if native.module() is not None:   # these ran the Python function, the plain call from C did not
+            assert len(calls) == (4 if b == deep else 2)
         monkeypatch.undo()
     chain = load_urdf(random_urdf(7, 20, fixed_links=False))
     tip = int(np.argmax(chain.depth))
