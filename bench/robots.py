@@ -6,7 +6,7 @@ fixed in the URDF costs. Both are timed here, each beside Pinocchio's model of t
 reduced robot (`buildReducedModel` with the fingers locked; the fixed-finger file as it is),
 interleaved in the same run; ratios are our time / Pinocchio's.
 
---large adds the robots of 17-32 joints (Talos reduced, Baxter, PR2) and the Coriolis matrix, the
+--large adds robots of 12-32 joints (Solo12, Talos reduced, Baxter, PR2) and the Coriolis matrix, the
 regressor and the frame Jacobian of the deepest body's link to every robot: issue 32's "every
 family ≤ 1.0× Pinocchio" on those robots. Pinocchio's model there is its own of the same URDF (its
 mimic joints are joints, PR2's continuous joints two coordinates), at a state of its own.
@@ -26,7 +26,8 @@ from bench import common
 ROBOTS = ('panda_description/urdf/panda.urdf', 'ur_description/urdf/ur5_robot.urdf',
           'talos_data/robots/talos_left_arm.urdf', 'kinova_description/robots/kinova.urdf',
           'tiago_description/robots/tiago.urdf')
-LARGE = ('talos_data/robots/talos_reduced.urdf', 'baxter_description/urdf/baxter.urdf', 'pr2_description/urdf/pr2.urdf')
+LARGE = ('solo_description/robots/solo12.urdf', 'talos_data/robots/talos_reduced.urdf',
+         'baxter_description/urdf/baxter.urdf', 'pr2_description/urdf/pr2.urdf')
 PANDA_ARM = [f'panda_joint{k}' for k in range(1, 8)]
 FINGERS = ('panda_finger_joint1', 'panda_finger_joint2')
 
@@ -186,7 +187,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(prog='python -m bench.robots', description=__doc__.split('\n')[0])
     ap.add_argument('--quick', action='store_true')
     ap.add_argument('--out', default=os.path.join(os.path.dirname(os.path.abspath(__file__)), 'out'))
-    ap.add_argument('--large', action='store_true', help='also robots of 17-32 joints and three more families')
+    ap.add_argument('--large', action='store_true', help='also robots of 12-32 joints and three more families')
     args = ap.parse_args(argv)
     run(quick=args.quick, out=args.out, large=args.large)
 

@@ -136,19 +136,36 @@ class Features:
 
     def feed(self, core):
         """After the command for a joint_states message: each active feature gets core.result if
-        the core accepted it (a rejected message, or the same result again, feeds nothing)."""
-        for _, step in self.steps(core):
-            step()
+        the core accepted it (a rejected message, or the same result again, feeds nothing).
+        steps' work, run as it goes (no list of steps to build per sample)."""
+        sample = self._new_sample(core)
+        if sample is None:
+            return
+        for f in self.all:
+            if f.active:
+                if type(f).steps is Feature.steps:   # the default: its one step, without a partial
+                    f.on_sample(sample)
+                else:
+                    for step in f.steps(sample):
+                        step()
 
     def steps(self, core):
         """feed's work, not done: [(feature, step)] in the order feed runs them (each feature's
         `steps`); the features are configured first if core's settings or model changed."""
+        sample = self._new_sample(core)
+        if sample is None:
+            return []
+        return [(f, step) for f in self.all if f.active for step in f.steps(sample)]
+
+    def _new_sample(self, core):
+        """core.result if it is a new accepted sample (then it is the last fed), else None; the
+        features configured first if core's settings or model changed."""
         self.configure_if_changed(core)
         sample = core.result
         if sample is self._last or sample is None or not sample.accepted:
-            return []
+            return None
         self._last = sample
-        return [(f, step) for f in self.all if f.active for step in f.steps(sample)]
+        return sample
 
     def drain(self):
         """[(severity, key, text)] queued by the core and the features, emptied."""

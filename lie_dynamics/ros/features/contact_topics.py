@@ -6,7 +6,8 @@ Publishes   ~/external_torques (sensor_msgs/JointState: name = the command layou
             one of each per new accepted joint_states message with efforts, after its command
             (QoS: interfaces.py). Both are published serialized (cdr.Template, as the dynamics
 topics; ~/external_torques through one cdr.Writer per joint layout): writing the estimate into
-a message serialized once costs less than rclpy's conversion of a message object.
+a message serialized once costs less than rclpy's conversion of a message object; and both
+through interfaces.SerializedPublisher (rclpy's publish_raw without its per-call checks).
 
 With them, contact_link.py's ContactIsolation: ~/contact/wrench and ~/contact/tool_wrench
 (geometry_msgs/WrenchStamped, the joint_states stamp) and ~/contact/link (std_msgs/String).
@@ -41,8 +42,9 @@ class ContactTopics(Feature):
         self.monitor = ContactMonitor()
         self.isolation = ContactIsolation()
         self._core = node.core
-        self._ext_pub = interfaces.publisher(node, '~/external_torques')
-        self._flag_pub = interfaces.publisher(node, '~/collision')
+        # published at every sample: serialized straight through the handle (stop() releases it)
+        self._ext_pub = interfaces.serialized_publisher(node, '~/external_torques')
+        self._flag_pub = interfaces.serialized_publisher(node, '~/collision')
         self._wrench_pub = interfaces.publisher(node, '~/contact/wrench')
         self._tool_pub = interfaces.publisher(node, '~/contact/tool_wrench')
         self._link_pub = interfaces.publisher(node, '~/contact/link')
@@ -94,6 +96,10 @@ class ContactTopics(Feature):
             self._tool_pub.publish(_wrench(self.isolation.frame, pub.tool, s.stamp))
         if pub.link is not None:
             self._link_pub.publish(String(data=pub.link))
+
+    def stop(self):
+        self._ext_pub.close()
+        self._flag_pub.close()
 
     def report(self, level, message):
         level, message, values = self.monitor.report(level, message, [], self.isolation.where())
