@@ -496,3 +496,26 @@ def test_tree_kernels_write_only_the_path_columns(monkeypatch):
     chain = load_urdf(random_urdf(7, 20, fixed_links=False))
     tip = int(np.argmax(chain.depth))
     assert t_jac.build(runtime.frames(chain), 'jacobian', 'world_aligned', tip).scatter is None
+
+
+def test_a_non_finite_joint_off_the_links_path_is_refused():
+    """A NaN or inf in a joint that does not move the link leaves the Jacobian finite; the native
+    call checks its inputs too (native_call.c all_finite), so the validating path names q, one
+    state and a batch, as it does for every kernel (gravity of a tree: a branch's NaN)."""
+    xml = random_urdf(65, 12, tree=True, fixed_links=False)
+    model = load_urdf(xml)
+    shallow = next(b for b in range(model.nb) if model.ancestors[b].sum() == 1)
+    link = model.body_link_names[shallow]
+    off = next(j for j in range(model.n) if not model.ancestors[shallow][j]) if model.n == model.nb else None
+    assert off is not None
+    q = np.random.default_rng(3).uniform(-1, 1, model.n)
+    assert np.all(np.isfinite(model.jacobian(q, link)))
+    for bad in (np.nan, np.inf):
+        qb = q.copy()
+        qb[off] = bad
+        with pytest.raises(ValueError, match='q'):
+            model.jacobian(qb, link)
+        with pytest.raises(ValueError, match='q'):
+            model.jacobian(np.stack([q, qb]), link)
+        with pytest.raises(ValueError, match='q'):
+            model.gravity(qb)

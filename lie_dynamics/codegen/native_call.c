@@ -45,14 +45,13 @@ typedef struct {
 static int n_threads = 1;
 static Py_ssize_t thread_rows = 1024;
 
-/* 1: the result is finite (and, check 1, every pivot out[n_res + i] > rtol * out[n_res + m + i]).
- * Finite: the sum, taken in 8 partial sums (independent additions: a 6 x 200 Jacobian's check
- * took as long as its kernel as one chain of 1,200 dependent additions). */
-static int accept(const Bound *b, const double *v)
+/* 1: the n values at v are all finite (their sum is: an inf or a NaN makes it so; values whose
+ * sum overflows count as not finite), summed in 8 independent chains held in registers */
+static int all_finite(const double *v, Py_ssize_t n)
 {
     double p0 = 0.0, p1 = 0.0, p2 = 0.0, p3 = 0.0, p4 = 0.0, p5 = 0.0, p6 = 0.0, p7 = 0.0;
     Py_ssize_t k = 0;
-    for (; k + 8 <= b->n_res; k += 8) {   /* scalars, not an array: kept in registers */
+    for (; k + 8 <= n; k += 8) {   /* scalars, not an array: kept in registers */
         p0 += v[k];
         p1 += v[k + 1];
         p2 += v[k + 2];
@@ -62,10 +61,18 @@ static int accept(const Bound *b, const double *v)
         p6 += v[k + 6];
         p7 += v[k + 7];
     }
-    for (; k < b->n_res; ++k)
+    for (; k < n; ++k)
         p0 += v[k];
     double s = ((p0 + p1) + (p2 + p3)) + ((p4 + p5) + (p6 + p7));
-    if (!(s - s == 0.0))
+    return s - s == 0.0;
+}
+
+/* 1: the result is finite (and, check 1, every pivot out[n_res + i] > rtol * out[n_res + m + i]).
+ * Finite: the sum, taken in 8 partial sums (independent additions: a 6 x 200 Jacobian's check
+ * took as long as its kernel as one chain of 1,200 dependent additions). */
+static int accept(const Bound *b, const double *v)
+{
+    if (!all_finite(v, b->n_res))
         return 0;
     if (b->check) {
         Py_ssize_t m = (b->n_out - b->n_res) / 2;
@@ -237,6 +244,11 @@ static PyObject *bound_call(PyObject *self, PyObject *const *args, size_t nargsf
         }
         data[i] = PyArray_BYTES(a);
     }
+    /* a non-finite input the result does not depend on (a Jacobian's joints off its link's path)
+     * would pass the result's test: the full path names it */
+    for (int i = 0; i < b->n_in; ++i)
+        if (!all_finite((const double *)data[i], N * b->width[i]))
+            Py_RETURN_NONE;
     int lead = nd == 2;
     PyObject *out = nargs > b->n_in ? args[b->n_in] : Py_None;
     if (out != Py_None) {
