@@ -25,7 +25,10 @@ EPS32 = float(np.finfo(np.float32).eps)
 
 # ------------------------------------------------------------------ timing
 def calibrate(fn, target):
-    """Calls per measurement so that one measurement takes about `target` seconds."""
+    """Calls per measurement so that one measurement takes about `target` seconds. The first call
+    is not timed: it may build or load a kernel (a kernel cache at its size bound evicts and
+    rebuilds), and a calibration on it measured one call per round."""
+    fn()
     t0 = time.perf_counter()
     fn()
     dt = time.perf_counter() - t0
