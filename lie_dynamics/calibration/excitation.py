@@ -124,8 +124,8 @@ def _violation(model, home, lo, hi, vmax, amax, emax, p, v, a):
 # LEAST_HARMONICS. A longer excitation with the same harmonics only moves the same way more slowly
 # (velocities and accelerations scale with 1 / duration); more harmonics keep its pace and add independent
 # motion. A short one needs more than that pace gives: at 10 s on the bundled arm 15 harmonics (1.5 Hz,
-# amplitudes of a few cm under the acceleration bound) reach a condition number of 5.7, 5 harmonics
-# (0.5 Hz) 8.4 (bench/calibration_excitation.py, docs/benchmarks.md).
+# at most 0.06 rad under 5 rad/s^2) reach a condition number of 5.4; 5 harmonics (0.5 Hz) reached 8.4
+# with position amplitudes as the coefficients (bench/calibration_excitation.py, docs/benchmarks.md).
 HIGHEST_HARMONIC_HZ = 0.25
 LEAST_HARMONICS = 15
 
