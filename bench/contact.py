@@ -2,7 +2,7 @@
 through the observer and the node's decision logic, offline; the node's callback cost with
 isolation beside without it.
 
-    .venv/bin/python -m bench.contact [--quick] [--pushes 150] [--out DIR]
+    .venv/bin/python -m bench.contact [--quick] [--pushes 150] [--strict-below 2] [--out DIR]
 
 Plant: the robot (lie_dynamics.sim.arm, the library's forward dynamics at 1 kHz, URDF damping)
 held at a random state q0 within its joint limits by gravity compensation + PD (HOLD_KP, a damping
@@ -54,6 +54,7 @@ THRESHOLD_SCALE = 0.03     # threshold_j = this x effort limit_j
 NOISE = 0.05               # effort noise, x threshold_j
 START, PUSH_S, AFTER_S = 0.5, 0.4, 0.1   # free 0.5 s first: the node measures the residual's noise
 MODES = ('default', 'strict')   # contact.strict_isolation false, true
+STRICT_BELOW = 0.0   # contact.strict_below of both modes: the node's default (--strict-below 2: the weak tier)
 HOLD_KP = 3.0              # the hold's stiffness, N m/rad per N m of effort limit (critically damped)
 ERD = next(iter(glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-packages', 'cmeel.prefix', 'share',
                                        'example-robot-data', 'robots'))), None)
@@ -76,6 +77,7 @@ def robots():
 
 def settings_for(model):
     return Settings({'collision.threshold': (THRESHOLD_SCALE * model.effort_limits).tolist(),
+                     'contact.strict_below': STRICT_BELOW,
                      'friction.viscous': model.damping.tolist(), 'friction.coulomb': [0.0]})
 
 
@@ -387,7 +389,7 @@ def run(quick=False, out=None, pushes=None, seed=0):
     cost = node_cost(rounds=4 if quick else 20, per_round=50 if quick else 200)
     md = ('# Contact isolation and the external wrench\n\n'
           f'Pushes per robot and noise level: {n}; thresholds {THRESHOLD_SCALE} x effort limits; effort noise 0 and '
-          f'{NOISE} x threshold; seed {seed}.\n\n## Isolation\n\n'
+          f'{NOISE} x threshold; seed {seed}; contact.strict_below {STRICT_BELOW:g}.\n\n## Isolation\n\n'
           + _table(iso, list(iso[0])) + '\n## Identification (links with 6 or more supporting joints)\n\n'
           + (_table(ident, list(ident[0])) if ident else 'none\n') + '\n## Tool frame\n\n'
           + _table(tool, list(tool[0])) + '\n## Callback cost (bundled arm)\n\n' + _table(cost, list(cost[0])))
@@ -400,11 +402,16 @@ def run(quick=False, out=None, pushes=None, seed=0):
 
 
 def main(argv=None):
+    global STRICT_BELOW
     ap = argparse.ArgumentParser(prog='python -m bench.contact', description=__doc__.split('\n')[0])
     ap.add_argument('--quick', action='store_true')
     ap.add_argument('--pushes', type=int, default=None, help='pushes per robot (default 150, quick 12)')
+    ap.add_argument('--strict-below', type=float, default=STRICT_BELOW,
+                    help=f'contact.strict_below (default %(default)g, the node\'s; {ci.STRICT_BELOW:g}: the weak tier, '
+                         'never wrong in docs/benchmarks.md)')
     ap.add_argument('--out', default=os.path.join(HERE, 'out'))
     args = ap.parse_args(argv)
+    STRICT_BELOW = args.strict_below
     run(args.quick, args.out, args.pushes)
 
 

@@ -471,3 +471,38 @@ def test_a_mean_over_the_arms_yield_is_explained_with_q_from_and_two_contacts_st
     assert res.status == 'ambiguous' and 'two contacts' in res.reason, res
     with pytest.raises(ValueError, match='q_from must be 7 finite'):
         ci.isolate(model, q_b, r, th, q_from=np.zeros(6))
+
+
+def test_a_weak_push_through_its_own_joints_axis_is_ambiguous_with_the_weak_tier():
+    """A push on link4 whose line crosses joint 4's axis loads joint 4 with nothing: its r is that of
+    a wrench on link3 (3 supporting joints, the line free). The default rule names link3 (wrong);
+    with strict_below above the residual's largest |r_j| / th_j the strict rule decides: ambiguous.
+    A strong push (above strict_below) is decided as without the tier."""
+    model, oracle = _robot('arm7')
+    q = np.array([0.2, -0.6, 0.1, 2.0, 0.3, 1.6, 0.8])
+    th = np.array([2.6] * 4 + [0.36] * 3)
+    J4 = pin_jacobian(oracle, q, 'link4')
+    v, w = J4[:3, 3], J4[3:, 3]                 # joint 4's column in link4's axes
+    p = np.cross(w, v) / (w @ w) + 0.03 * w / np.linalg.norm(w)   # a point on its axis, 3 cm along it
+    f = np.array([1.0, 1.0, 0.0])                # joints 1-3 all well over their tolerances
+    r1 = J4.T @ np.concatenate([f, np.cross(p, f)])
+    assert abs(r1[3]) < 1e-12 * np.abs(r1).max()
+    for multiple, tiered in ((1.5, True), (3.0, False)):
+        r = multiple / np.max(np.abs(r1) / th) * r1    # the largest |r_j| / th_j is `multiple`
+        off = ci.isolate(model, q, r, th)
+        assert off.status == 'isolated' and off.link == 'link3', off
+        assert ci.isolate(model, q, r, th, strict_below=0.0)[:5] == off[:5]
+        on = ci.isolate(model, q, r, th, strict_below=ci.STRICT_BELOW)
+        if tiered:   # the strict rule's answer, named candidates and reason
+            assert on[:5] == ci.isolate(model, q, r, th, strict=True)[:5]
+            assert on.status == 'ambiguous' and on.candidates[:2] == ('link3', 'link4') and on.link == '', on
+        else:        # a strong push: the default rule, as without the tier
+            assert on.status == 'isolated' and on.link == 'link3'
+    # a strong push on link4 off its axis is still named link4 with the tier on
+    F4 = np.concatenate([f, np.cross(p + np.array([0.05, 0.04, 0.0]), f)])
+    r = J4.T @ F4
+    r *= 3.0 / np.max(np.abs(r) / th)
+    assert ci.isolate(model, q, r, th, strict_below=ci.STRICT_BELOW).link == 'link4'
+    for bad in (-1.0, float('nan'), float('inf')):
+        with pytest.raises(ValueError, match='strict_below must be finite and >= 0'):
+            ci.isolate(model, q, r, th, strict_below=bad)

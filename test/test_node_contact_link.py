@@ -110,11 +110,16 @@ def test_contact_parameters_are_validated(ros):
     for change, why in (({'contact.wrench_frame': 'tool'}, "did you mean 'tool0'"),
                         ({'contact.wrench_frame': 'base_link'}, 'fixed to the root'),
                         ({'contact.rcond': 0.0}, 'contact.rcond'), ({'contact.rcond': -1.0}, 'contact.rcond'),
-                        ({'contact.rcond': math.nan}, 'contact.rcond'), ({'contact.rcond': math.inf}, 'contact.rcond')):
+                        ({'contact.rcond': math.nan}, 'contact.rcond'), ({'contact.rcond': math.inf}, 'contact.rcond'),
+                        ({'contact.strict_below': -1.0}, 'contact.strict_below'),
+                        ({'contact.strict_below': math.nan}, 'contact.strict_below'),
+                        ({'contact.strict_below': math.inf}, 'contact.strict_below')):
         res = node.set_parameters_atomically([Parameter(k, value=v) for k, v in change.items()])
         assert not res.successful and why in res.reason, (change, res.reason)
+    assert node.get_parameter('contact.strict_below').value == 2.0   # kept after the refusals
     res = node.set_parameters_atomically([Parameter('contact.wrench_frame', value='flange'),
-                                          Parameter('contact.rcond', value=0.01)])
+                                          Parameter('contact.rcond', value=0.01),
+                                          Parameter('contact.strict_below', value=0.0)])
     assert res.successful, res.reason
 
 

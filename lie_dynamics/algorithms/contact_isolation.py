@@ -42,6 +42,12 @@ residual's measured noise sigma_j (the std of the r decided on), NOISE_SIGMAS x 
      further out that explains r gives r within tol_j (`_point_force`: the segments from the
      body's origin to its frames and next joints, no meshes); else ambiguous. With fewer than 6
      joints on the named link such a force usually exists, so strict is right far less often.
+     The weak tier (`strict_below`, the node's contact.strict_below): a residual whose largest
+     |r_j| / th_j is below strict_below is decided by step 7 as well. A push on a link further out
+     hides from its own joint j when |F| d < tol_j, d the distance of its line from that axis:
+     within d_max = tol_j / |F|, which grows as the push weakens, so the weak pushes are where a
+     push near that axis is likely and naming the link before is unsafe (docs/benchmarks.md,
+     section 11, measures what it costs in right answers).
   That is the limit of isolation: joint torques alone cannot tell a contact whose own joints feel
   less than DOUBT x the tolerance from one on a link before with fewer than 6 joints
   (docs/benchmarks.md measures how often); the measured noise lowers the tolerance, and with it
@@ -102,6 +108,10 @@ NOISE_FLOOR = 0.2
 # noise at DOUBT x NOISE_SIGMAS: a quiet joint lands there in 5 % of decisions; the node decides
 # an ambiguous answer anew as its mean grows and the noise falls).
 DOUBT = 1.0 / 3.0
+# The weak tier's value for never naming a wrong link in docs/benchmarks.md, section 11
+# (contact.strict_below; off by default, 0, in isolate and in the node: a strict decision searches
+# for tens of milliseconds, bench.probes.isolation_decision).
+STRICT_BELOW = 2.0
 
 
 class WrenchEstimate(NamedTuple):
@@ -249,7 +259,7 @@ def tolerances(threshold, tolerance=TOLERANCE, noise=None):
 
 
 def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RCOND, strict=False, noise=None,
-            q_from=None):
+            q_from=None, strict_below=0.0):
     """Isolation of the contact link from a settled residual r (n,) at the state q with the
     per-joint thresholds `threshold` (one value or n): the rule of the module docstring, with
     consistency within tol_j (`tolerances`: tolerance x threshold_j, or from `noise`, the measured
@@ -257,6 +267,8 @@ def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RC
     `q_from`: when r is a mean over states from q_from to q (the arm yields to a push while the
     mean is taken), step 3 takes r as J_k(q)^T w - c (J_k(q) - J_k(q_from))^T w for some c in
     [0, 1] (to first order in the motion; w the fitted wrench): no single J_k^T gives such a mean.
+    `strict_below`: a residual whose largest |r_j| / threshold_j is below this is decided by the
+    strict rule (step 7) even without `strict` (0: never; module docstring, the weak tier).
     Returns an Isolation; the wrench of an isolated link comes with it."""
     n = model.n
     r = _vector('r', r, n)
@@ -269,6 +281,8 @@ def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RC
         raise ValueError(f'tolerance must be in (0, 1], got {tolerance!r}')
     if not (math.isfinite(radius) and radius > 0):
         raise ValueError(f'radius must be finite and > 0, got {radius!r}')
+    if not (isinstance(strict_below, (int, float)) and math.isfinite(strict_below) and strict_below >= 0):
+        raise ValueError(f'strict_below must be finite and >= 0, got {strict_below!r}')
     names, links = model.joint_names, model.body_link_names
     over = np.abs(r) > th
     over_names = tuple(names[j] for j in np.flatnonzero(over))
@@ -351,7 +365,8 @@ def isolate(model, q, r, threshold, tolerance=TOLERANCE, radius=RADIUS, rcond=RC
     if near:
         return ambiguous([k] + near, f"a push on link '{links[near[0]]}' whose line passes through the axis of "
                                      'its own joint gives these external torques as well')
-    # step 7 (strict): no point contact further out gives r with its own joints quiet
+    # step 7 (strict, or a weak r: the weak tier): no point contact further out gives r with its own joints quiet
+    strict = strict or bool(np.max(np.abs(r) / th) < strict_below)
     further = [b for b in whole if b != k and _point_force(model, q, r, tol, b, radius)] if strict else []
     if further:
         return ambiguous([k] + further, f"a point contact on link '{links[further[0]]}' would load its own joints "

@@ -45,12 +45,26 @@ typedef struct {
 static int n_threads = 1;
 static Py_ssize_t thread_rows = 1024;
 
-/* 1: the result is finite (and, check 1, every pivot out[n_res + i] > rtol * out[n_res + m + i]) */
+/* 1: the result is finite (and, check 1, every pivot out[n_res + i] > rtol * out[n_res + m + i]).
+ * Finite: the sum, taken in 8 partial sums (independent additions: a 6 x 200 Jacobian's check
+ * took as long as its kernel as one chain of 1,200 dependent additions). */
 static int accept(const Bound *b, const double *v)
 {
-    double s = 0.0;
-    for (Py_ssize_t k = 0; k < b->n_res; ++k)
-        s += v[k];
+    double p0 = 0.0, p1 = 0.0, p2 = 0.0, p3 = 0.0, p4 = 0.0, p5 = 0.0, p6 = 0.0, p7 = 0.0;
+    Py_ssize_t k = 0;
+    for (; k + 8 <= b->n_res; k += 8) {   /* scalars, not an array: kept in registers */
+        p0 += v[k];
+        p1 += v[k + 1];
+        p2 += v[k + 2];
+        p3 += v[k + 3];
+        p4 += v[k + 4];
+        p5 += v[k + 5];
+        p6 += v[k + 6];
+        p7 += v[k + 7];
+    }
+    for (; k < b->n_res; ++k)
+        p0 += v[k];
+    double s = ((p0 + p1) + (p2 + p3)) + ((p4 + p5) + (p6 + p7));
     if (!(s - s == 0.0))
         return 0;
     if (b->check) {

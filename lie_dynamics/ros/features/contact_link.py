@@ -92,6 +92,7 @@ class ContactIsolation:
         self.frame = ''
         self.rcond = ci.RCOND
         self.strict = False
+        self.strict_below = 0.0
         self.tolerance, self.radius = ci.TOLERANCE, ci.RADIUS
         self.settling = None
         self.isolation = None       # the last decision (contact_isolation.Isolation) while the flag is up
@@ -122,6 +123,7 @@ class ContactIsolation:
         self.settings, self.model = settings, model
         self.rcond = settings.contact.rcond
         self.strict = settings.contact.strict_isolation
+        self.strict_below = settings.contact.strict_below
         self.tolerance, self.radius = settings.contact.tolerance, settings.contact.link_radius
         self.frame = settings.contact.wrench_frame
         if self.frame and model is not None:
@@ -248,7 +250,8 @@ class ContactIsolation:
             # a contact does not load stays unloaded as the arm yields; the least noisy mean
             whole = a[1] / a[0]
             iso = ci.isolate(self.model, q, whole, threshold, self.tolerance, self.radius, self.rcond, self.strict,
-                             noise=self._noise(whole, a[2] / a[0], t - self._start), q_from=self._q_start)
+                             noise=self._noise(whole, a[2] / a[0], t - self._start), q_from=self._q_start,
+                             strict_below=self.strict_below)
             if self.isolation is None or iso.status != self.isolation.status or iso.link != self.isolation.link:
                 self._log(iso)
             self.isolation = iso
