@@ -1,6 +1,6 @@
 """Excitation design: condition number of the optimised excitation against the random one.
 
-    python -m bench.calibration_excitation [--quick] [--iterations N] [--out DIR]
+    python -m bench.calibration_excitation [--quick] [--iterations N] [--jobs N] [--out DIR]
 
 For each robot and duration: the condition number of the column-scaled structural base
 calibration regressor (calibration.excitation.condition_number) along
@@ -90,27 +90,38 @@ def uniform_states(model, count=1000, seed=0):
             (2 * u[2] - 1) * LIMITS['acceleration'])
 
 
-def run(quick=False, out=None, iterations=None):
-    rows = []
-    for name, path in robots(quick).items():
-        model = load_urdf(path)
-        for duration in (DURATIONS_QUICK if quick else DURATIONS):
-            _, qr, qdr, qddr = excitation_trajectory(model, duration=duration, rate=RATE, seed=0)
-            c_random = condition_number(model, qr, qdr, qddr)
-            c_within = condition_number(model, *within_limits(model, qr, qdr, qddr))
-            c_uniform = condition_number(model, *uniform_states(model))
-            t0 = time.perf_counter()
-            _, q, qd, qdd = excitation_trajectory(model, duration=duration, rate=RATE, optimize=True, seed=0,
-                                                  **{k: v for k, v in LIMITS.items() if k != 'margin'},
-                                                  **({'iterations': 10} if quick else {}),
-                                                  **({'iterations': iterations} if iterations else {}))
-            seconds = time.perf_counter() - t0
-            c_opt = condition_number(model, q, qd, qdd)
-            rows.append({'robot': name, 'duration': duration, 'random': c_random, 'random_in_limits': c_within,
-                         'optimised': c_opt, 'uniform_states': c_uniform, 'ratio': c_opt / c_random,
-                         'ratio_in_limits': c_opt / c_within,
-                         'excess': excess(model, q, qd, qdd), 'seconds': seconds})
-            print(rows[-1], flush=True)
+def row(name, path, duration, quick=False, iterations=None):
+    """One robot and duration: the table's row."""
+    model = load_urdf(path)
+    _, qr, qdr, qddr = excitation_trajectory(model, duration=duration, rate=RATE, seed=0)
+    c_random = condition_number(model, qr, qdr, qddr)
+    c_within = condition_number(model, *within_limits(model, qr, qdr, qddr))
+    c_uniform = condition_number(model, *uniform_states(model))
+    t0 = time.perf_counter()
+    _, q, qd, qdd = excitation_trajectory(model, duration=duration, rate=RATE, optimize=True, seed=0,
+                                          **{k: v for k, v in LIMITS.items() if k != 'margin'},
+                                          **({'iterations': 10} if quick else {}),
+                                          **({'iterations': iterations} if iterations else {}))
+    seconds = time.perf_counter() - t0
+    c_opt = condition_number(model, q, qd, qdd)
+    out = {'robot': name, 'duration': duration, 'random': c_random, 'random_in_limits': c_within,
+           'optimised': c_opt, 'uniform_states': c_uniform, 'ratio': c_opt / c_random,
+           'ratio_in_limits': c_opt / c_within, 'excess': excess(model, q, qd, qdd), 'seconds': seconds}
+    print(out, flush=True)
+    return out
+
+
+def run(quick=False, out=None, iterations=None, jobs=1):
+    """The rows of every robot and duration; jobs > 1: that many processes at once (the same
+    figures, each optimiser's time then shares the machine with the others)."""
+    tasks = [(name, path, duration, quick, iterations) for name, path in robots(quick).items()
+             for duration in (DURATIONS_QUICK if quick else DURATIONS)]
+    if jobs > 1:
+        from concurrent.futures import ProcessPoolExecutor
+        with ProcessPoolExecutor(jobs) as pool:
+            rows = list(pool.map(row, *zip(*tasks)))
+    else:
+        rows = [row(*task) for task in tasks]
     if out is not None:
         write(rows, out)
     return rows
@@ -170,9 +181,10 @@ def main(argv=None):
     ap = argparse.ArgumentParser(prog='python -m bench.calibration_excitation', description=__doc__.split('\n')[0])
     ap.add_argument('--quick', action='store_true')
     ap.add_argument('--iterations', type=int, default=None, help='L-BFGS-B iterations (default: the library\'s)')
+    ap.add_argument('--jobs', type=int, default=1, help='rows computed at once, in processes (default 1)')
     ap.add_argument('--out', default=os.path.join(os.path.dirname(os.path.abspath(__file__)), 'out'))
     args = ap.parse_args(argv)
-    print(markdown(run(quick=args.quick, out=args.out, iterations=args.iterations)))
+    print(markdown(run(quick=args.quick, out=args.out, iterations=args.iterations, jobs=args.jobs)))
     return 0
 
 

@@ -16,7 +16,9 @@ log s_min is not smooth where the extreme singular values cross, which stalls L-
 optimisation runs in stages (STAGES) on the smooth surrogate log |s|_p + log |1/s|_p (p-norms of
 the singular values and of their inverses, log cond as p grows), p = 4 then 16, and ends on
 log cond itself, each stage starting where the last stopped. The grid of the optimisation has
-10 samples per period of the highest harmonic (at least 100). The start is the best conditioned
+10 samples per period of the highest harmonic (at least 100). The free coefficients are velocity
+amplitudes (a_jl w_l, b_jl w_l: every harmonic weighs alike on the velocity), in units of the start's
+largest (L-BFGS-B's first step has unit length); see _Series. The start is the best conditioned
 of a few random series, each scaled up or down to the limits; the result is checked on the
 sampled trajectory and, where a limit is still exceeded, shrunk towards home until none is (the
 stiff penalty leaves little to shrink).
@@ -51,12 +53,18 @@ def _basis(w, power):
 
 
 class _Series:
-    """Positions, velocities, accelerations of the constrained series on a time grid."""
+    """Positions, velocities, accelerations of the constrained series on a time grid. The free
+    coefficients are velocity amplitudes: a_l = c_l / w_l (likewise b), so every harmonic moves the
+    velocity alike. Position amplitudes would let the highest harmonics' accelerations (w_l^2 a_l)
+    dominate: the random start, shrunk to the acceleration bound, then barely moves, and L-BFGS-B
+    sees variables whose effects differ by w_H^2 / w_1^2 (225 with 15 harmonics), which it crosses
+    slowly or not at all (its line search failed at once on the bundled arm with 15 harmonics)."""
 
     def __init__(self, t, w):
         self.S, self.C = np.sin(np.outer(t, w)), np.cos(np.outer(t, w))
         self.w = w
-        self.Ba, self.Bb = _basis(w, 1), _basis(w, 2)
+        # sum a_l w_l = sum c_l = 0 and sum b_l w_l^2 = sum c_l w_l = 0 (at rest at both ends)
+        self.Ba, self.Bb = _basis(w, 0) / w[:, None], _basis(w, 1) / w[:, None]
 
     def coefficients(self, x, n):
         x = x.reshape(n, 2, -1)
@@ -112,15 +120,20 @@ def _violation(model, home, lo, hi, vmax, amax, emax, p, v, a):
     return ep, ev, ea, ee
 
 
-# Default harmonics: the highest at about HIGHEST_HARMONIC_HZ whatever the duration, at least 5. A longer
-# excitation with the same 5 harmonics only moves the same way more slowly (velocities and accelerations
-# scale with 1 / duration); more harmonics keep its pace and add independent motion (bench/calibration_excitation.py).
+# Default harmonics: the highest at about HIGHEST_HARMONIC_HZ whatever the duration, and at least
+# LEAST_HARMONICS. A longer excitation with the same harmonics only moves the same way more slowly
+# (velocities and accelerations scale with 1 / duration); more harmonics keep its pace and add independent
+# motion. A short one needs more than that pace gives: at 10 s on the bundled arm 15 harmonics (1.5 Hz,
+# at most 0.06 rad under 5 rad/s^2) reach a condition number of 5.4; 5 harmonics (0.5 Hz) reached 8.4
+# with position amplitudes as the coefficients (bench/calibration_excitation.py, docs/benchmarks.md).
 HIGHEST_HARMONIC_HZ = 0.25
+LEAST_HARMONICS = 15
 
 
 def default_harmonics(duration):
-    """Harmonics of the optimised excitation by default: round(duration * HIGHEST_HARMONIC_HZ), at least 5."""
-    return max(5, int(round(duration * HIGHEST_HARMONIC_HZ)))
+    """Harmonics of the optimised excitation by default: round(duration * HIGHEST_HARMONIC_HZ), at least
+    LEAST_HARMONICS."""
+    return max(LEAST_HARMONICS, int(round(duration * HIGHEST_HARMONIC_HZ)))
 
 
 # (p, share of the iterations): the smooth surrogates log |s|_p + log |1/s|_p, then log cond (None)
@@ -210,24 +223,31 @@ def optimized_excitation(model, duration=10.0, rate=100.0, harmonics=None, home=
         c0 = cost(x0, 0.0, False)[0]
         if best is None or c0 < best[0]:
             best = (c0, x0)
-    x = x0 = best[1]
+    # L-BFGS-B's first step has unit length: it works on the coefficients in units of the start's
+    # largest, so that step stays near the limits instead of far beyond them (its line search failed)
+    unit = float(np.abs(best[1]).max())
+
+    def scaled_cost(y, weight=1e3, gradient=True, power=None):
+        f, g = cost(unit * y, weight, gradient, power)
+        return f, (None if g is None else unit * g)
+    y = y0 = best[1] / unit
     for power, share in STAGES:
         budget = max(1, int(round(share * iterations)))
         best_f = np.inf
         while budget > 0:
             with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
-                res = minimize(cost, x, jac=True, method='L-BFGS-B', args=(1e3, True, power),
+                res = minimize(scaled_cost, y, jac=True, method='L-BFGS-B', args=(1e3, True, power),
                                options={'maxiter': budget})
             budget -= max(1, res.nit)
             if not (np.isfinite(res.fun) and res.fun < best_f):
                 break
-            x, best_f = res.x, res.fun
+            y, best_f = res.x, res.fun
             # a failed line search (status 2: the Coulomb columns' tanh and the limits' kinks make the
             # objective stiff in places) ends L-BFGS-B early; its memory restarted, it goes on
             if res.status != 2:
                 break
     # the exact objective decides: a stage that made it worse than the start is not kept
-    x = x if cost(x, gradient=False)[0] <= cost(x0, gradient=False)[0] else x0
+    x = unit * (y if scaled_cost(y, gradient=False)[0] <= scaled_cost(y0, gradient=False)[0] else y0)
     s = _shrink(model, home, lo, hi, vmax, amax, emax, lambda s: trajectory(fine, x, s), 1.0)
     p, v, a = trajectory(fine, x, s)
     worst = [float(e.max()) for e in _violation(model, home, lo, hi, vmax, amax, emax, p, v, a)]
@@ -395,7 +415,8 @@ def main(argv=None):
     ap.add_argument('--home', help='comma-separated start and end pose, one value per controlled joint')
     ap.add_argument('--rate', type=number(low=0, strict=True), default=100.0, help='samples per second (default 100)')
     ap.add_argument('--harmonics', type=number(int, low=2), default=None,
-                    help=f'Fourier harmonics, >= 2 (default: duration x {HIGHEST_HARMONIC_HZ:g} Hz, at least 5)')
+                    help=f'Fourier harmonics, >= 2 (default: duration x {HIGHEST_HARMONIC_HZ:g} Hz, '
+                    f'at least {LEAST_HARMONICS})')
     ap.add_argument('--margin', type=number(low=0), default=0.1, help='fraction of each range kept free (default 0.1)')
     ap.add_argument('--velocity-fraction', type=number(low=0, strict=True), default=0.8,
                     help='fraction of the velocity limits (default 0.8)')
