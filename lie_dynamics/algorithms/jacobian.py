@@ -124,12 +124,11 @@ def kernel_of(kind, model, link, frame='world_aligned', point=None):
 
 
 def _call(model, kind, states, link, frame, point, mode):
-    if mode is None and point is None and type(link) is str:   # one state of a link frame: the hot path
-        k = runtime.derived(model, (kind, link, frame), lambda: _kernel_of(model, kind, link, frame))
-        if k:
-            r = runtime.fast(model, k[0])(*states, k[1])
-            if r is not None:
-                return r
+    k = kernel_of(kind, model, link, frame, point) if mode is None else False   # a link frame's kernel
+    if k:
+        r = runtime.fast(model, k[0])(*states, *k[1])
+        if r is not None:
+            return r
     if mode not in MODES:
         raise ValueError(f'mode must be one of {MODES}, got {mode!r}')
     b, T, X, p = target(model, link, frame, point)
