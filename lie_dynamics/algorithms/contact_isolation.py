@@ -401,6 +401,13 @@ def _weighted_world_jacobian(model, q, r, tol, b):
     return J[:3].T / tol[:, None], J[3:].T / tol[:, None], r / tol
 
 
+def _force_misfit(V, W, rw, p):
+    """The weighted torques' misfit of the best force at p (_weighted_world_jacobian's V, W, rw):
+    (V + W x p) f - rw, f in least squares."""
+    A = V + np.cross(W, p)
+    return A @ np.linalg.lstsq(A, rw, rcond=None)[0] - rw
+
+
 def _pure_force_line(model, q, r, tol, k):
     """(a point, the unit direction) of the line of the pure force that r implies on body k, whose
     wrench is fully seen (rank 6): (f, m) about the root origin from r = V f + W m in least squares
@@ -429,9 +436,8 @@ def _line_fits(model, q, r, tol, b, radius, line):
     def off(v):   # v's component across the line
         return v - d * (d @ v)
 
-    def misfit(p):   # the weighted torques' misfit of the best force at p
-        A = V + np.cross(W, p)
-        return A @ np.linalg.lstsq(A, rw, rcond=None)[0] - rw
+    def misfit(p):
+        return _force_misfit(V, W, rw, p)
     best = None
     for e in [np.zeros(3), *(ends - o)]:   # the origin, then each segment o -> o + e
         u, w = off(o - p0), off(e)
@@ -471,9 +477,7 @@ def _point_force(model, q, r, tol, b, radius):
     o, ends = _skeleton(model, q, b)
 
     def fit(p):
-        A = V + np.cross(W, p)
-        f = np.linalg.lstsq(A, rw, rcond=None)[0]
-        return A @ f - rw
+        return _force_misfit(V, W, rw, p)
 
     def fun(p):
         out = _segment_distance(p, o, ends) - radius
