@@ -295,38 +295,62 @@ def _spread(s, power):
     return float(np.log(s[0] / s[-1]) + (np.log(A) + np.log(B)) / power), (a / A - b / B) / s
 
 
+def _singular(Z):
+    """(U-free) SVD of the tall Z: singular values s (descending) and V, from the eigenvalues of the
+    Gram matrix Z^T Z (cols x cols). An SVD of Z itself (m n rows) cost 3 ms on one BLAS thread and
+    ~30 ms with two on a busy 2-core machine, most of an iteration; squaring the condition number is
+    harmless at the values the optimiser meets, and where it is not (cond above ~1e6) the SVD decides."""
+    lam, V = np.linalg.eigh(Z.T @ Z)
+    if not lam[0] > 1e-12 * lam[-1]:
+        _, s, Vt = np.linalg.svd(Z, full_matrices=False)
+        return s, Vt.T
+    return np.sqrt(lam[::-1]), V[:, ::-1]
+
+
+def _perturbations(n, h):
+    """The state offsets of the gradient, (1 + 5 n, 3, n): none, then q_j +-h (central differences),
+    qd_j +-1 and qdd_j +1. The regressor is quadratic in qd and linear in qdd (as are the inverse
+    dynamics, Y pi + armature qdd), so those differences are exact at any step: a unit one has no
+    rounding to speak of, and qdd needs only the forward one."""
+    step = np.zeros((1 + 5 * n, 3, n))
+    j = np.arange(n)
+    step[1 + 2 * j, 0, j], step[2 + 2 * j, 0, j] = h, -h
+    step[1 + 2 * n + 2 * j, 1, j], step[2 + 2 * n + 2 * j, 1, j] = 1.0, -1.0
+    step[1 + 4 * n + j, 2, j] = 1.0
+    return step
+
+
 def _objective(model, home, p, v, a, columns, eps, limits, weight, bases, mask, h=1e-6, power=None):
     """log cond of the column-scaled base regressor (power None; else the surrogate of _spread)
     + weight * the squared relative excess over the limits, and (bases given) its gradient in the
     coefficients: the singular values' derivatives (d s_i = u_i^T dZ v_i, with the column scaling
-    differentiated too) chained with the regressor's and the inverse dynamics' central
-    differences in q, qd, qdd of every sample."""
+    differentiated too) chained with the regressor's derivatives in q, qd, qdd of every sample
+    (_perturbations). The value's derivative in the inertial columns and the effort penalty's
+    (tau = Y pi + armature qdd) are one weight matrix per sample, contracted with the regressor
+    at the perturbed states before differencing: no derivative of the regressor is formed."""
     lo, hi, vmax, amax, emax = limits
     m, n = p.shape
     q = home + p
-    states = [q, v, a]
-    if bases is not None:   # the samples, then each state kind and joint moved by +h and -h
-        step = np.zeros((3, n, 2, 3, n))
-        step[np.arange(3)[:, None], np.arange(n), 0, np.arange(3)[:, None], np.arange(n)] = h
-        step[:, :, 1] = -step[:, :, 0]
-        step = np.concatenate([np.zeros((1, 3, n)), step.reshape(-1, 3, n)])          # (1 + 6 n, 3, n)
-        allst = (np.stack(states)[None] + step[:, :, None, :]).transpose(1, 0, 2, 3).reshape(3, -1, n)
+    states = np.stack([q, v, a])                                                    # (3, m, n)
+    if bases is not None:   # the samples, then the perturbed states (_perturbations), offset-major
+        step = _perturbations(n, h)
+        allst = (states[:, None] + step.transpose(1, 0, 2)[:, :, None, :]).reshape(3, -1, n)
     else:
-        allst = np.stack(states)
+        allst = states
     # the calibration regressor's two parts, each on its own base columns (a column order cond ignores):
     # the same numbers as calibration_regressor(...)[..., columns], without building the unused columns;
-    # the joint columns' derivatives are exact (below), so only the inertial part takes the +-h states
+    # the joint columns' derivatives are exact (below), so only the inertial part takes the perturbed states
     inertial = 10 * model.nb
     icols, jcols = columns[columns < inertial], columns[columns >= inertial] - inertial
-    Yi_all = model.regressor(*allst)[..., icols]
-    Y = np.concatenate([Yi_all[:m], creg.joint_columns(v, a, eps)[..., jcols]], axis=2).reshape(m * n, -1)
-    tau_all = model.inverse_dynamics(*allst)
+    Yi_all = model.regressor(*allst)
+    Y = np.concatenate([Yi_all[:m][..., icols], creg.joint_columns(v, a, eps)[..., jcols]], axis=2).reshape(m * n, -1)
     D = np.linalg.norm(Y, axis=0)
     if np.any(D == 0):
         return (50.0, np.zeros(n * len(bases[0][0]))) if bases is not None else (50.0, None)
-    U, sv, Vt = np.linalg.svd(Y / D, full_matrices=False)
+    Z = Y / D
+    sv, V = _singular(Z)
     value, dsv = _spread(sv, power)
-    tau = tau_all[:m]
+    tau = model.inverse_dynamics(q, v, a)
     span = hi - lo
     ep = np.maximum(q - hi, 0.0) / span - np.maximum(lo - q, 0.0) / span        # signed excess
     ev = np.sign(v) * np.maximum(np.abs(v) - vmax, 0.0) / vmax
@@ -336,21 +360,23 @@ def _objective(model, home, p, v, a, columns, eps, limits, weight, bases, mask, 
     value += weight * float(np.sum(ep ** 2) + np.sum(ev ** 2) + np.sum(ea ** 2) + np.sum(ee ** 2))
     if bases is None:
         return value, None
-    # d value / dY: dZ through the singular values (U diag(dsv) V^T), then Z = Y / |Y columns|
-    Gz = (U * dsv) @ Vt
+    # d value / dY: dZ through the singular values (U diag(dsv) V^T with U = Z V / s), then Z = Y / |Y columns|
+    Gz = Z @ ((V * (dsv / sv)) @ V.T)
     G = (Gz / D - (np.sum(Gz * Y, axis=0) / D ** 3) * Y).reshape(m, n, -1)
-    dYi = Yi_all[m:].reshape(3, n, 2, m, n, -1)
-    dYi = (dYi[:, :, 0] - dYi[:, :, 1]) / (2 * h)                # (kind, j, m, rows, inertial cols)
-    dtau = tau_all[m:].reshape(3, n, 2, m, n)
-    dtau = (dtau[:, :, 0] - dtau[:, :, 1]) / (2 * h)              # (kind, j, m, n)
-    gs = np.einsum('sic,kjsic->kjs', G[..., :len(icols)], dYi)    # d value / d state (kind, j, sample)
+    de = 2 * weight * ee / escale                                  # d value / d tau (m, n)
+    W = np.zeros((m, n, inertial))                                 # d value / d (inertial regressor)
+    W[..., icols] = G[..., :len(icols)]
+    W += de[..., None] * model.inertial_parameters()
+    f = np.einsum('psk,sk->ps', Yi_all.reshape(len(step), m, -1), W.reshape(m, -1), optimize=True)
+    gs = np.stack([(f[1:1 + 2 * n:2] - f[2:1 + 2 * n:2]) / (2 * h),      # d value / d state (kind, j, sample)
+                   (f[1 + 2 * n:1 + 4 * n:2] - f[2 + 2 * n:1 + 4 * n:2]) / 2,
+                   f[1 + 4 * n:] - f[0]])
     # joint j's own columns sit on row j: armature qdd_j, viscous qd_j, Coulomb tanh(qd_j / eps), offset 1
     Gj = np.zeros((m, n, n * len(creg.JOINT_TERMS)))
     Gj[..., jcols] = G[..., len(icols):]
     Gj = Gj.reshape(m, n, n, len(creg.JOINT_TERMS))[:, np.arange(n), np.arange(n)]     # (m, n, 4)
-    gs[2] += Gj[..., 0].T
+    gs[2] += (Gj[..., 0] + de * model.armature).T
     gs[1] += (Gj[..., 1] + Gj[..., 2] * (1 - np.tanh(v / eps) ** 2) / eps).T
-    gs += 2 * weight * np.einsum('si,kjsi->kjs', ee / escale, dtau)
     gs[0] += 2 * weight * (ep / span).T
     gs[1] += 2 * weight * (ev / vmax).T
     gs[2] += 2 * weight * (ea / amax).T
