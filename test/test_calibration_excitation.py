@@ -51,11 +51,34 @@ def test_within_its_limits_on_the_sampled_trajectory_and_at_rest_at_both_ends(ar
 def test_better_conditioned_than_the_random_excitation(arm, optimized):
     _, q, qd, qdd = optimized
     _, qr, qdr, qddr = excitation_trajectory(arm, duration=10.0, rate=100.0, seed=0)
-    # measured: 9.44 (numpy 2.4; 12.0 with position amplitudes as the coefficients) against 20.1 here; less with
-    # the defaults (bench/calibration_excitation.py). The issue's target, 1/5 of the random excitation held to
-    # the same limits, is reached on this arm at 20 and 60 s, not at 10 s (docs/benchmarks.md, "Excitation:
-    # condition number")
+    # measured: 9.24 (numpy 2.4; 9.44 with central differences in qd and qdd, 12.0 with position amplitudes as
+    # the coefficients) against 20.1 here; less with the defaults (bench/calibration_excitation.py). The issue's
+    # target, 1/5 of the random excitation held to the same limits, is reached on this arm at 20 and 60 s, not at
+    # 10 s (docs/benchmarks.md, "Excitation: condition number")
     assert ex.condition_number(arm, q, qd, qdd) < 0.65 * ex.condition_number(arm, qr, qdr, qddr)
+
+
+def test_the_objectives_gradient_is_its_derivative(arm):
+    # the closed-form gradient (singular values from the Gram matrix, the regressor contracted at perturbed
+    # states, exact unit differences in qd and qdd, the effort penalty through tau = Y pi + armature qdd)
+    # against central differences of the value, inside the limits and beyond them (every penalty active)
+    from lie_dynamics.calibration import regressor as creg
+    n, H, duration = arm.n, 6, 10.0
+    series = ex._Series(np.arange(40) * (duration / 40), 2 * np.pi / duration * np.arange(1, H + 1))
+    home = 0.5 * (arm.position_lower + arm.position_upper)
+    limits = ex._limits(arm, home, 0.1, 0.8, 5.0, 0.8, np.arange(n))[:5]
+    columns, bases = creg.structural_base(arm).base_columns, ex._derivative_bases(series, n)
+    rng = np.random.default_rng(3)
+    for scale, power in ((0.05, None), (0.05, 4.0), (0.5, 16.0)):
+        x, d = rng.normal(size=(2, n * 2 * (H - 1)))
+        x *= scale
+
+        def value(x, gradient=False, power=power):
+            return ex._objective(arm, home, *series(x, n), columns, 0.05, limits, 1e3, bases if gradient else None,
+                                 np.ones(x.size), power=power)
+        assert value(x, True)[0] == pytest.approx(value(x)[0], rel=1e-9)   # the kernels may route the two apart
+        numeric = (value(x + 1e-6 * d)[0] - value(x - 1e-6 * d)[0]) / 2e-6
+        assert value(x, True)[1] @ d == pytest.approx(numeric, rel=1e-5)
 
 
 def test_a_start_on_a_limit_does_not_stall_the_optimiser(arm):
