@@ -9,7 +9,7 @@ calibration regressor (calibration.excitation.condition_number) along
              velocity limits), as it comes;
   random in limits  the same series shrunk about its centre until it also meets the optimised
              excitation's limits (0.8 of the velocity limits, 5 rad/s^2, 0.8 of the effort limits);
-  optimised  excitation_trajectory(optimize=True, seed 0) with its defaults (the CLI's: 1,500 L-BFGS-B
+  optimised  excitation_trajectory(optimize=True, seed 0) with its defaults (the CLI's: 2,500 L-BFGS-B
              iterations or --iterations, harmonics growing with the duration), limits checked on its 100 Hz samples;
   uniform states  1000 states drawn uniformly over the box the limits allow (positions less the
              margin, 0.8 of the velocity limits, 5 rad/s^2), free of any trajectory: what spreading

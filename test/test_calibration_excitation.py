@@ -25,7 +25,7 @@ def arm():
 
 @pytest.fixture(scope='module')
 def optimized(arm):
-    # 100 L-BFGS-B iterations on a 60-sample grid (the defaults are 1,500 and 150) keep the test near
+    # 100 L-BFGS-B iterations on a 60-sample grid (the defaults are 2,500 and 300) keep the test near
     # 20 s on a loaded machine
     return excitation_trajectory(arm, duration=10.0, rate=100.0, optimize=True, seed=0, iterations=100, samples=60)
 
@@ -51,10 +51,10 @@ def test_within_its_limits_on_the_sampled_trajectory_and_at_rest_at_both_ends(ar
 def test_better_conditioned_than_the_random_excitation(arm, optimized):
     _, q, qd, qdd = optimized
     _, qr, qdr, qddr = excitation_trajectory(arm, duration=10.0, rate=100.0, seed=0)
-    # measured: 9.24 (numpy 2.4; 9.44 with central differences in qd and qdd, 12.0 with position amplitudes as
+    # measured: 9.05 (numpy 2.4; 9.44 with central differences in qd and qdd, 12.0 with position amplitudes as
     # the coefficients) against 20.1 here; less with the defaults (bench/calibration_excitation.py). The issue's
-    # target, 1/5 of the random excitation held to the same limits, is reached on this arm at 20 and 60 s, not at
-    # 10 s (docs/benchmarks.md, "Excitation: condition number")
+    # target, 1/5 of the random excitation held to the same limits, is reached on this arm at 10, 20 and 60 s with
+    # the defaults (docs/benchmarks.md, "Excitation: condition number")
     assert ex.condition_number(arm, q, qd, qdd) < 0.65 * ex.condition_number(arm, qr, qdr, qddr)
 
 
@@ -85,7 +85,7 @@ def test_a_start_on_a_limit_does_not_stall_the_optimiser(arm):
     # seed 1's random start, scaled right to the limits, sat on a penalty's kink: L-BFGS-B's line search
     # failed within a few iterations and the result was 4.7x worse than the random excitation (0.56x once
     # the start sits inside the limits and a failed line search restarts the optimiser's memory; 0.48x with
-    # velocity amplitudes as the coefficients)
+    # velocity amplitudes as the coefficients; 0.54x with the gradient's exact qd, qdd differences)
     _, q, qd, qdd = excitation_trajectory(arm, duration=10.0, rate=100.0, optimize=True, seed=1, iterations=100,
                                           samples=60)
     _, qr, qdr, qddr = excitation_trajectory(arm, duration=10.0, rate=100.0, seed=0)
@@ -95,8 +95,8 @@ def test_a_start_on_a_limit_does_not_stall_the_optimiser(arm):
 def test_the_target_on_the_ur5_at_60_s():
     # the issue's target: <= 1/5 of the condition number of the random excitation at the same duration and
     # limits (shrunk into them: bench/calibration_excitation.py's 'random in limits'), every limit met on
-    # the samples; 60 s sampled at 20 Hz and 120 iterations to stay quick (the bench: 0.11 at 100 Hz and
-    # the default 1,500)
+    # the samples; 60 s sampled at 20 Hz and 120 iterations to stay quick (the bench: 0.106 at 100 Hz and
+    # the default 2,500)
     if UR5 is None:
         pytest.skip('example-robot-data is not installed')
     from bench.calibration_excitation import excess, within_limits
@@ -105,7 +105,8 @@ def test_the_target_on_the_ur5_at_60_s():
     _, qr, qdr, qddr = excitation_trajectory(model, duration=60.0, rate=20.0, seed=0)
     random = within_limits(model, qr, qdr, qddr)
     assert excess(model, q, qd, qdd) <= 0 and excess(model, *random) <= 0
-    # measured 0.126 (numpy 2.4; 0.148-0.151 with position amplitudes as the coefficients): the optimiser's path
+    # measured 0.124 (numpy 2.4; 0.126 on the former 150-sample grid and central differences in qd and qdd,
+    # 0.148-0.151 with position amplitudes as the coefficients): the optimiser's path
     # depends on the numpy build's last bits (an earlier gate at 60 iterations measured 0.67 and 0.73), hence
     # the margin
     assert ex.condition_number(model, q, qd, qdd) <= 0.2 * ex.condition_number(model, *random)

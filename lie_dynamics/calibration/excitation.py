@@ -11,13 +11,14 @@ objective is log cond of the column-scaled base calibration regressor (the struc
 columns, regressor.structural_base) along the trajectory, plus a penalty on the limits
 (positions within a margin, a fraction of the velocity limits, an acceleration bound, a fraction
 of the effort limits predicted by the model's inverse dynamics); scipy's L-BFGS-B minimises it
-with the gradient in closed form (the singular values' derivatives). log cond = log s_max -
-log s_min is not smooth where the extreme singular values cross, which stalls L-BFGS-B; so the
-optimisation runs in stages (STAGES) on the smooth surrogate log |s|_p + log |1/s|_p (p-norms of
-the singular values and of their inverses, log cond as p grows), p = 4 then 16, and ends on
-log cond itself, each stage starting where the last stopped. The grid of the optimisation has
-10 samples per period of the highest harmonic (at least 100). The free coefficients are velocity
-amplitudes (a_jl w_l, b_jl w_l: every harmonic weighs alike on the velocity), in units of the start's
+with the gradient in closed form (the singular values' derivatives, chained with the regressor's
+at perturbed states: _objective). log cond = log s_max - log s_min is not smooth where the extreme
+singular values cross, which stalls L-BFGS-B; so the optimisation runs in stages (STAGES) on the
+smooth surrogate log |s|_p + log |1/s|_p (p-norms of the singular values and of their inverses,
+log cond as p grows), p = 4 then 16, and ends on log cond itself, each stage starting where the
+last stopped. The grid of the optimisation has SAMPLES_PER_PERIOD samples per period of the
+highest harmonic (at least LEAST_SAMPLES). The free coefficients are velocity amplitudes
+(a_jl w_l, b_jl w_l: every harmonic weighs alike on the velocity), in units of the start's
 largest (L-BFGS-B's first step has unit length); see _Series. The start is the best conditioned
 of a few random series, each scaled up or down to the limits; the result is checked on the
 sampled trajectory and, where a limit is still exceeded, shrunk towards home until none is (the
@@ -139,10 +140,17 @@ def default_harmonics(duration):
 # (p, share of the iterations): the smooth surrogates log |s|_p + log |1/s|_p, then log cond (None)
 STAGES = ((4.0, 0.25), (16.0, 0.25), (None, 0.5))
 
-# L-BFGS-B iterations of all stages by default: a 10 s excitation of the bundled arm converges within
-# ~1,500; at 60 s the condition number still falls with more (python -m bench.calibration_excitation
-# [--iterations 400]: 5.8 at 400, 4.1 at 1,500 on the bundled arm; ~2 minutes of one core there).
-ITERATIONS = 1500
+# L-BFGS-B iterations of all stages by default, and the grid of the optimisation: samples per period of
+# the highest harmonic, at least LEAST_SAMPLES. The regressor's rows hold products of the motion's harmonics
+# (qd^2, trigonometric functions of q), so on a coarse grid the optimiser exploits the gaps between samples.
+# On the bundled arm at 10 s (docs/benchmarks.md, "Excitation: condition number"; the issue's target there is
+# 5.03, 0.2 of the random excitation in the same limits): 1,500 iterations on 10 samples per period reached
+# 5.45, on 20 5.02; 2,000 on 20 4.89 and 2,500 4.83, the stages still converging. With the gradient's cost
+# cut (_objective, _perturbations), 2,500 iterations on 20 samples per period take 0.9 of the CPU time
+# 1,500 on 10 took before.
+ITERATIONS = 2500
+SAMPLES_PER_PERIOD = 20
+LEAST_SAMPLES = 200
 # The start: a random series scaled to this fraction of the largest scale within the limits. At the
 # limits (1.0) a start can sit on a penalty's kink, where L-BFGS-B's line search fails within a few
 # iterations (the bundled arm, seed 1: the optimised excitation came out 4.7x worse than the random one).
@@ -161,8 +169,8 @@ def optimized_excitation(model, duration=10.0, rate=100.0, harmonics=None, home=
     effort_fraction: of the URDF's limits; acceleration: rad/s^2 (m/s^2), one or per joint.
     harmonics: of the series (default default_harmonics(duration): more for a longer one).
     iterations: of L-BFGS-B, all stages together (STAGES: a quarter each on the surrogates with
-    p = 4 and 16, half on log cond); samples: grid of the optimisation (default 10 per period of
-    the highest harmonic, at least 100); starts: random series tried as the start, each scaled
+    p = 4 and 16, half on log cond); samples: grid of the optimisation (default SAMPLES_PER_PERIOD
+    per period of the highest harmonic, at least LEAST_SAMPLES); starts: random series tried as the start, each scaled
     to the limits, the best conditioned kept; seed: theirs (fixed: the result is deterministic). The limits hold on the
     returned samples (checked); ValueError names the binding limit where they cannot (home
     outside the limits, gravity at home above the effort fraction, a bound that leaves no
@@ -194,7 +202,7 @@ def optimized_excitation(model, duration=10.0, rate=100.0, harmonics=None, home=
                                                effort_fraction, cols)
 
     w = 2 * np.pi / duration * np.arange(1, harmonics + 1)
-    m = samples or max(100, int(np.ceil(10 * harmonics)))
+    m = samples or max(LEAST_SAMPLES, SAMPLES_PER_PERIOD * harmonics)
     t_opt = np.arange(m) * (duration / m)
     t = np.arange(0.0, duration + 0.5 / rate, 1.0 / rate)
     t = t[t <= duration + 1e-12]
@@ -307,43 +315,41 @@ def _singular(Z):
     return np.sqrt(lam[::-1]), V[:, ::-1]
 
 
-def _perturbations(n, h):
-    """The state offsets of the gradient, (1 + 5 n, 3, n): none, then q_j +-h (central differences),
-    qd_j +-1 and qdd_j +1. The regressor is quadratic in qd and linear in qdd (as are the inverse
-    dynamics, Y pi + armature qdd), so those differences are exact at any step: a unit one has no
-    rounding to speak of, and qdd needs only the forward one."""
-    step = np.zeros((1 + 5 * n, 3, n))
+def _perturbations(n, h, s=1e-5):
+    """The state offsets of the gradient, (1 + 4 n, 3, n): none, then q_j +-h (central differences),
+    then (qd_j +-s, qdd_j +1) together. The regressor is Y = A(q) qdd + B(q)[qd, qd] + g(q) (as are
+    the inverse dynamics, Y pi + armature qdd), so of the pair's two offsets the difference is
+    4 s B(qd, e_j), exactly d/dqd_j times 2 s, and the sum less twice the unperturbed state is
+    2 A e_j + 2 s^2 B(e_j, e_j), d/dqdd_j times 2 to 1e-10 relative: one state fewer per joint than
+    separate differences (a fifth of the states, most of the cost)."""
+    step = np.zeros((1 + 4 * n, 3, n))
     j = np.arange(n)
     step[1 + 2 * j, 0, j], step[2 + 2 * j, 0, j] = h, -h
-    step[1 + 2 * n + 2 * j, 1, j], step[2 + 2 * n + 2 * j, 1, j] = 1.0, -1.0
-    step[1 + 4 * n + j, 2, j] = 1.0
+    step[1 + 2 * n + 2 * j, 1, j], step[2 + 2 * n + 2 * j, 1, j] = s, -s
+    step[1 + 2 * n + 2 * j, 2, j] = step[2 + 2 * n + 2 * j, 2, j] = 1.0
     return step
 
 
-def _objective(model, home, p, v, a, columns, eps, limits, weight, bases, mask, h=1e-6, power=None):
+def _objective(model, home, p, v, a, columns, eps, limits, weight, bases, mask, h=1e-6, s=1e-5, power=None):
     """log cond of the column-scaled base regressor (power None; else the surrogate of _spread)
     + weight * the squared relative excess over the limits, and (bases given) its gradient in the
     coefficients: the singular values' derivatives (d s_i = u_i^T dZ v_i, with the column scaling
     differentiated too) chained with the regressor's derivatives in q, qd, qdd of every sample
     (_perturbations). The value's derivative in the inertial columns and the effort penalty's
     (tau = Y pi + armature qdd) are one weight matrix per sample, contracted with the regressor
-    at the perturbed states before differencing: no derivative of the regressor is formed."""
+    at the perturbed states before differencing: no derivative of the regressor is formed (with
+    it, the inverse dynamics at the perturbed states and the SVD of the tall matrix, an objective
+    with its gradient took 2.8x as long on the bundled arm)."""
     lo, hi, vmax, amax, emax = limits
     m, n = p.shape
     q = home + p
-    states = np.stack([q, v, a])                                                    # (3, m, n)
-    if bases is not None:   # the samples, then the perturbed states (_perturbations), offset-major
-        step = _perturbations(n, h)
-        allst = (states[:, None] + step.transpose(1, 0, 2)[:, :, None, :]).reshape(3, -1, n)
-    else:
-        allst = states
     # the calibration regressor's two parts, each on its own base columns (a column order cond ignores):
     # the same numbers as calibration_regressor(...)[..., columns], without building the unused columns;
     # the joint columns' derivatives are exact (below), so only the inertial part takes the perturbed states
     inertial = 10 * model.nb
     icols, jcols = columns[columns < inertial], columns[columns >= inertial] - inertial
-    Yi_all = model.regressor(*allst)
-    Y = np.concatenate([Yi_all[:m][..., icols], creg.joint_columns(v, a, eps)[..., jcols]], axis=2).reshape(m * n, -1)
+    Yi = model.regressor(q, v, a)
+    Y = np.concatenate([Yi[..., icols], creg.joint_columns(v, a, eps)[..., jcols]], axis=2).reshape(m * n, -1)
     D = np.linalg.norm(Y, axis=0)
     if np.any(D == 0):
         return (50.0, np.zeros(n * len(bases[0][0]))) if bases is not None else (50.0, None)
@@ -367,10 +373,14 @@ def _objective(model, home, p, v, a, columns, eps, limits, weight, bases, mask, 
     W = np.zeros((m, n, inertial))                                 # d value / d (inertial regressor)
     W[..., icols] = G[..., :len(icols)]
     W += de[..., None] * model.inertial_parameters()
-    f = np.einsum('psk,sk->ps', Yi_all.reshape(len(step), m, -1), W.reshape(m, -1), optimize=True)
+    # one offset at a time: the regressor of m states stays in cache for its contraction (of all the
+    # offsets at once it is 40 MB at 300 samples of a 7-joint arm, and the whole took 1.3x as long)
+    W = W.reshape(m, -1)
+    f = np.array([np.einsum('sk,sk->s', (Yi if not d.any() else model.regressor(q + d[0], v + d[1], a + d[2]))
+                            .reshape(m, -1), W) for d in _perturbations(n, h, s)])
+    plus, minus = f[1 + 2 * n::2], f[2 + 2 * n::2]
     gs = np.stack([(f[1:1 + 2 * n:2] - f[2:1 + 2 * n:2]) / (2 * h),      # d value / d state (kind, j, sample)
-                   (f[1 + 2 * n:1 + 4 * n:2] - f[2 + 2 * n:1 + 4 * n:2]) / 2,
-                   f[1 + 4 * n:] - f[0]])
+                   (plus - minus) / (2 * s), 0.5 * (plus + minus) - f[0]])
     # joint j's own columns sit on row j: armature qdd_j, viscous qd_j, Coulomb tanh(qd_j / eps), offset 1
     Gj = np.zeros((m, n, n * len(creg.JOINT_TERMS)))
     Gj[..., jcols] = G[..., len(icols):]

@@ -46,7 +46,7 @@ PLANT = {
 }
 HOLD = 0.3         # x duration: each hold phase
 EXCITATION = 2.0   # x duration: the excitation (and the recording)
-# L-BFGS-B iterations of the excitation design (optimized_excitation's default is 1,500): about 30 s
+# L-BFGS-B iterations of the excitation design (optimized_excitation's default is 2,500): a few seconds
 # of one core, whatever the duration
 ITERATIONS = 100
 RECORD_SERVICE = '/dynamics_node/record'
