@@ -144,10 +144,10 @@ STAGES = ((4.0, 0.25), (16.0, 0.25), (None, 0.5))
 # the highest harmonic, at least LEAST_SAMPLES. The regressor's rows hold products of the motion's harmonics
 # (qd^2, trigonometric functions of q), so on a coarse grid the optimiser exploits the gaps between samples.
 # On the bundled arm at 10 s (docs/benchmarks.md, "Excitation: condition number"; the target there is
-# 5.03, 0.2 of the random excitation in the same limits): 1,500 iterations on 10 samples per period reached
-# 5.45, on 20 5.02; 2,000 on 20 4.89 and 2,500 4.83, the stages still converging. With the gradient's cost
-# cut (_objective, _perturbations), 2,500 iterations on 20 samples per period take 0.9 of the CPU time
-# 1,500 on 10 took before.
+# 5.03, 0.2 of the random excitation in the same limits): 1,500 iterations on 10 samples per period reach
+# 5.58, on 20 5.08; 2,000 on 20 4.89 and 2,500 4.83, every stage ending on its budget. With the gradient's
+# cost cut (_objective, _perturbations), 2,500 iterations on 20 samples per period take about 0.9 of the
+# CPU time 1,500 on 10 took before.
 ITERATIONS = 2500
 SAMPLES_PER_PERIOD = 20
 LEAST_SAMPLES = 200
