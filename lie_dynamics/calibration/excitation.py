@@ -146,8 +146,8 @@ STAGES = ((4.0, 0.25), (16.0, 0.25), (None, 0.5))
 # On the bundled arm at 10 s (docs/benchmarks.md, "Excitation: condition number"; the target there is
 # 5.03, 0.2 of the random excitation in the same limits): 1,500 iterations on 10 samples per period reach
 # 5.58, on 20 5.08; 2,000 on 20 4.89 and 2,500 4.83, every stage ending on its budget. With the gradient's
-# cost cut (_objective, _perturbations), 2,500 iterations on 20 samples per period take about 0.9 of the
-# CPU time 1,500 on 10 took before.
+# cost cut (_objective, _perturbations), 2,500 iterations on 20 samples per period take 1.15 times the CPU
+# time 1,500 on 10 took before (2,000 about 0.92 times, with less margin on the target).
 ITERATIONS = 2500
 SAMPLES_PER_PERIOD = 20
 LEAST_SAMPLES = 200
