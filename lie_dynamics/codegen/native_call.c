@@ -27,11 +27,14 @@
 #define MAX_LISTS 16
 
 typedef void (*kernel_fn)(const double *const *in, const double *const *par, double *out);
+/* the form across states (clanes.py): 1 when every output is finite */
+typedef int (*lanes_kernel_fn)(const double *const *in, const double *const *par, double *out);
 
 typedef struct {
     PyObject_HEAD
     vectorcallfunc vectorcall;
-    kernel_fn fn, lanes_fn;   /* one state; LANES states at once (clanes.py), or NULL */
+    kernel_fn fn;           /* one state */
+    lanes_kernel_fn lanes_fn;   /* LANES states at once (clanes.py), or NULL */
     int n_in, n_par, out_nd, check, lanes;
     Py_ssize_t width[MAX_LISTS];
     const double *par[MAX_LISTS];
@@ -106,47 +109,33 @@ static int run_rows(const Bound *b, char **data, npy_intp r0, npy_intp r1, doubl
     return 1;
 }
 
-/* rows [r0, r1): blocks of `lanes` states through lanes_fn (inputs and outputs transposed
- * through one buffer), the rest state by state. 0: a state failed accept, -1: no memory. */
+/* rows [r0, r1): blocks of `lanes` consecutive states through lanes_fn, which reads their rows and
+ * writes theirs (n_out values a state) and answers whether every output is finite; the rest state
+ * by state. With more outputs than the result or a pivot test, a block goes through a buffer and
+ * accept, state by state. 0: a state failed, -1: no memory. */
 static int run(const Bound *b, char **data, npy_intp r0, npy_intp r1, double *res)
 {
-    Py_ssize_t L = b->lanes, total = b->n_out;
-    npy_intp full = b->lanes_fn && L > 0 ? r0 + (r1 - r0) / L * L : r0;
-    for (int i = 0; i < b->n_in; ++i)
-        total += full > r0 ? b->width[i] * L : 0;
-    if (full > r0)
-        total += b->n_out * L;
+    Py_ssize_t L = b->lanes;
+    npy_intp full = b->lanes_fn && L > 1 ? r0 + (r1 - r0) / L * L : r0;
+    int direct = b->n_out == b->n_res && !b->check;
+    Py_ssize_t total = b->n_out + (full > r0 && !direct ? b->n_out * L : 0);
     double stack[2048], *buf = stack;
     if (total > 2048 && !(buf = (double *)PyMem_RawMalloc(sizeof(double) * total)))
         return -1;
     double *tmp = b->n_out > b->n_res ? buf : NULL, *blk = buf + b->n_out;
+    const double *in[MAX_LISTS];
     int ok = 1;
-    if (full > r0) {
-        const double *in[MAX_LISTS];
-        double *p = blk;
-        for (int i = 0; i < b->n_in; ++i) {
-            in[i] = p;
-            p += b->width[i] * L;
+    for (npy_intp r = r0; r < full && ok; r += L) {
+        for (int i = 0; i < b->n_in; ++i)
+            in[i] = (const double *)data[i] + r * b->width[i];
+        if (direct) {
+            ok = b->lanes_fn(in, b->par, res + r * b->n_res);
+            continue;
         }
-        double *o = p, *v = buf;
-        for (npy_intp r = r0; r < full && ok; r += L) {
-            for (int i = 0; i < b->n_in; ++i) {   /* state l's value k to in[i][k * L + l] */
-                const double *src = (const double *)data[i] + r * b->width[i];
-                double *dst = (double *)in[i];
-                for (Py_ssize_t l = 0; l < L; ++l)
-                    for (Py_ssize_t k = 0; k < b->width[i]; ++k)
-                        dst[k * L + l] = src[l * b->width[i] + k];
-            }
-            b->lanes_fn(in, b->par, o);
-            for (Py_ssize_t l = 0; l < L && ok; ++l) {
-                double *row = res + (r + l) * b->n_res;
-                double *dst = tmp ? v : row;
-                for (Py_ssize_t k = 0; k < b->n_out && (tmp || k < b->n_res); ++k)
-                    dst[k] = o[k * L + l];
-                if (tmp)
-                    memcpy(row, v, sizeof(double) * b->n_res);
-                ok = accept(b, dst);
-            }
+        b->lanes_fn(in, b->par, blk);
+        for (Py_ssize_t l = 0; l < L && ok; ++l) {
+            memcpy(res + (r + l) * b->n_res, blk + l * b->n_out, sizeof(double) * b->n_res);
+            ok = accept(b, blk + l * b->n_out);
         }
     }
     if (ok)
@@ -332,7 +321,7 @@ static PyObject *bind(PyObject *mod, PyObject *args)
         return NULL;
     b->vectorcall = bound_call;
     b->fn = (kernel_fn)(uintptr_t)addr;
-    b->lanes_fn = lanes_addr && lanes > 1 && lanes <= 64 ? (kernel_fn)(uintptr_t)lanes_addr : NULL;
+    b->lanes_fn = lanes_addr && lanes > 1 && lanes <= 64 ? (lanes_kernel_fn)(uintptr_t)lanes_addr : NULL;
     b->lanes = b->lanes_fn ? lanes : 1;
     b->n_in = (int)n_in;
     b->n_par = (int)n_par;
