@@ -21,6 +21,14 @@ rows in place (before: a transposition into a buffer and back, and the outputs' 
 state, about a tenth of the batch's time). Every input is read before any output is written, so
 `out` may be an input row for row.
 
+The sin and cos of a per-state input (a revolute joint's angle) are not computed here: in[n]
+and in[n + 1] (n per-state lists) hold the sines and the cosines of the inputs listed in the
+table `lie_lanes_sincos` (count, then (list, position) pairs), LANES rows of `count` values.
+native_call.c computes them with the C library's sincos for many states at once, grouped by
+the branches the library takes (sincos_grouped): on angles over a joint's range those branches
+are random, and in a batch's order they were mispredicted at about every other call (22 ns a
+call against 12 ns grouped). The values are the library's, whatever the order.
+
 Instruction sets: on x86-64 under GCC or Clang the function is compiled twice
 (`target_clones`): for AVX2 (4 doubles a vector) and for the baseline (SSE2, two halves), the
 loader picks by the CPU it runs on; the cached library is then right on any x86-64 machine it
@@ -65,7 +73,7 @@ static inline lie_v lie_bc(double x) {{ lie_v r = {{{', '.join(['x'] * LANES)}}}
 def emit_lanes(g, fname, arg_lists, roles, outputs, index=None, size=None):
     """C source (one translation unit) of kernel `fname` on LANES states (module docstring);
     the arguments as crender.emit_c's."""
-    where, lane, loads = {}, {}, {}
+    where, lane, loads, place = {}, {}, {}, {}
     ks = {'state': 0, 'param': 0}
     for (_, syms), role in zip(arg_lists, roles, strict=True):
         arr = 'in' if role == 'state' else 'par'
@@ -74,7 +82,8 @@ def emit_lanes(g, fname, arg_lists, roles, outputs, index=None, size=None):
         for pos, nm in enumerate(syms):
             if role == 'state':   # value pos of the LANES consecutive rows (width len(syms)) of in{k}
                 where[nm] = f'x{k}_{pos}'
-                loads[nm] = '{' + ', '.join(f'{arr}{k}[{l * len(syms) + pos}]' for l in range(LANES)) + '}'
+                loads[nm] = _gather(f'{arr}{k}', len(syms), pos)
+                place[nm] = (k, pos)
             else:
                 where[nm] = f'{arr}{k}[{pos}]'
             lane[nm] = role == 'state'
@@ -87,20 +96,38 @@ def emit_lanes(g, fname, arg_lists, roles, outputs, index=None, size=None):
     def ref(a, need):
         return where[g.nodes[a][1]] if g.nodes[a][0] == 'in' else f't{a}'
 
+    # sin and cos of a per-state input come computed by the caller (module docstring): sincos[j] is
+    # the (list, position) of the j-th such input
+    given, sincos = {}, []
+    for i in sorted(live):
+        op, data = g.nodes[i]
+        if op in ('sin', 'cos') and g.nodes[data][0] == 'in' and lane[g.nodes[data][1]]:
+            if data not in given:
+                given[data] = len(sincos)
+                sincos.append(place[g.nodes[data][1]])
+    n_sc = len(sincos)
+    used = {g.nodes[a][1] for i in live if g.nodes[i][0] != 'in'
+            and not (g.nodes[i][0] in ('sin', 'cos') and g.nodes[i][1] in given)
+            for a in g.deps(i) if g.nodes[a][0] == 'in'}
+    used |= {g.nodes[a][1] for o in outputs if hasattr(o, 'terms') for a in o.terms if g.nodes[a][0] == 'in'}
+    n_state = ks['state']
     lines = [f'LIE_CLONES int {fname}(const double *const *in, const double *const *par, double *out)', '{']
     lines += [f'  const double *{arr}{k} = {arr}[{k}]; (void){arr}{k};'
               for role, arr in (('state', 'in'), ('param', 'par')) for k in range(ks[role])]
-    used = {g.nodes[i][1] for i in live if g.nodes[i][0] == 'in'}
+    lines.append(f'  const double *sin_in = in[{n_state}], *cos_in = in[{n_state + 1}]; (void)sin_in; (void)cos_in;')
     lines += [f'  const lie_v {where[nm]} = {txt};' for nm, txt in loads.items() if nm in used]
     both = {}   # argument -> its sin and cos nodes: one sincos call (glibc's sin and cos, one reduction)
     for i in sorted(live):
         op, data = g.nodes[i]
-        if op in ('sin', 'cos') and vec[i]:
+        if op in ('sin', 'cos') and vec[i] and data not in given:
             both.setdefault(data, {})[op] = i
     both = {a: d for a, d in both.items() if len(d) == 2}
     for i in sorted(live):
         op, data = g.nodes[i]
         if op == 'in':
+            continue
+        if op in ('sin', 'cos') and data in given:
+            lines.append(f'  const lie_v t{i} = {_gather(op + "_in", n_sc, given[data])};')
             continue
         if op in ('sin', 'cos') and data in both:
             if i == min(both[data].values()):
@@ -128,4 +155,11 @@ def emit_lanes(g, fname, arg_lists, roles, outputs, index=None, size=None):
     lines.append('  return ' + ' && '.join(f'z[{l}] == 0.0' for l in range(LANES)) + ';')
     fns = sorted({g.nodes[i][0] for i in live if vec[i]} - {'in', 'mul', 'inv', 'lin', 'sin', 'cos'})
     lanewise = [f'LIE_LANEWISE(lie_v{op}, {op})' for op in fns]   # sqrt, tanh, ...: the C library's, lane by lane
-    return _HEAD + '\n'.join(lanewise + lines + ['}']) + '\n'
+    table = ', '.join(str(v) for v in (n_sc, *(x for kp in sincos for x in kp)))
+    return (_HEAD + '\n'.join(lanewise + lines + ['}']) + '\n'
+            + f'const long lie_lanes_sincos[{1 + 2 * n_sc}] = {{{table}}};\n')
+
+
+def _gather(arr, width, pos):
+    """C initializer of a vector: value pos of LANES consecutive rows of `width` values at arr."""
+    return '{' + ', '.join(f'{arr}[{l * width + pos}]' for l in range(LANES)) + '}'
