@@ -472,9 +472,58 @@ static PyObject *set_threads(PyObject *mod, PyObject *args)
     return PyLong_FromLong(old);
 }
 
+/* sincos_batch(x, grouped) -> (sin, cos) of a contiguous float64 vector, in x's order or grouped
+ * as a batch computes them (bench/probes/batch_sincos.py times both; the values are the same) */
+static PyObject *sincos_batch(PyObject *mod, PyObject *args)
+{
+    PyObject *xo;
+    int grouped;
+    if (!PyArg_ParseTuple(args, "Op", &xo, &grouped))
+        return NULL;
+    if (!plain(xo, 1, 1)) {
+        PyErr_SetString(PyExc_ValueError, "sincos_batch: a contiguous float64 vector");
+        return NULL;
+    }
+    npy_intp n = PyArray_DIM((PyArrayObject *)xo, 0);
+    const double *x = (const double *)PyArray_DATA((PyArrayObject *)xo);
+    PyObject *so = PyArray_SimpleNew(1, &n, NPY_DOUBLE), *co = PyArray_SimpleNew(1, &n, NPY_DOUBLE);
+    unsigned char *key = PyMem_Malloc(n + 1);
+    int *order = PyMem_Malloc(sizeof(int) * (n + 1));
+    if (!so || !co || !key || !order) {
+        Py_XDECREF(so);
+        Py_XDECREF(co);
+        PyMem_Free(key);
+        PyMem_Free(order);
+        return PyErr_NoMemory();
+    }
+    double *s = (double *)PyArray_DATA((PyArrayObject *)so), *c = (double *)PyArray_DATA((PyArrayObject *)co);
+    Py_BEGIN_ALLOW_THREADS
+    if (grouped) {
+        for (npy_intp k = 0; k < n; k += SC_CHUNK * 7)   /* as run() on a 7-joint arm */
+            sincos_grouped(x + k, n - k < SC_CHUNK * 7 ? n - k : SC_CHUNK * 7, s + k, c + k, key, order);
+    } else {
+        for (npy_intp i = 0; i < n; ++i) {
+            double si, ci;
+#ifdef __GLIBC__
+            sincos(x[i], &si, &ci);
+#else
+            si = sin(x[i]);
+            ci = cos(x[i]);
+#endif
+            s[i] = si;
+            c[i] = ci;
+        }
+    }
+    Py_END_ALLOW_THREADS
+    PyMem_Free(key);
+    PyMem_Free(order);
+    return Py_BuildValue("NN", so, co);
+}
+
 static PyMethodDef methods[] = {
     {"bind", bind, METH_VARARGS, "Bind a kernel's address and parameters (native.py)."},
     {"set_threads", set_threads, METH_VARARGS, "Threads of the native batches (native.set_threads)."},
+    {"sincos_batch", sincos_batch, METH_VARARGS, "sin and cos of a vector, in order or grouped as batches do."},
     {"method", method_new, METH_VARARGS, "A Model method that runs its native kernel first (dispatch.native_first)."},
     {"invalidate", invalidate, METH_NOARGS, "Every Method resolves its kernel again."},
     {"command_path", command_path, METH_VARARGS, "The dynamics node's fused command path (ros/core/fused.py)."},
