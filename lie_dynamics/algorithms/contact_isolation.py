@@ -469,17 +469,17 @@ def _line_fits(model, q, r, tol, b, radius, line):
 
 
 # _point_forces: the starts are a body's origin and points along each segment of its skeleton
-# (START_FRACTIONS of it), each also moved half the radius along the root axes (on a joint's axis
-# a force gives that joint no torque whatever its direction, and the search would have no slope
-# there: a shoulder link's skeleton lies on its joint's axis). Every start is searched, at most
-# POINT_STEPS Gauss-Newton steps, each tried at STEP_SIZES of its length; a search ends when a step
-# gains less than STALL of its misfit (in the tests and the benchmark this finds every fit that
-# dense sampling or the former scipy search found, and more).
+# (START_FRACTIONS of it), each also moved half the radius along each root axis (on a joint's
+# axis a force gives that joint no torque whatever its direction, and the search would have no
+# slope there: a shoulder link's skeleton lies on its joint's axis; two of the moves leave it).
+# Every start is searched, at most POINT_STEPS Gauss-Newton steps, each tried at STEP_SIZES of its
+# length; a search ends when a step gains less than STALL of its misfit (in the tests and the
+# benchmark this finds every fit that dense sampling or the former scipy search found, and more).
 START_FRACTIONS = (0.5, 1.0)
 POINT_STEPS = 12
 STALL = 0.02
 STEP_SIZES = np.array([1.0, 0.3, 0.1])
-_OFFSETS = np.vstack([np.zeros(3), np.eye(3), -np.eye(3)])
+_OFFSETS = np.vstack([np.zeros(3), np.eye(3)])
 
 
 def _skew(v):
