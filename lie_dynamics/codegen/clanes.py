@@ -26,8 +26,8 @@ and in[n + 1] (n per-state lists) hold the sines and the cosines of the inputs l
 table `lie_lanes_sincos` (count, then (list, position) pairs), LANES rows of `count` values.
 native_call.c computes them with the C library's sincos for many states at once, grouped by
 the branches the library takes (sincos_grouped): on angles over a joint's range those branches
-are random, and in a batch's order they were mispredicted at about every other call (22 ns a
-call against 12 ns grouped). The values are the library's, whatever the order.
+are random, and in a batch's order mostly mispredicted (23 ns a call against 14 ns grouped,
+bench.probes.batch_sincos). The values are the library's, whatever the order.
 
 Instruction sets: on x86-64 under GCC or Clang the function is compiled twice
 (`target_clones`): for AVX2 (4 doubles a vector) and for the baseline (SSE2, two halves), the
