@@ -312,7 +312,7 @@ def measure(names, seconds, rounds, rate, robot, stall_ms, out=None, no_child=Fa
                 trace = os.path.join(tmp, f'{r}-{name}.node.json')
                 proc = start(kind, node_cpu, trace, {**base, **params}, stall_ms, no_child)
                 try:
-                    driver.wait_ready(Q[0].tolist())
+                    driver.wait_ready(Q[0].tolist(), joined=None if kind == 'echo' or no_child else nl.TRAJECTORY_IN)
                     machine = MachineSampler(driver.replies, proc.pid)
                     sent, _ = driver.run(Q[:N], rate, warmup=Q[N:N + W])
                     rows = machine.stop()
@@ -386,11 +386,12 @@ def gaps(run, gap_ns):
             continue
         sends = send[(send > a) & (send < b)]
         longest_send_gap = np.diff(np.concatenate([[a], sends, [b]])).max() / 1e6
-        spans = [(s[0], (s[1] - a) / 1e6, (s[2] - s[1]) / 1e6) for s in run['node']['spans']
-                 if s[2] > a and s[1] < b and s[2] - s[1] > 1e6]
-        late = [((e - a) / 1e6, (w - e) / 1e6) for e, w in run['node']['late'] if w > a and e < b]
-        stacks = [(k, (t - s0) / 1e6, st.strip().splitlines()[-6:]) for t, k, s0, st in run['node']['stacks']
-                  if a - 1e9 < t < b + 1e9]
+        spans = [(s[0], round(float(s[1] - a) / 1e6, 1), round(float(s[2] - s[1]) / 1e6, 1))
+                 for s in run['node']['spans'] if s[2] > a and s[1] < b and s[2] - s[1] > 1e6]
+        late = [(round(float(e - a) / 1e6, 1), round(float(w - e) / 1e6, 1))
+                for e, w in run['node']['late'] if w > a and e < b]
+        stacks = [(k, round(float(t - s0) / 1e6, 1), st.strip().splitlines()[-6:])
+                  for t, k, s0, st in run['node']['stacks'] if a - 1e9 < t < b + 1e9]
         m = np.array(run['machine'])
         inside = m[(m[:, 0] >= a - 2e7) & (m[:, 0] <= b + 2e7)]
         d = (inside[-1, 1:] - inside[0, 1:]) if len(inside) > 1 else np.zeros(4)
