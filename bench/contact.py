@@ -2,7 +2,7 @@
 through the observer and the node's decision logic, offline; the node's callback cost with
 isolation beside without it.
 
-    .venv/bin/python -m bench.contact [--quick] [--pushes 150] [--strict-below 2] [--out DIR]
+    .venv/bin/python -m bench.contact [--quick] [--pushes 150] [--strict-below 0] [--out DIR]
 
 Plant: the robot (lie_dynamics.sim.arm, the library's forward dynamics at 1 kHz, URDF damping)
 held at a random state q0 within its joint limits by gravity compensation + PD (HOLD_KP, a damping
@@ -54,7 +54,7 @@ THRESHOLD_SCALE = 0.03     # threshold_j = this x effort limit_j
 NOISE = 0.05               # effort noise, x threshold_j
 START, PUSH_S, AFTER_S = 0.5, 0.4, 0.1   # free 0.5 s first: the node measures the residual's noise
 MODES = ('default', 'strict')   # contact.strict_isolation false, true
-STRICT_BELOW = 0.0   # contact.strict_below of both modes: the node's default (--strict-below 2: the weak tier)
+STRICT_BELOW = ci.STRICT_BELOW   # contact.strict_below of both modes: the node's default (--strict-below 0: off)
 HOLD_KP = 3.0              # the hold's stiffness, N m/rad per N m of effort limit (critically damped)
 ERD = next(iter(glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-packages', 'cmeel.prefix', 'share',
                                        'example-robot-data', 'robots'))), None)
@@ -289,17 +289,26 @@ def tool_summary(rows):
 
 
 def _cost_messages(model, n, push):
-    """n joint_states messages of the bundled arm held at HOME-like q0, pushed at the tool from 50 ms
-    (push) or never (free motion: the flag stays down)."""
+    """n joint_states messages of the bundled arm held at HOME-like q0, pushed from 50 ms at the tool
+    (push 'tool'), or on link4 through joint 4's axis at 1.5x threshold (push 'weak': the weak tier's
+    strict decisions, ambiguous, decided anew as the mean grows), or never (None: free motion, the
+    flag stays down)."""
     from sensor_msgs.msg import JointState
     rng = np.random.default_rng(3)
     q0 = np.array([0.0, -0.6, 0.0, 2.0, 0.0, 1.6, 0.8])
     th = np.asarray(settings_for(model).collision.threshold)
     sim = ArmSim(model, DT, q0=q0)
     sim.motor = model.gravity(q0)
-    if push:
+    if push == 'tool':
         f = np.array([12.0, -20.0, 8.0])    # at (4, 3, 2) cm in tool0: isolated at link7 (test_node_contact_link.py)
         sim.set_external('tool0', np.concatenate([np.cross([0.04, 0.03, 0.02], f), f]), 0.05, 100.0)
+    elif push == 'weak':   # bench.probes.isolation_decision's push, at q0
+        J4 = model.jacobian(q0, 'link4', 'local')
+        v, w = J4[:3, 3], J4[3:, 3]
+        p = np.cross(w, v) / (w @ w) + 0.03 * w / np.linalg.norm(w)   # on joint 4's axis
+        f = np.array([1.0, 1.0, 0.0])
+        f *= 1.5 / np.max(np.abs(J4.T @ np.concatenate([f, np.cross(p, f)])) / th)
+        sim.set_external('link4', np.concatenate([np.cross(p, f), f]), 0.05, 100.0)
     kp, kd = hold_gains(model, q0)
     msgs = []
     for k in range(n):
@@ -314,8 +323,10 @@ def _cost_messages(model, n, push):
 
 def node_cost(rounds, per_round):
     """Per-message times (us) of the node's joint_states callback, flag down (free) and up (a push
-    at the tool, isolated at link7): isolation on, on with the tool wrench, and stubbed out (the
-    peer); interleaved rounds, per-round ratios of the medians."""
+    at the tool, isolated at link7; a weak push on link4 through joint 4's axis, ambiguous by the
+    weak tier's strict decisions, from the first message on: those decisions are in the rounds):
+    isolation on, on with the tool wrench, and stubbed out (the peer); interleaved rounds,
+    per-round ratios of the medians."""
     import rclpy
     from rclpy.parameter import Parameter
 
@@ -324,7 +335,7 @@ def node_cost(rounds, per_round):
     s = settings_for(model)
     cases = ('isolation stubbed (peer)', 'isolation on', 'isolation on + tool wrench')
     rows = []
-    for flag, push in (('down', False), ('up', True)):
+    for flag, push in (('down', None), ('up', 'tool'), ('up, weak', 'weak')):
         msgs = _cost_messages(model, rounds * per_round + 100, push)
         ctx = rclpy.Context()
         rclpy.init(context=ctx)
@@ -339,12 +350,13 @@ def node_cost(rounds, per_round):
                                            parameter_overrides=[Parameter(p, value=v) for p, v in params.items()])
             feature = nodes[cases[0]].features.get('contact')
             feature.isolation.update = lambda *a: Published(None, None, None)   # the peer: the observer only
+            warm = 0 if push == 'weak' else 100
             for node in nodes.values():   # the first 100 states: the push rises, the flag rises, isolation decides
-                for m in msgs[:100]:
+                for m in msgs[:warm]:
                     node.on_joint_state(m)
             times = {name: [] for name in cases}
             for r in range(rounds):
-                batch = msgs[100 + r * per_round:100 + (r + 1) * per_round]
+                batch = msgs[warm + r * per_round:warm + (r + 1) * per_round]
                 for name in cases[r % 3:] + cases[:r % 3]:
                     out = []
                     for m in batch:
@@ -363,7 +375,8 @@ def node_cost(rounds, per_round):
             allt = np.concatenate(per)
             ratios = [np.median(a) / np.median(b) for a, b in zip(per, times[peer], strict=True)]
             rows.append({'flag': flag, 'case': name, 'collision': state[name][0], 'link': state[name][1],
-                         'messages': int(allt.size), 'median_us': float(np.median(allt)),
+                         'messages': int(allt.size), 'mean_us': float(np.mean(allt)),
+                         'median_us': float(np.median(allt)),
                          'p90_us': float(np.percentile(allt, 90)), 'p99_us': float(np.percentile(allt, 99)),
                          'ratio_median': float(np.median(ratios)), 'ratio_min': float(np.min(ratios)),
                          'ratio_max': float(np.max(ratios))})
@@ -407,7 +420,7 @@ def main(argv=None):
     ap.add_argument('--quick', action='store_true')
     ap.add_argument('--pushes', type=int, default=None, help='pushes per robot (default 150, quick 12)')
     ap.add_argument('--strict-below', type=float, default=STRICT_BELOW,
-                    help=f'contact.strict_below (default %(default)g, the node\'s; {ci.STRICT_BELOW:g}: the weak tier, '
+                    help='contact.strict_below (default %(default)g, the node\'s: the weak tier, '
                          'never wrong in docs/benchmarks.md)')
     ap.add_argument('--out', default=os.path.join(HERE, 'out'))
     args = ap.parse_args(argv)

@@ -475,9 +475,10 @@ def test_a_mean_over_the_arms_yield_is_explained_with_q_from_and_two_contacts_st
 
 def test_a_weak_push_through_its_own_joints_axis_is_ambiguous_with_the_weak_tier():
     """A push on link4 whose line crosses joint 4's axis loads joint 4 with nothing: its r is that of
-    a wrench on link3 (3 supporting joints, the line free). The default rule names link3 (wrong);
-    with strict_below above the residual's largest |r_j| / th_j the strict rule decides: ambiguous.
-    A strong push (above strict_below) is decided as without the tier."""
+    a wrench on link3 (3 supporting joints, the line free). The default rule alone (strict_below 0)
+    names link3 (wrong); with strict_below above the residual's largest |r_j| / th_j (the default,
+    STRICT_BELOW) the strict rule decides: ambiguous. A strong push (above strict_below) is decided
+    as without the tier."""
     model, oracle = _robot('arm7')
     q = np.array([0.2, -0.6, 0.1, 2.0, 0.3, 1.6, 0.8])
     th = np.array([2.6] * 4 + [0.36] * 3)
@@ -489,10 +490,10 @@ def test_a_weak_push_through_its_own_joints_axis_is_ambiguous_with_the_weak_tier
     assert abs(r1[3]) < 1e-12 * np.abs(r1).max()
     for multiple, tiered in ((1.5, True), (3.0, False)):
         r = multiple / np.max(np.abs(r1) / th) * r1    # the largest |r_j| / th_j is `multiple`
-        off = ci.isolate(model, q, r, th)
+        off = ci.isolate(model, q, r, th, strict_below=0.0)
         assert off.status == 'isolated' and off.link == 'link3', off
-        assert ci.isolate(model, q, r, th, strict_below=0.0)[:5] == off[:5]
-        on = ci.isolate(model, q, r, th, strict_below=ci.STRICT_BELOW)
+        on = ci.isolate(model, q, r, th)
+        assert ci.isolate(model, q, r, th, strict_below=ci.STRICT_BELOW)[:5] == on[:5]
         if tiered:   # the strict rule's answer, named candidates and reason
             assert on[:5] == ci.isolate(model, q, r, th, strict=True)[:5]
             assert on.status == 'ambiguous' and on.candidates[:2] == ('link3', 'link4') and on.link == '', on
@@ -506,3 +507,77 @@ def test_a_weak_push_through_its_own_joints_axis_is_ambiguous_with_the_weak_tier
     for bad in (-1.0, float('nan'), float('inf')):
         with pytest.raises(ValueError, match='strict_below must be finite and >= 0'):
             ci.isolate(model, q, r, th, strict_below=bad)
+
+
+def _skeleton_points(model, q, b, radius, rng, count):
+    """`count` random points within `radius` of body b's skeleton: the segments from its link's
+    origin to the origins of the links fixed to it and of its child bodies (from link poses)."""
+    T = model.link_pose(model.body_link_names[b], q)
+    ends = [model.link_pose(name, q)[:3, 3] for name, (c, _) in model.link_frames.items()
+            if c == b and name != model.body_link_names[b]]
+    ends += [model.link_pose(model.body_link_names[c], q)[:3, 3] for c in np.flatnonzero(model.parent == b)]
+    o = T[:3, 3]
+    seg = np.array([o] + ends)[rng.integers(len(ends) + 1, size=count)]
+    u = rng.normal(size=(count, 3))
+    u *= (radius * rng.uniform(size=count) ** (1 / 3) / np.linalg.norm(u, axis=1))[:, None]
+    return o + rng.uniform(size=count)[:, None] * (seg - o) + u
+
+
+@needs_erd
+@pytest.mark.parametrize('name', ['arm7', 'ur5', 'panda_locked'])
+def test_the_point_force_search_finds_every_fit_a_dense_sampling_finds(name):
+    """The strict rule's search (_point_forces) against brute force: for pushes made through
+    Pinocchio's WORLD Jacobians, every body on which one of 3000 random points within the radius of
+    its skeleton gives r within tol (the best force at that point in least squares, weighted by
+    1 / tol) is found, and each point the search returns does so: within the radius of the
+    skeleton (to the line's nearest point) and within tol on every joint."""
+    model, oracle = _robot(name)
+    rng = np.random.default_rng(7)
+    th = 0.03 * model.effort_limits
+    tol = ci.tolerances(th)
+    t = ci.tree(model)
+    moving = [b for b in range(model.nb) if t.support[b].any()]
+    checked = found = 0
+    for _ in range(12):
+        lo, hi = model.position_lower, model.position_upper
+        q = np.where(np.isfinite(lo) & np.isfinite(hi), 0.5 * (lo + hi) + rng.uniform(-0.45, 0.45, model.n) * (hi - lo),
+                     rng.uniform(-np.pi, np.pi, model.n))
+        oracle_q = oracle.pin_q(q)
+        pin.computeJointJacobians(oracle.model, oracle.data, oracle_q)
+        pin.updateFramePlacements(oracle.model, oracle.data)
+
+        def world(b):   # (n, 3) linear and angular rows: a force f at p gives V f + W (p x f)
+            fid = oracle.model.getFrameId(model.body_link_names[b], pin.FrameType.BODY)
+            J = pin.getFrameJacobian(oracle.model, oracle.data, fid, pin.WORLD) @ oracle.E
+            return J[:3].T, J[3:].T
+        b = moving[rng.integers(len(moving))]
+        V, W = world(b)
+        p = _skeleton_points(model, q, b, 1.2 * ci.RADIUS, rng, 1)[0]
+        f = rng.normal(size=3)
+        r = V @ f + W @ np.cross(p, f)
+        r *= rng.uniform(1.0, 3.0) / np.max(np.abs(r) / th)
+        r += rng.normal(size=model.n) * 0.02 * th
+        felt = np.abs(r) > tol
+        bodies = [c for c in moving if t.support[c][felt].all()]
+        got = ci._point_forces(model, q, r, tol, bodies, ci.RADIUS)
+        for c in bodies:
+            V, W = world(c)
+            pts = _skeleton_points(model, q, c, ci.RADIUS, rng, 3000)
+            A = (V[None] + np.cross(W[None], pts[:, None, :])) / tol[None, :, None]   # (P, n, 3)
+            G = np.einsum('pji,pjk->pik', A, A) + 1e-12 * np.eye(3)
+            fits = np.linalg.solve(G, np.einsum('pji,j->pi', A, r / tol)[..., None])[..., 0]
+            worst = np.abs(np.einsum('pji,pi->pj', A, fits) - r / tol).max(axis=1)
+            checked += 1
+            if worst.min() <= 1.0:
+                found += 1
+                assert c in got, (name, model.body_link_names[c], worst.min())
+            if c in got:   # the search's own answer holds up
+                x = got[c]
+                a = (V + np.cross(W, x)) / tol[:, None]
+                fx = np.linalg.lstsq(a, r / tol, rcond=None)[0]
+                assert np.abs(a @ fx - r / tol).max() <= 1.0 + 1e-9
+                d = fx / np.linalg.norm(fx)
+                near = _skeleton_points(model, q, c, 0.0, rng, 2000)   # the skeleton itself, densely
+                off = (near - x) - np.outer((near - x) @ d, d)
+                assert np.linalg.norm(off, axis=1).min() <= ci.RADIUS * (1 + 1e-6) + 5e-3
+    assert checked >= 20 and 0 < found < checked, (checked, found)

@@ -161,8 +161,8 @@ def test_the_mean_residual_is_of_the_current_configuration():
 
 def test_a_weak_push_through_its_own_joints_axis_is_not_named_the_link_before():
     """A push on link4 through joint 4's axis at 1.5x the threshold: its residual is that of a
-    wrench on link3. With contact.strict_below 2 the strict rule decides it: ambiguous, never link3;
-    with the tier off (0, the default) the default rule names link3. At 3x both name link3 alike."""
+    wrench on link3. With contact.strict_below 2 (the default) the strict rule decides it: ambiguous,
+    never link3; with the tier off (0) the default rule names link3. At 3x both name link3 alike."""
     model = load_urdf(default_urdf_path())
     J4 = model.jacobian(Q, 'link4', 'local')
     v, w = J4[:3, 3], J4[3:, 3]
@@ -170,12 +170,11 @@ def test_a_weak_push_through_its_own_joints_axis_is_not_named_the_link_before():
     f = np.array([1.0, 1.0, 0.0])
     tau1 = J4.T @ np.concatenate([f, np.cross(p, f)])
     assert abs(tau1[3]) < 1e-12 * np.abs(tau1).max()
-    for multiple, below, expect in ((1.5, ci.STRICT_BELOW, ''), (1.5, None, 'link3'), (3.0, ci.STRICT_BELOW, 'link3'),
-                                    (3.0, None, 'link3')):
+    for multiple, below, expect in ((1.5, None, ''), (1.5, 0.0, 'link3'), (3.0, None, 'link3'), (3.0, 0.0, 'link3')):
         tau = multiple / np.max(np.abs(tau1) / TH) * tau1
         iso = ContactIsolation()
         iso.adopt(settings(**({} if below is None else {'contact.strict_below': below})), model)
-        assert iso.strict_below == (0.0 if below is None else below)
+        assert iso.strict_below == (ci.STRICT_BELOW if below is None else below) and ci.STRICT_BELOW == 2.0
         links = [iso.update(k * DT, Q, tau.copy(), True, TH).link for k in range(200)]
         assert iso.isolation is not None and iso.isolation.link == expect, (multiple, below, iso.isolation)
         assert [x for x in links if x] == ([expect] if expect else [])

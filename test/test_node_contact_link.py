@@ -116,10 +116,10 @@ def test_contact_parameters_are_validated(ros):
                         ({'contact.strict_below': math.inf}, 'contact.strict_below')):
         res = node.set_parameters_atomically([Parameter(k, value=v) for k, v in change.items()])
         assert not res.successful and why in res.reason, (change, res.reason)
-    assert node.get_parameter('contact.strict_below').value == 0.0   # kept after the refusals (the default)
+    assert node.get_parameter('contact.strict_below').value == 2.0   # kept after the refusals (the default)
     res = node.set_parameters_atomically([Parameter('contact.wrench_frame', value='flange'),
                                           Parameter('contact.rcond', value=0.01),
-                                          Parameter('contact.strict_below', value=2.0)])
+                                          Parameter('contact.strict_below', value=0.0)])
     assert res.successful, res.reason
 
 

@@ -1,8 +1,9 @@
 """What one isolation decision costs on the node's thread: contact_isolation.isolate on a weak push
 (1.5x threshold) on the bundled arm's link4 whose line crosses joint 4's axis (the case of
-test_contact_isolation's weak-tier test), with the default rule, the weak tier (strict_below 2)
-and the strict rule, beside a strong push on the same line (3x: the default rule in every setting).
-Milliseconds per decision, median of repeated calls, and the load average.
+test_contact_isolation's weak-tier test), with the default rule alone (strict_below 0), the weak
+tier (strict_below 2, isolate's and the node's default) and the strict rule, beside a strong push
+on the same line (3x: the default rule in every setting). Milliseconds per decision, median of
+repeated calls, and the load average.
 
     python -m bench.probes.isolation_decision [--repeats R]
 """
@@ -39,7 +40,8 @@ def run(repeats=20):
     rows = []
     for multiple in (1.5, 3.0):
         r = multiple * unit
-        for name, kw in (('default rule', {}), ('weak tier (strict_below 2)', {'strict_below': ci.STRICT_BELOW}),
+        for name, kw in (('default rule (strict_below 0)', {'strict_below': 0.0}),
+                         (f'weak tier (strict_below {ci.STRICT_BELOW:g}, the default)', {}),
                          ('strict rule', {'strict': True})):
             ci.isolate(model, q, r, th, **kw)
             ts = []

@@ -240,12 +240,12 @@ PARAMS = (
               'A point contact lies within this distance (m) of the segments from a link\'s origin to its frames '
               'and next joints (contact.strict_isolation, and the next-link check of a fully seen wrench).', True,
               (1e-3, 10.0), unit='m'),
-    ParamSpec('contact.strict_below', 'double', 0.0,
+    ParamSpec('contact.strict_below', 'double', STRICT_BELOW,
               'A decision on a residual whose largest |external torque| / collision.threshold is below this uses '
               'the strict rule (as contact.strict_isolation), above it the default one: a weak push on a link '
               'hides from its own joint within a wider band of its axis, where the default rule names the link '
-              f'before. 0: off (a strict decision searches for tens of ms on the node\'s thread); {STRICT_BELOW:g}: '
-              'never wrong in the benchmark.', True, (0.0, 1e6)),
+              f'before. {STRICT_BELOW:g} (default): never wrong in the benchmark, ambiguous more often below it; '
+              '0: off (right more often below it, sometimes wrong).', True, (0.0, 1e6)),
     # dynamics terms for other nodes (dynamics_topics.py)
     ParamSpec('dynamics.publish', 'string_array', None,
               'Dynamics terms published on ~/dynamics/<term> after each command: gravity (g(q)), coriolis '

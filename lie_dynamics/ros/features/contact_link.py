@@ -21,12 +21,12 @@ time constant 1 / min(observer.gain)), once each time it settles, DECIDE_WINDOWS
 into the settled stretch, on the stretch's mean (over the motion since the stretch began:
 isolate's q_from) with its measured noise (`_noise`: the scatter of the stretch's checkpoints,
 or the residual's mean square with the flag down, `_free`, whichever is larger), so the
-tolerances are NOISE_SIGMAS x that noise where it allows; an ambiguous answer is decided anew at
-each checkpoint while the stretch grows (its noise falls). After the flag rises the link stays
-'' until then, and while the residual changes again (the push grows or moves) the last decision
-holds until it settles anew. The Jacobians and the isolation run only while the flag is up,
-except the tool wrench's; a fit (Jacobian and SVD) serves while it is younger than one time
-constant or the joints have not moved (REFIT_RAD) since: w = inverse r. A model, gravity,
+tolerances are NOISE_SIGMAS x that noise where it allows; an ambiguous answer is decided anew
+while the stretch grows (its noise falls), each time it has grown REDECIDE_GROWTH times. After
+the flag rises the link stays '' until then, and while the residual changes again (the push
+grows or moves) the last decision holds until it settles anew. The Jacobians and the isolation
+run only while the flag is up, except the tool wrench's; a fit (Jacobian and SVD) serves while it
+is younger than one time constant or the joints have not moved (REFIT_RAD) since: w = inverse r. A model, gravity,
 payload or observer change (contact.REINIT_KEYS) and a paused observer start it anew, as they
 start the observer anew.
 """
@@ -46,6 +46,11 @@ MEAN_WINDOWS = 20.0
 # Isolation waits until the settled stretch spans this many time constants: the mean's noise then
 # is about 0.55 of one sample's (`_noise`), and it falls as the stretch grows.
 DECIDE_WINDOWS = 5.0
+# An ambiguous answer is decided anew once the stretch has grown this many times since the last
+# decision (and at the end of the mean's span): the mean's noise falls as the square root of its
+# span, so a decision at every checkpoint would repeat nearly the same one, and a strict decision
+# (contact.strict_below) costs a few ms on the node's thread (bench.probes.isolation_decision).
+REDECIDE_GROWTH = 1.25
 # The residual's noise with the flag down: a running mean square over FREE_WINDOWS time constants
 # (checkpoints every quarter), used once it has FREE_MIN checkpoints, from FREE_WAIT time constants
 # after the flag falls or the observer starts (the decay of a contact's residual, the observer's
@@ -92,7 +97,7 @@ class ContactIsolation:
         self.frame = ''
         self.rcond = ci.RCOND
         self.strict = False
-        self.strict_below = 0.0
+        self.strict_below = ci.STRICT_BELOW
         self.tolerance, self.radius = ci.TOLERANCE, ci.RADIUS
         self.settling = None
         self.isolation = None       # the last decision (contact_isolation.Isolation) while the flag is up
@@ -109,6 +114,7 @@ class ContactIsolation:
         self._decided = False       # the settled stretch's decision is made
         self._all = None            # [count, sum, sum of squares] of the whole stretch's checkpoints
         self._start = 0.0           # the time the settled stretch began
+        self._next = 0.0            # the time of its next decision
         self._q_start = None        # the joints then (the stretch's mean spans the motion from there)
         self._gain = 1.0            # the observer's gain K (1/s, one or per joint)
         self._free_ms, self._free_n, self._free_next = None, 0, None   # the flag-down noise (_free)
@@ -227,6 +233,7 @@ class ContactIsolation:
             m.clear()
             self._sum = np.zeros_like(r)
             self._decided, self._start = False, t
+            self._next = t + DECIDE_WINDOWS * self.settling.window
             self._all = [0, np.zeros_like(r), np.zeros_like(r)]
             self._q_start = np.array(q, dtype=float)
         q = np.array(q, dtype=float)
@@ -245,7 +252,7 @@ class ContactIsolation:
         mean = self._sum / len(m)
         if span > 0:   # the observer lags: mean tau_ext over [t0, t] = (integral of r + (r(t) - r(t0)) / K) / T
             mean = (area - m[0][3] + (r - m[0][1]) / self._gain) / span
-        if not self._decided and t - self._start >= DECIDE_WINDOWS * self.settling.window - 1e-9:
+        if not self._decided and t >= self._next - 1e-9:
             # on the plain mean of the whole stretch: its lag scales every joint alike, and a joint
             # a contact does not load stays unloaded as the arm yields; the least noisy mean
             whole = a[1] / a[0]
@@ -255,8 +262,11 @@ class ContactIsolation:
             if self.isolation is None or iso.status != self.isolation.status or iso.link != self.isolation.link:
                 self._log(iso)
             self.isolation = iso
-            # an ambiguous answer is decided anew while the mean grows (its noise falls)
-            self._decided = iso.status != 'ambiguous' or t - self._start >= self._mean_span - self.settling.quarter
+            # an ambiguous answer is decided anew while the mean grows (its noise falls), once the
+            # stretch has grown REDECIDE_GROWTH times since, and at the end of the mean's span
+            last = self._mean_span - self.settling.quarter
+            self._decided = iso.status != 'ambiguous' or t - self._start >= last
+            self._next = self._start + min(REDECIDE_GROWTH * (t - self._start), last)
             if iso.link:
                 self._fit('link', t, q, iso.link, iso.wrench)
         link = self.isolation.link if self.isolation is not None else ''
