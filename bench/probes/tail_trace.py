@@ -6,7 +6,7 @@ process on Linux):
 
     python -m bench.probes.tail_trace [--seconds 3] [--rounds 3] [--rate 1000]
                                       [--candidates echo,every] [--robot talos_reduced]
-                                      [--stall-ms 30] [--out DIR]
+                                      [--stall-ms 30] [--no-trajectories] [--out DIR]
 
 The candidates are those of bench.probes.latency_split (the same stream as bench.node_latency:
 warm-up without a pause, the node on its own core). Per candidate, for the replies above the
@@ -16,9 +16,14 @@ thread was busy with meanwhile (an earlier callback, a task, the timer, a collec
 long it waited for a CPU while ready. In each node a sampler thread wakes every 10 ms and notes
 when it woke late (the process could not run), with the executor thread's Python stack when a
 callback or task had been running for more than --stall-ms. The driver notes the machine's
-steal time and pressure every 10 ms. Every gap of --stall-ms or more between two replies is
-printed with what each side did in it. --out keeps the raw timelines (JSON per run).
-A benchmark probe, not a test.
+steal time and pressure every 10 ms and, once no reply came for 50 ms, the system call and wait
+channel of each thread of the node and its children (/proc). Every gap of --stall-ms or more
+between two replies is printed with what each side did in it, and per run the median length of
+each kind of span, the steps of the work after the command among them (the observer, each
+dynamics term). --no-trajectories: the dynamics node without its trajectory process (an
+experiment: ros/node.py, TRAJECTORIES_JOIN_S). --out keeps the raw timelines (JSON per run).
+The probe's own records cost each callback a few µs and two reads of /proc, the echo's too, so
+its ratios are not bench.node_latency's: read the parts. A benchmark probe, not a test.
 """
 import argparse
 import gc
