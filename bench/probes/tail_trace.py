@@ -338,8 +338,13 @@ def measure(names, seconds, rounds, rate, robot, stall_ms, out=None, no_child=Fa
                     replies = list(driver.replies)
                 finally:
                     nl.stop(proc)
-                with open(trace) as fh:
-                    node = json.load(fh)
+                try:
+                    with open(trace) as fh:
+                        node = json.load(fh)
+                except (OSError, ValueError):   # the node did not stop in time (killed): no record
+                    print(f'tail_trace: round {r} {name}: the node left no record (killed?), skipped',
+                          file=sys.stderr)
+                    continue
                 key = keys['echo' if kind == 'echo' else 'dynamics']
                 send = np.array([stamped.stamps[q.tobytes()] for q in Q[N:N + W]] +
                                 [stamped.stamps[q.tobytes()] for q in Q[:N]], dtype=np.int64)
