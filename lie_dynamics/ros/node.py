@@ -73,8 +73,8 @@ FUSED_COMMAND = os.environ.get('LIE_DYNAMICS_FUSED_COMMAND', '1').strip() != '0'
 # participant sends to a new peer's port, checks that the peer's listener is alive; when another
 # process checked it within the same interval it sleeps healthy_check_timeout_ms / 3 (1000 / 3 ms)
 # holding the participant's send lock, and rclpy publishes holding the interpreter lock: the node
-# stopped for 334 ms (no command, no timer) in a quarter of the runs of bench.node_latency, ~3 s
-# after start, when its trajectory process joined (bench.probes.tail_trace). Discovered before the
+# stopped for 334 ms (no command, no timer) in 12 of 60 runs of bench.probes.tail_trace, ~3 s
+# after start, when its trajectory process joined (benchmarks.md section 5). Discovered before the
 # first command, that check costs nothing. (Any other participant joining later still can.)
 TRAJECTORIES_JOIN_S = 10.0
 
