@@ -19,7 +19,10 @@ from ..ros.core.cdr import stamp_ns
 
 NAME = 'contact'
 # (link, pushed point in its frame (m), force in its frame (N), the body link isolation names)
-PUSHES = (('link4', (-0.04, -0.2, 0.0), (40.0, 0.0, 0.0), 'link4'),    # the forearm, 20 cm from the elbow
+# the forearm's push loads its most loaded joint to about 2.4x its threshold: above the weak tier
+# (contact.strict_below 2), where a push with fewer than 6 supporting joints is named; at 40 N (1.7x)
+# the node says ambiguous, as it must (a contact further out fits as well)
+PUSHES = (('link4', (-0.04, -0.2, 0.0), (60.0, 0.0, 0.0), 'link4'),    # the forearm, 20 cm from the elbow
           ('flange', (0.05, 0.0, 0.0), (0.0, 20.0, -30.0), 'link7'))   # 5 cm off the tool axis
 PUSH_STARTS = (0.3, 0.6)                      # x duration
 GAIN = 50.0                                   # 1/s: time constant 20 ms
