@@ -10,8 +10,9 @@ ratios:
     pin.computeGeneralizedGravity; and the floor of any Python -> C call with arrays, a numpy
     ufunc with out= (np.add of two (n,) arrays), over pin.rnea;
   * batched inverse dynamics per state at N = 100 and 10,000: over a Pinocchio loop
-    (pin.rnea state by state, copied out) and over pin.rneaInParallel with one thread; with
-    lie_dynamics.codegen.native.set_threads(2) over one thread of ours and over
+    (pin.rnea state by state, copied out) and over pin.rneaInParallel with one thread (ours:
+    the plain call, the process set to one thread); with
+    lie_dynamics.codegen.native.set_threads(2) around the call over one thread of ours and over
     rneaInParallel with two threads (N = 10,000).
 Writes DIR/calls.{md,csv,json}.
 """
@@ -106,19 +107,24 @@ def _batch(pin, model, pm, N, rounds, target):
     pin.rneaInParallel(1, pool, q.T, qd.T, qdd.T, tau)
     assert common.rel_err(model.inverse_dynamics(q, qd, qdd), tau.T) < 1e-10
 
-    def ours(threads):
-        def f():
-            previous = native.set_threads(threads)
-            try:
-                model.inverse_dynamics(q, qd, qdd, out=out)
-            finally:
-                native.set_threads(previous)
-        return f
-    fns = {'ours_1': ours(1), 'ours_2': ours(2),
+    def two_threads():
+        previous = native.set_threads(2)
+        try:
+            model.inverse_dynamics(q, qd, qdd, out=out)
+        finally:
+            native.set_threads(previous)
+    # one thread: the plain call under the process's setting (1 while timing). Switching the
+    # setting around each call, as the 2-thread candidate does, costs ~2.5 us (two Python calls),
+    # a fifth of a 100-state batch, and is no part of the call rneaInParallel is compared with.
+    fns = {'ours_1': lambda: model.inverse_dynamics(q, qd, qdd, out=out), 'ours_2': two_threads,
            'pin_parallel_1': lambda: pin.rneaInParallel(1, pool, q.T, qd.T, qdd.T, tau),
            'pin_parallel_2': lambda: pin.rneaInParallel(2, pool, q.T, qd.T, qdd.T, tau)}
     fns['pin_loop'] = lambda: [pin.rnea(pm, pd, q[i], qd[i], qdd[i]).copy() for i in range(N)]
-    t = _timed(fns, rounds, target)
+    previous = native.set_threads(1)
+    try:
+        t = _timed(fns, rounds, target)
+    finally:
+        native.set_threads(previous)
     med = lambda a, b: float(np.median(t[a] / t[b]))  # noqa: E731
     row = dict(case='batched inverse_dynamics', N=N, ns_per_state=float(np.median(t['ours_1']) / N * 1e9),
                vs_rnea_in_parallel_1=med('ours_1', 'pin_parallel_1'),

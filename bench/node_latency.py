@@ -44,6 +44,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 JOINTS = [f'joint{i}' for i in range(1, 8)]
 TALOS = 'talos_data/robots/talos_reduced.urdf'
 CMD = '/effort_controller/commands'
+TRAJECTORY_IN = '/dynamics_node/trajectory_in'   # the dynamics node's trajectory process subscribes it
 
 
 def ros_env():
@@ -120,10 +121,15 @@ class Driver:
     def _on_cmd(self, msg):
         self.replies.append((time.perf_counter(), bytes(msg.data)))
 
-    def wait_ready(self, probe_q, timeout=60.0):
+    def wait_ready(self, probe_q, timeout=60.0, joined=None):
+        """Until the node under test is discovered and answers. joined: a topic whose subscriber
+        (the dynamics node's trajectory process: TRAJECTORY_IN) this driver must have discovered
+        too: Fast DDS's first send to a new peer can stop this process's sends for up to 1/3 s
+        (ros/node.py, TRAJECTORIES_JOIN_S), which must not happen in the measured stream."""
         end = time.monotonic() + timeout
         while time.monotonic() < end:
-            if self.pub.get_subscription_count() and self.node.count_publishers(CMD):
+            if (self.pub.get_subscription_count() and self.node.count_publishers(CMD)
+                    and (joined is None or self.node.count_subscribers(joined))):
                 break
             self.ex.spin_once(timeout_sec=0.01)
         else:
@@ -296,7 +302,7 @@ def measure(driver, Q, keys, rate, seconds, node_cpu, rounds, candidates=CANDIDA
         for label, kind, executor, *params in candidates:
             proc = start(kind, node_cpu, params={**(base or {}), **(params[0] if params else {})}, executor=executor)
             try:
-                driver.wait_ready(Q[0].tolist())
+                driver.wait_ready(Q[0].tolist(), joined=TRAJECTORY_IN if kind == 'dynamics' else None)
                 c0, t0 = cpu_seconds(proc), time.perf_counter()
                 # warm-up rows Q[N:N + W], then the measured ones Q[:N]
                 sent, _ = driver.run(Q[:N], rate, warmup=Q[N:N + W])
@@ -326,7 +332,7 @@ def soak(driver, Q, keys, rate, minutes, node_cpu):
     n = int(5 * rate)
     assert len(Q) >= 2 * n + int(WARMUP_S * rate)
     try:
-        driver.wait_ready(Q[0].tolist())
+        driver.wait_ready(Q[0].tolist(), joined=TRAJECTORY_IN)
         driver.run(Q[2 * n:2 * n + int(WARMUP_S * rate)], rate, drain=0.0)  # warm-up, not counted
         t_end = time.monotonic() + 60.0 * minutes
         t0 = time.monotonic()

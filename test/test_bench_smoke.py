@@ -332,6 +332,17 @@ def test_calls_section_times_one_call_and_batches_beside_pinocchio(tmp_path):
     assert os.path.exists(tmp_path / 'calls.md')
 
 
+def test_batch_sincos_probe_times_the_orders_and_the_upper_halves():
+    """bench.probes.batch_sincos on a few states: the three orders give the same values (checked
+    in run) and every figure is a time."""
+    if native.module() is None:
+        pytest.skip('no working C compiler')
+    from bench.probes import batch_sincos
+    r = batch_sincos.run(states=64, rounds=1)
+    assert set(r['sincos_ns']) == {'in order', 'grouped', 'sorted'} and min(r['sincos_ns'].values()) > 0
+    assert all(v['bare'] > 0 and v['call_path'] > 0 and v['ratio'] > 0 for v in r['after'].values())
+
+
 def test_jacobian_call_probe_times_the_four_paths():
     """bench.probes.jacobian_call on the bundled arm: the method, its Python form and the bound kernel
     agree to the bit before they are timed beside Pinocchio, one row per family."""

@@ -2,6 +2,7 @@
 import copy
 import glob
 import inspect
+import math
 import os
 import sys
 import warnings
@@ -71,6 +72,39 @@ def test_lanes_equal_the_one_state_kernel_and_pinocchio(name):
         g = model.gravity(q)
         assert np.array_equal(g, np.array([model.gravity(x) for x in q]))
         assert _rel(g, np.array([oracle.gravity(x) for x in q])) <= TOL
+
+
+def test_sines_and_cosines_computed_together_equal_the_one_state_kernel():
+    """The form across states takes the sin and cos of the joint angles computed by the batch,
+    SC_CHUNK = 256 states at a time in groups (native_call.c sincos_grouped): angles over every
+    range the C library branches on (|q| up to 7), a batch of several chunks and not a multiple of
+    the width, every state equal to the one-state kernel to the bit, and a threaded batch too."""
+    model, _ = _model('ur_description/urdf/ur5_robot.urdf')
+    lib = runtime.kernel(model, t_rnea.INVERSE_DYNAMICS).native()
+    assert lib.lanes_sincos == tuple(x for k in range(model.n) for x in (0, k)), 'every angle computed outside'
+    rng = np.random.default_rng(12)
+    N = 2 * 256 + clanes.LANES + 1
+    q = rng.uniform(-7, 7, (N, model.n))
+    q[:, 0] = rng.choice([0.0, 1e-9, np.pi / 2, np.pi, -3 * np.pi / 2], N) + rng.uniform(-0.2, 0.2, N)
+    qd, qdd = rng.uniform(-2, 2, (2, N, model.n))
+    one = np.array([model.inverse_dynamics(q[i], qd[i], qdd[i]) for i in range(N)])
+    assert np.array_equal(model.inverse_dynamics(q, qd, qdd), one)
+    assert np.array_equal(model.gravity(q), np.array([model.gravity(x) for x in q]))
+    previous = native.set_threads(2, min_rows=64)
+    try:
+        assert np.array_equal(model.inverse_dynamics(q, qd, qdd), one)
+    finally:
+        native.set_threads(previous)
+
+
+def test_sincos_grouped_is_the_c_librarys_sin_and_cos():
+    """The grouped order (native_call.c sincos_grouped, exposed as sincos_batch for the probe)
+    changes no value: each equals math.sin and math.cos, over every range they branch on."""
+    x = np.random.default_rng(13).uniform(-9, 9, 3 * 256 * 7 + 5)
+    x[:40] = [0.0, -0.0, 1e-300, 5e-9, np.pi / 2, np.pi, 2 * np.pi, 0.855469, 2.426265, 1e5] * 4
+    for grouped in (True, False):
+        s, c = native.module().sincos_batch(x, grouped)
+        assert np.array_equal(s, [math.sin(v) for v in x]) and np.array_equal(c, [math.cos(v) for v in x])
 
 
 def test_threads_give_identical_results():

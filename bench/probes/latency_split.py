@@ -231,7 +231,7 @@ def measure(names, seconds, rounds, rate, robot, before=None):
                 trace = os.path.join(tmp, f'{len(os.listdir(tmp))}.json')
                 proc = start(kind, node_cpu, trace, {**base, **params}, src)
                 try:
-                    driver.wait_ready(Q[0].tolist())
+                    driver.wait_ready(Q[0].tolist(), joined=None if kind == 'echo' or src else nl.TRAJECTORY_IN)
                     t_before = threads(proc.pid)
                     sent, _ = driver.run(Q[:N], rate, warmup=Q[N:N + W])
                     t_after = threads(proc.pid)

@@ -453,7 +453,9 @@ def _line_fits(model, q, r, tol, b, radius, line):
     p = best[1]
     # r's line was fitted to k's joints alone; a few damped Gauss-Newton steps on p (forward
     # differences) spread the misfit over b's joints too, as the strict rule's search does, within
-    # the radius: at most LINE_STEPS x 4 + 1 small least-squares fits
+    # the radius: at most LINE_STEPS x 4 + 1 small least-squares fits (_point_forces from this one
+    # start, its steps shortened and dropped at a small gain, missed one Panda push of
+    # bench.contact --pushes 80 that these full steps find: named wrong, where this says ambiguous)
     h = 1e-4 * radius
     for _ in range(LINE_STEPS):
         res = misfit(p)

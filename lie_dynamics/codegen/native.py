@@ -267,8 +267,11 @@ class Library:
         self.address = ctypes.cast(self.lib.lie_kernel, ctypes.c_void_p).value
         try:   # the form on clanes.LANES states at once, when the kernel is small enough to have one
             self.lanes_address = ctypes.cast(self.lib.lie_kernel_lanes, ctypes.c_void_p).value
+            n_sc = ctypes.c_long.in_dll(self.lib, 'lie_lanes_sincos').value
+            table = (ctypes.c_long * (1 + 2 * n_sc)).in_dll(self.lib, 'lie_lanes_sincos')
+            self.lanes_sincos = tuple(table[1:])   # (list, position) of each input it takes sin and cos of
         except AttributeError:
-            self.lanes_address = 0
+            self.lanes_address, self.lanes_sincos = 0, ()
 
 
 class Rendered(NamedTuple):
@@ -322,10 +325,11 @@ def bind(lib, params, result, gil_rows):
     call(*per_state_arrays[, out]) -> result, or None when it declines (native_call.c)."""
     arrays = tuple(np.ascontiguousarray(p, dtype=float).reshape(-1) if len(p) else np.zeros(1) for p in params)
     check = result.rtol is not None
-    # native_call.c's bind(address, lanes address, lanes, widths, params, n_out, n_res, out_dims, check, rtol,
-    # gil_rows, keep)
-    return module().bind(lib.address, lib.lanes_address, LANES, lib.widths, arrays, lib.n_out, result.size,
-                         tuple(result.shape), int(check), result.rtol if check else 0.0, gil_rows, (lib, arrays))
+    # native_call.c's bind(address, lanes address, lanes, sincos, widths, params, n_out, n_res, out_dims, check,
+    # rtol, gil_rows, keep)
+    return module().bind(lib.address, lib.lanes_address, LANES, lib.lanes_sincos, lib.widths, arrays, lib.n_out,
+                         result.size, tuple(result.shape), int(check), result.rtol if check else 0.0, gil_rows,
+                         (lib, arrays))
 
 
 def set_threads(n=None, min_rows=None):

@@ -25,14 +25,22 @@
 #include <pthread.h>
 
 #define MAX_LISTS 16
+#define MAX_SINCOS 64   /* inputs whose sin and cos a form across states takes computed */
+#define SC_CHUNK 256    /* states whose sin and cos are computed together */
+#define SC_KEYS 48      /* sincos_grouped's groups */
 
 typedef void (*kernel_fn)(const double *const *in, const double *const *par, double *out);
+/* the form across states (clanes.py): 1 when every output is finite */
+typedef int (*lanes_kernel_fn)(const double *const *in, const double *const *par, double *out);
 
 typedef struct {
     PyObject_HEAD
     vectorcallfunc vectorcall;
-    kernel_fn fn, lanes_fn;   /* one state; LANES states at once (clanes.py), or NULL */
+    kernel_fn fn;           /* one state */
+    lanes_kernel_fn lanes_fn;   /* LANES states at once (clanes.py), or NULL */
     int n_in, n_par, out_nd, check, lanes;
+    int n_sc, sc_list[MAX_SINCOS];   /* lanes_fn's in[n_in], in[n_in + 1]: sin and cos of these inputs */
+    Py_ssize_t sc_pos[MAX_SINCOS];
     Py_ssize_t width[MAX_LISTS];
     const double *par[MAX_LISTS];
     npy_intp out_dims[2];
@@ -106,46 +114,109 @@ static int run_rows(const Bound *b, char **data, npy_intp r0, npy_intp r1, doubl
     return 1;
 }
 
-/* rows [r0, r1): blocks of `lanes` states through lanes_fn (inputs and outputs transposed
- * through one buffer), the rest state by state. 0: a state failed accept, -1: no memory. */
+/* The AVX2 form across states returns with the upper halves of the vector registers in use (gcc
+ * emits no vzeroupper below -O2, and the kernels are built at -O1): SSE code after it, here, in
+ * the C library, the interpreter and Pinocchio, then ran slower until something cleared them (an
+ * AMD Zen 4, bench.probes.batch_sincos: one-state calls 1.5x, pin.rnea 1.26x). clear_upper()
+ * clears them after each call, where the CPU has AVX (vzeroupper keeps the low 128 bits, all that
+ * SSE code holds). */
+static int has_avx;
+
+static inline void clear_upper(void)
+{
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+    if (has_avx)
+        __asm__ volatile("vzeroupper" ::: "memory");
+#endif
+}
+
+/* sincos_grouped's group of x: what glibc's sin and cos branch on (the range |x| < 0.855469, <
+ * 2.426265 or above, the quadrant, whether x lies within 0.126 of a multiple of pi/2, and on which
+ * side), computed without branches */
+static inline int sincos_key(double x)
+{
+    const double toint = 6755399441055744.0;   /* 1.5 * 2^52: t + toint rounds t to an integer */
+    double a = fabs(x), t = x * 0.63661977236758134308, v = t + toint, d = t - (v - toint);
+    uint64_t bits;
+    memcpy(&bits, &v, sizeof bits);
+    int range = (a >= 0.855469) + (a >= 2.426265);
+    return ((range * 4 + (int)(bits & 3)) * 2 + (fabs(d) < 0.0802)) * 2 + (d < 0.0);
+}
+
+/* s[i], c[i] = sin(x[i]), cos(x[i]) for i < n, called in the order of their groups (a counting
+ * sort; key, order: n entries of scratch). In a batch the branches of the C library's sin and cos
+ * are random and mostly mispredicted: a 7-joint arm's angles took 23 ns a call in their order and
+ * 14 ns grouped (bench.probes.batch_sincos). The order changes no value. */
+static void sincos_grouped(const double *x, Py_ssize_t n, double *s, double *c, unsigned char *key, int *order)
+{
+    Py_ssize_t start[SC_KEYS + 1] = {0};
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        key[i] = (unsigned char)sincos_key(x[i]);
+        ++start[key[i] + 1];
+    }
+    for (int k = 0; k < SC_KEYS; ++k)
+        start[k + 1] += start[k];
+    for (Py_ssize_t i = 0; i < n; ++i)
+        order[start[key[i]]++] = (int)i;
+    for (Py_ssize_t j = 0; j < n; ++j) {   /* into locals: faster than through &s[i], &c[i] */
+        int i = order[j];
+        double si, ci;
+#ifdef __GLIBC__
+        sincos(x[i], &si, &ci);
+#else
+        si = sin(x[i]);
+        ci = cos(x[i]);
+#endif
+        s[i] = si;
+        c[i] = ci;
+    }
+}
+
+/* rows [r0, r1): blocks of `lanes` consecutive states through lanes_fn, which reads their rows and
+ * writes theirs (n_out values a state) and answers whether every output is finite; the rest state
+ * by state. The sin and cos lanes_fn takes computed come from sincos_grouped, SC_CHUNK states at a
+ * time. With more outputs than the result or a pivot test, a block goes through a buffer and
+ * accept, state by state. 0: a state failed, -1: no memory. */
 static int run(const Bound *b, char **data, npy_intp r0, npy_intp r1, double *res)
 {
-    Py_ssize_t L = b->lanes, total = b->n_out;
-    npy_intp full = b->lanes_fn && L > 0 ? r0 + (r1 - r0) / L * L : r0;
-    for (int i = 0; i < b->n_in; ++i)
-        total += full > r0 ? b->width[i] * L : 0;
-    if (full > r0)
-        total += b->n_out * L;
+    Py_ssize_t L = b->lanes;
+    npy_intp full = b->lanes_fn && L > 1 ? r0 + (r1 - r0) / L * L : r0;
+    int direct = b->n_out == b->n_res && !b->check;
+    Py_ssize_t chunk = SC_CHUNK / L * L, n_sc = full > r0 ? chunk * b->n_sc : 0;
+    Py_ssize_t total = b->n_out + (full > r0 && !direct ? b->n_out * L : 0) + 3 * n_sc;
+    size_t bytes = sizeof(double) * (size_t)total + (sizeof(int) + 1) * (size_t)n_sc;
     double stack[2048], *buf = stack;
-    if (total > 2048 && !(buf = (double *)PyMem_RawMalloc(sizeof(double) * total)))
+    if (bytes > sizeof stack && !(buf = (double *)PyMem_RawMalloc(bytes)))
         return -1;
     double *tmp = b->n_out > b->n_res ? buf : NULL, *blk = buf + b->n_out;
+    double *x = blk + (full > r0 && !direct ? b->n_out * L : 0), *sn = x + n_sc, *cs = sn + n_sc;
+    int *order = (int *)(cs + n_sc);
+    unsigned char *key = (unsigned char *)(order + n_sc);
+    const double *in[MAX_LISTS + 2];
     int ok = 1;
-    if (full > r0) {
-        const double *in[MAX_LISTS];
-        double *p = blk;
-        for (int i = 0; i < b->n_in; ++i) {
-            in[i] = p;
-            p += b->width[i] * L;
-        }
-        double *o = p, *v = buf;
-        for (npy_intp r = r0; r < full && ok; r += L) {
-            for (int i = 0; i < b->n_in; ++i) {   /* state l's value k to in[i][k * L + l] */
-                const double *src = (const double *)data[i] + r * b->width[i];
-                double *dst = (double *)in[i];
-                for (Py_ssize_t l = 0; l < L; ++l)
-                    for (Py_ssize_t k = 0; k < b->width[i]; ++k)
-                        dst[k * L + l] = src[l * b->width[i] + k];
+    for (npy_intp c0 = r0; c0 < full && ok; c0 += chunk) {
+        npy_intp c1 = c0 + chunk < full ? c0 + chunk : full;
+        Py_ssize_t m = (c1 - c0) * b->n_sc;
+        for (npy_intp r = c0; r < c1; ++r)
+            for (int j = 0; j < b->n_sc; ++j)
+                x[(r - c0) * b->n_sc + j] =
+                    ((const double *)data[b->sc_list[j]])[r * b->width[b->sc_list[j]] + b->sc_pos[j]];
+        sincos_grouped(x, m, sn, cs, key, order);
+        for (npy_intp r = c0; r < c1 && ok; r += L) {
+            for (int i = 0; i < b->n_in; ++i)
+                in[i] = (const double *)data[i] + r * b->width[i];
+            in[b->n_in] = sn + (r - c0) * b->n_sc;
+            in[b->n_in + 1] = cs + (r - c0) * b->n_sc;
+            if (direct) {
+                ok = b->lanes_fn(in, b->par, res + r * b->n_res);
+                clear_upper();
+                continue;
             }
-            b->lanes_fn(in, b->par, o);
+            b->lanes_fn(in, b->par, blk);
+            clear_upper();
             for (Py_ssize_t l = 0; l < L && ok; ++l) {
-                double *row = res + (r + l) * b->n_res;
-                double *dst = tmp ? v : row;
-                for (Py_ssize_t k = 0; k < b->n_out && (tmp || k < b->n_res); ++k)
-                    dst[k] = o[k * L + l];
-                if (tmp)
-                    memcpy(row, v, sizeof(double) * b->n_res);
-                ok = accept(b, dst);
+                memcpy(res + (r + l) * b->n_res, blk + l * b->n_out, sizeof(double) * b->n_res);
+                ok = accept(b, blk + l * b->n_out);
             }
         }
     }
@@ -310,17 +381,19 @@ static PyTypeObject BoundType = {
     .tp_doc = "A native kernel with its parameters bound: call(*per_state_arrays[, out])",
 };
 
-/* bind(address, lanes address, lanes, widths, params, n_out, n_res, out_dims, check, rtol, gil_rows, keep) */
+/* bind(address, lanes address, lanes, sincos, widths, params, n_out, n_res, out_dims, check, rtol, gil_rows,
+ * keep); sincos: (list, position) pairs of the inputs whose sin and cos the form across states takes */
 static PyObject *bind(PyObject *mod, PyObject *args)
 {
     unsigned long long addr, lanes_addr;
     int lanes;
-    PyObject *widths, *params, *dims, *keep;
+    PyObject *sincos, *widths, *params, *dims, *keep;
     Py_ssize_t n_out, n_res, gil_rows;
     int check;
     double rtol;
-    if (!PyArg_ParseTuple(args, "KKiO!O!nnO!idnO", &addr, &lanes_addr, &lanes, &PyTuple_Type, &widths, &PyTuple_Type, &params, &n_out,
-                          &n_res, &PyTuple_Type, &dims, &check, &rtol, &gil_rows, &keep))
+    if (!PyArg_ParseTuple(args, "KKiO!O!O!nnO!idnO", &addr, &lanes_addr, &lanes, &PyTuple_Type, &sincos, &PyTuple_Type,
+                          &widths, &PyTuple_Type, &params, &n_out, &n_res, &PyTuple_Type, &dims, &check, &rtol, &gil_rows,
+                          &keep))
         return NULL;
     Py_ssize_t n_in = PyTuple_GET_SIZE(widths), n_par = PyTuple_GET_SIZE(params), out_nd = PyTuple_GET_SIZE(dims);
     if (n_in < 1 || n_in > MAX_LISTS || n_par > MAX_LISTS || out_nd < 1 || out_nd > 2) {
@@ -332,7 +405,7 @@ static PyObject *bind(PyObject *mod, PyObject *args)
         return NULL;
     b->vectorcall = bound_call;
     b->fn = (kernel_fn)(uintptr_t)addr;
-    b->lanes_fn = lanes_addr && lanes > 1 && lanes <= 64 ? (kernel_fn)(uintptr_t)lanes_addr : NULL;
+    b->lanes_fn = lanes_addr && lanes > 1 && lanes <= 64 ? (lanes_kernel_fn)(uintptr_t)lanes_addr : NULL;
     b->lanes = b->lanes_fn ? lanes : 1;
     b->n_in = (int)n_in;
     b->n_par = (int)n_par;
@@ -342,6 +415,19 @@ static PyObject *bind(PyObject *mod, PyObject *args)
         b->out_dims[i] = PyLong_AsSsize_t(PyTuple_GET_ITEM(dims, i));
     for (Py_ssize_t i = 0; i < n_in; ++i)
         b->width[i] = PyLong_AsSsize_t(PyTuple_GET_ITEM(widths, i));
+    Py_ssize_t n_sc = PyTuple_GET_SIZE(sincos) / 2;
+    b->n_sc = 0;
+    for (Py_ssize_t j = 0; j < n_sc && j < MAX_SINCOS; ++j) {
+        long list = PyLong_AsLong(PyTuple_GET_ITEM(sincos, 2 * j));
+        Py_ssize_t pos = PyLong_AsSsize_t(PyTuple_GET_ITEM(sincos, 2 * j + 1));
+        if (list < 0 || list >= n_in || pos < 0 || pos >= b->width[list])
+            break;
+        b->sc_list[j] = (int)list;
+        b->sc_pos[j] = pos;
+        b->n_sc = (int)j + 1;
+    }
+    if (b->n_sc != n_sc)   /* a table this call path cannot follow: state by state */
+        b->lanes_fn = NULL, b->lanes = 1;
     for (Py_ssize_t i = 0; i < n_par; ++i) {
         PyObject *p = PyTuple_GET_ITEM(params, i);
         if (!plain(p, 1, 1)) {
@@ -387,9 +473,58 @@ static PyObject *set_threads(PyObject *mod, PyObject *args)
     return PyLong_FromLong(old);
 }
 
+/* sincos_batch(x, grouped) -> (sin, cos) of a contiguous float64 vector, in x's order or grouped
+ * as a batch computes them (bench/probes/batch_sincos.py times both; the values are the same) */
+static PyObject *sincos_batch(PyObject *mod, PyObject *args)
+{
+    PyObject *xo;
+    int grouped;
+    if (!PyArg_ParseTuple(args, "Op", &xo, &grouped))
+        return NULL;
+    if (!plain(xo, 1, 1)) {
+        PyErr_SetString(PyExc_ValueError, "sincos_batch: a contiguous float64 vector");
+        return NULL;
+    }
+    npy_intp n = PyArray_DIM((PyArrayObject *)xo, 0);
+    const double *x = (const double *)PyArray_DATA((PyArrayObject *)xo);
+    PyObject *so = PyArray_SimpleNew(1, &n, NPY_DOUBLE), *co = PyArray_SimpleNew(1, &n, NPY_DOUBLE);
+    unsigned char *key = PyMem_Malloc(n + 1);
+    int *order = PyMem_Malloc(sizeof(int) * (n + 1));
+    if (!so || !co || !key || !order) {
+        Py_XDECREF(so);
+        Py_XDECREF(co);
+        PyMem_Free(key);
+        PyMem_Free(order);
+        return PyErr_NoMemory();
+    }
+    double *s = (double *)PyArray_DATA((PyArrayObject *)so), *c = (double *)PyArray_DATA((PyArrayObject *)co);
+    Py_BEGIN_ALLOW_THREADS
+    if (grouped) {
+        for (npy_intp k = 0; k < n; k += SC_CHUNK * 7)   /* as run() on a 7-joint arm */
+            sincos_grouped(x + k, n - k < SC_CHUNK * 7 ? n - k : SC_CHUNK * 7, s + k, c + k, key, order);
+    } else {
+        for (npy_intp i = 0; i < n; ++i) {
+            double si, ci;
+#ifdef __GLIBC__
+            sincos(x[i], &si, &ci);
+#else
+            si = sin(x[i]);
+            ci = cos(x[i]);
+#endif
+            s[i] = si;
+            c[i] = ci;
+        }
+    }
+    Py_END_ALLOW_THREADS
+    PyMem_Free(key);
+    PyMem_Free(order);
+    return Py_BuildValue("NN", so, co);
+}
+
 static PyMethodDef methods[] = {
     {"bind", bind, METH_VARARGS, "Bind a kernel's address and parameters (native.py)."},
     {"set_threads", set_threads, METH_VARARGS, "Threads of the native batches (native.set_threads)."},
+    {"sincos_batch", sincos_batch, METH_VARARGS, "sin and cos of a vector, in order or grouped as batches do."},
     {"method", method_new, METH_VARARGS, "A Model method that runs its native kernel first (dispatch.native_first)."},
     {"invalidate", invalidate, METH_NOARGS, "Every Method resolves its kernel again."},
     {"command_path", command_path, METH_VARARGS, "The dynamics node's fused command path (ros/core/fused.py)."},
@@ -400,6 +535,10 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "lie_dynamics_native"
 
 PyMODINIT_FUNC PyInit_lie_dynamics_native(void)
 {
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+    __builtin_cpu_init();
+    has_avx = __builtin_cpu_supports("avx");
+#endif
     import_array();
     import_umath();
     if (PyType_Ready(&BoundType) < 0 || PyType_Ready(&MethodType) < 0 || PyType_Ready(&CommandType) < 0)

@@ -68,6 +68,15 @@ LATER_MAX_STEPS = 32
 # from its bytes to the command's in one native call; off: the Python path for every state (the
 # same bytes). LIE_DYNAMICS_FUSED_COMMAND=0 turns it off (benchmarks compare the two).
 FUSED_COMMAND = os.environ.get('LIE_DYNAMICS_FUSED_COMMAND', '1').strip() != '0'
+# At most this long at start-up (run.py: settle), the node waits until it has discovered its
+# trajectory process before it serves. Fast DDS's shared-memory transport, the first time a
+# participant sends to a new peer's port, checks that the peer's listener is alive; when another
+# process checked it within the same interval it sleeps healthy_check_timeout_ms / 3 (1000 / 3 ms)
+# holding the participant's send lock, and rclpy publishes holding the interpreter lock: the node
+# stopped for 334 ms (no command, no timer) in 12 of 60 runs of bench.probes.tail_trace, ~3 s
+# after start, when its trajectory process joined (benchmarks.md section 5). Discovered before the
+# first command, that check costs nothing. (Any other participant joining later still can.)
+TRAJECTORIES_JOIN_S = 10.0
 
 
 class DynamicsNode(Node):
@@ -156,6 +165,21 @@ class DynamicsNode(Node):
         """Run the features' work after each command in steps, one per task of `executor` (run.py
         passes the EventsExecutor, whose create_task is cheap; _after_command); None: at once."""
         self._executor = executor
+
+    def settle(self, timeout=TRAJECTORIES_JOIN_S, cancel=None, poll=0.01):
+        """(run.py, before the node serves) Wait until this node has discovered its trajectory
+        process (its ~/trajectory_in subscription), at most `timeout` s (TRAJECTORIES_JOIN_S says
+        why) or until cancel() is true (a stop signal). True once discovered or without one;
+        False on the timeout, a cancel or a child that died."""
+        tp = self.background.trajectories
+        if tp is None:
+            return True
+        topic, end = tp.config['topic_in'], time.monotonic() + timeout
+        while not self.count_subscribers(topic):
+            if tp.pid is None or time.monotonic() >= end or (cancel is not None and cancel()):
+                return False
+            time.sleep(poll)
+        return True
 
     def destroy_node(self):
         if self.background is not None:   # it leaves the ROS graph while the node's teardown runs

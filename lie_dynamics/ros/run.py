@@ -139,6 +139,8 @@ def run(make_node, name, args=None, done=None, on_stop=None, parser=None):
         node.note_executor(kind)
     if kind == 'events' and hasattr(node, 'defer_to'):  # its tasks are cheap: they run the work after a command
         node.defer_to(executor)
+    if hasattr(node, 'settle'):   # its helper processes join the ROS graph before it serves
+        node.settle(cancel=lambda: bool(stop))
     # Everything built so far lives as long as the process: move it out of the collector's
     # reach, so the hot path's garbage collections scan only what the callbacks allocate.
     gc.collect()
