@@ -193,7 +193,11 @@ def start(kind, cpu, trace, params, src=None):
                             preexec_fn=(lambda: os.sched_setaffinity(0, {cpu})) if cpu is not None else None)
 
 
-def measure(names, seconds, rounds, rate, robot, before=None):
+def stream_setup(robot, seconds, rate):
+    """The stream of bench.node_latency for `robot` ('arm' or 'talos_reduced'): (base parameters of
+    the candidates, the states Q (N measured, then W warm-up, then one), the replies' keys per kind
+    ('echo': Q, 'dynamics': the clamped g(Q)), N, W, the CPU left to the node or None, the driver);
+    this process is pinned to the first CPU when there are two."""
     from bench import node_latency as nl
     from lie_dynamics import load_urdf
     from lie_dynamics.laws import clamp, effort_limits
@@ -218,6 +222,12 @@ def measure(names, seconds, rounds, rate, robot, before=None):
         os.sched_setaffinity(0, {cpus[0]})
         node_cpu = cpus[1]
     driver = nl.Driver(joints, {q.tobytes(): e.tolist() for q, e in zip(Q, g, strict=True)})
+    return base, Q, keys, N, W, node_cpu, driver
+
+
+def measure(names, seconds, rounds, rate, robot, before=None):
+    from bench import node_latency as nl
+    base, Q, keys, N, W, node_cpu, driver = stream_setup(robot, seconds, rate)
     stamped = StampedDriver(driver)
     runs = [(n, n, None) for n in names]   # (label, candidate, source tree)
     if before:

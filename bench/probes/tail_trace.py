@@ -296,30 +296,8 @@ def measure(names, seconds, rounds, rate, robot, stall_ms, out=None, no_child=Fa
     import tempfile
 
     from bench import node_latency as nl
-    from bench.probes.latency_split import CANDIDATES, StampedDriver
-    from lie_dynamics import load_urdf
-    from lie_dynamics.laws import clamp, effort_limits
-    nl.ros_env()
-    joints, base = nl.JOINTS, {}
-    if robot == 'talos_reduced':
-        from bench.robots import robot_dir
-        path = os.path.join(robot_dir(), nl.TALOS)
-        joints = [j for j in load_urdf(path).joint_names if 'gripper' not in j]
-        base = {'urdf_path': path, 'joints': '[' + ','.join(joints) + ']'}
-    model = load_urdf(base.get('urdf_path', os.path.join(nl.ROOT, 'config', 'arm7.urdf')), joints=joints)
-    rng = np.random.default_rng(0)
-    lo, hi = np.maximum(model.position_lower, -2.5), np.minimum(model.position_upper, 2.5)
-    N, W = int(seconds * rate), int(nl.WARMUP_S * rate)
-    Q = lo + (hi - lo) * rng.random((N + W + 1, model.n))
-    g = clamp(model.gravity(Q), effort_limits(model.effort_limits, 1.0))[0]
-    keys = {'echo': {nl.reply_key(x): k for k, x in enumerate(Q)},
-            'dynamics': {nl.reply_key(x): k for k, x in enumerate(g)}}
-    cpus = sorted(os.sched_getaffinity(0))
-    node_cpu = None
-    if len(cpus) >= 2:
-        os.sched_setaffinity(0, {cpus[0]})
-        node_cpu = cpus[1]
-    driver = nl.Driver(joints, {q.tobytes(): e.tolist() for q, e in zip(Q, g, strict=True)})
+    from bench.probes.latency_split import CANDIDATES, StampedDriver, stream_setup
+    base, Q, keys, N, W, node_cpu, driver = stream_setup(robot, seconds, rate)
     stamped = StampedDriver(driver)
     tmp = out or tempfile.mkdtemp(prefix='tail_trace_')
     os.makedirs(tmp, exist_ok=True)

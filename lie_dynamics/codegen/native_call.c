@@ -130,6 +130,17 @@ static inline void clear_upper(void)
 #endif
 }
 
+/* *s, *c = sin(x), cos(x): glibc's sincos where there is one, else the two calls (the same values) */
+static inline void sincos1(double x, double *s, double *c)
+{
+#ifdef __GLIBC__
+    sincos(x, s, c);
+#else
+    *s = sin(x);
+    *c = cos(x);
+#endif
+}
+
 /* sincos_grouped's group of x: what glibc's sin and cos branch on (the range |x| < 0.855469, <
  * 2.426265 or above, the quadrant, whether x lies within 0.126 of a multiple of pi/2, and on which
  * side), computed without branches */
@@ -161,12 +172,7 @@ static void sincos_grouped(const double *x, Py_ssize_t n, double *s, double *c, 
     for (Py_ssize_t j = 0; j < n; ++j) {   /* into locals: faster than through &s[i], &c[i] */
         int i = order[j];
         double si, ci;
-#ifdef __GLIBC__
-        sincos(x[i], &si, &ci);
-#else
-        si = sin(x[i]);
-        ci = cos(x[i]);
-#endif
+        sincos1(x[i], &si, &ci);
         s[i] = si;
         c[i] = ci;
     }
@@ -505,12 +511,7 @@ static PyObject *sincos_batch(PyObject *mod, PyObject *args)
     } else {
         for (npy_intp i = 0; i < n; ++i) {
             double si, ci;
-#ifdef __GLIBC__
-            sincos(x[i], &si, &ci);
-#else
-            si = sin(x[i]);
-            ci = cos(x[i]);
-#endif
+            sincos1(x[i], &si, &ci);
             s[i] = si;
             c[i] = ci;
         }
