@@ -67,13 +67,10 @@ def _interrupt(*_):
 def echo_main():
     """The bare echo node (run in a subprocess with --echo-node)."""
     import rclpy
-    from rclpy.executors import ExternalShutdownException
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray
 
-    from lie_dynamics.ros.node import JOINT_STATES_QOS
-    from lie_dynamics.ros.run import make_executor
-    from lie_dynamics.ros.node import NO_PUB_EVENTS, NO_SUB_EVENTS
+    from lie_dynamics.ros.node import JOINT_STATES_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS
 
     rclpy.init()
     node = rclpy.create_node('echo_node')
@@ -86,6 +83,16 @@ def echo_main():
         pub.publish(out)
 
     node.create_subscription(JointState, 'joint_states', on_js, JOINT_STATES_QOS, event_callbacks=NO_SUB_EVENTS)
+    spin_echo(node)
+
+
+def spin_echo(node, finish=None):
+    """Spin an echo node (this one's and the probes') under the node's executor until shutdown or an
+    interrupt, then finish() (a probe's record) and shut rclpy down."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    from lie_dynamics.ros.run import make_executor
     ex, _ = make_executor()
     ex.add_node(node)
     try:
@@ -94,6 +101,8 @@ def echo_main():
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        if finish is not None:
+            finish()
         rclpy.try_shutdown()
 
 

@@ -98,13 +98,11 @@ def serve_dynamics(bare):
 def serve_echo():
     """bench.node_latency's echo node, its callback timed the same way."""
     import rclpy
-    from rclpy.executors import ExternalShutdownException
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray
 
-    from bench.node_latency import CMD
+    from bench.node_latency import CMD, spin_echo
     from lie_dynamics.ros.node import JOINT_STATES_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS
-    from lie_dynamics.ros.run import make_executor
     rows, now, cpu = [], time.perf_counter_ns, time.thread_time_ns
     rclpy.init()
     node = rclpy.create_node('echo_node')
@@ -120,16 +118,7 @@ def serve_echo():
         rows.append((s.sec * 1_000_000_000 + s.nanosec, t0, t1, now(), cpu() - c0, 0))
 
     node.create_subscription(JointState, 'joint_states', on_js, JOINT_STATES_QOS, event_callbacks=NO_SUB_EVENTS)
-    ex, _ = make_executor()
-    ex.add_node(node)
-    try:
-        while rclpy.ok():
-            ex.spin_once(timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        _dump(os.environ[TRACE_ENV], rows)
-        rclpy.try_shutdown()
+    spin_echo(node, lambda: _dump(os.environ[TRACE_ENV], rows))
 
 
 def threads(pid):

@@ -169,13 +169,11 @@ def serve_dynamics():
 
 def serve_echo():
     import rclpy
-    from rclpy.executors import ExternalShutdownException
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray
 
-    from bench.node_latency import CMD
+    from bench.node_latency import CMD, spin_echo
     from lie_dynamics.ros.node import JOINT_STATES_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS
-    from lie_dynamics.ros.run import make_executor
     rclpy.init()
     tl = Timeline()
     node = rclpy.create_node('echo_node')
@@ -193,16 +191,7 @@ def serve_echo():
         tl.span('callback', echo, msg, extra=lambda: (s.sec * 1_000_000_000 + s.nanosec, published[0]))
 
     node.create_subscription(JointState, 'joint_states', on_js, JOINT_STATES_QOS, event_callbacks=NO_SUB_EVENTS)
-    ex, _ = make_executor()
-    ex.add_node(node)
-    try:
-        while rclpy.ok():
-            ex.spin_once(timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        tl.dump(os.environ[TRACE_ENV])
-        rclpy.try_shutdown()
+    spin_echo(node, lambda: tl.dump(os.environ[TRACE_ENV]))
 
 
 def _machine():
