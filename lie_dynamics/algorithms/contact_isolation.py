@@ -81,6 +81,7 @@ import numpy as np
 
 from ..codegen import runtime
 from ..model.joint_names import broadcast_joints
+from ..spatial import hat3
 from .jacobian import target
 
 # Singular values of J^T below RCOND x the largest are not solved for (their components are 0):
@@ -434,23 +435,13 @@ def _line_fits(model, q, r, tol, b, radius, line):
     o, ends = _skeleton(model, q, b)
     V, W, rw = _weighted_world_jacobian(model, q, r, tol, b)
 
-    def off(v):   # v's component across the line
-        return v - d * (d @ v)
-
     def misfit(p):
         return _force_misfit(V, W, rw, p)
-    best = None
-    for e in [np.zeros(3), *(ends - o)]:   # the origin, then each segment o -> o + e
-        u, w = off(o - p0), off(e)
-        ww = float(w @ w)
-        t = 0.0 if ww <= 0 else float(np.clip(-(u @ w) / ww, 0.0, 1.0))
-        x = o + t * e
-        dist = float(np.linalg.norm(off(x - p0)))
-        if dist <= radius and (best is None or dist < best[0]):
-            best = (dist, p0 + d * (d @ (x - p0)))   # the line's point nearest the skeleton's point x
-    if best is None:
+    # the line's point nearest the skeleton (the origin, then each segment o -> o + e)
+    near, gap, _ = _nearest_on_lines(p0[None], d[None], o[None], np.vstack([np.zeros(3), ends - o])[None])
+    if gap[0] > radius:
         return False
-    p = best[1]
+    p = near[0]
     # r's line was fitted to k's joints alone; a few damped Gauss-Newton steps on p (forward
     # differences) spread the misfit over b's joints too, as the strict rule's search does, within
     # the radius: at most LINE_STEPS x 4 + 1 small least-squares fits (_point_forces from this one
@@ -482,14 +473,6 @@ POINT_STEPS = 12
 STALL = 0.02
 STEP_SIZES = np.array([1.0, 0.3, 0.1])
 _OFFSETS = np.vstack([np.zeros(3), np.eye(3)])
-
-
-def _skew(v):
-    """(S, 3, 3) [v]x of each v (S, 3): [v]x u = v x u, and (u^T [v]x) = (u x v)^T for row vectors."""
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    return out
 
 
 def _nearest_on_lines(p, d, o, e):
@@ -548,7 +531,7 @@ def _point_forces(model, q, r, tol, bodies, radius):
 
     def evaluate(p, copies=1):   # A (S, n, 3), the inverse of its Gram matrix (ridged), f (S, 3), the misfit (S, n)
         Vc, Wc = tiled[copies]
-        A = Vc + Wc @ _skew(p)
+        A = Vc + Wc @ hat3(p)   # rows v_j + w_j x p: (u^T [p]x) = (u x p)^T
         G = np.swapaxes(A, 1, 2) @ A
         G += (1e-12 * np.trace(G, axis1=1, axis2=2) + 1e-300)[:, None, None] * eye
         Gi = np.linalg.inv(G)
@@ -567,7 +550,7 @@ def _point_forces(model, q, r, tol, bodies, radius):
             live &= ~np.isin(owner, list(found))
         if step == POINT_STEPS or not live.any():
             break
-        Mf = -W @ _skew(f)                                          # d(A f)/dp: rows f x w_j
+        Mf = -W @ hat3(f)                                           # d(A f)/dp: rows f x w_j
         J = A @ (Gi @ (np.swapaxes(A, 1, 2) @ Mf)) - Mf             # the misfit's: -P Mf
         JJ = np.swapaxes(J, 1, 2) @ J
         JJ += (1e-6 * np.trace(JJ, axis1=1, axis2=2) + 1e-300)[:, None, None] * eye   # along f: no slope
