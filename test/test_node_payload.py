@@ -186,6 +186,12 @@ def test_gravity_topic_follow_stale_fallback(ros, xml):
     follows(wall)
     # a flood of bad vectors: rejected, counted, logged boundedly; the last valid one stays
     src = ros.node.features.get('gravity').source
+
+    def settled():   # the valid vectors follows() published are all in (one arriving in the flood would count)
+        r0 = src.received
+        time.sleep(0.3)
+        return src.received == r0
+    wait_until(settled, what='valid vectors delivered')
     accepted, t0 = src.received - src.rejected, time.monotonic()
     for k in range(200):  # one at a time: depth 1 keeps only the newest
         r0 = src.received

@@ -11,8 +11,9 @@
  *
  * A batch runs in blocks of LANES states through the kernel's form across states (clanes.py)
  * when it has one, the rest state by state; each state's outputs equal the one-state kernel's
- * to the bit. From 2 * thread_rows states it is cut among up to n_threads POSIX threads
- * (set_threads; native.set_threads), each writing its own rows: the same results.
+ * to the bit. From 2 * thread_rows states it runs on up to n_threads POSIX threads (set_threads;
+ * native.set_threads), which take its rows PART_ROWS at a time, each writing its own: the same
+ * results.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -233,23 +234,46 @@ static int run(const Bound *b, char **data, npy_intp r0, npy_intp r1, double *re
     return ok;
 }
 
+/* A threaded batch's rows, handed out PART_ROWS at a time to whichever thread asks next: a thread
+ * that starts late (a core woken from idle, a machine shared with other jobs) takes fewer parts,
+ * instead of the others waiting for its equal share at the end (bench.calls: 2 threads read
+ * 1.0-1.5x one thread with equal halves on the quiet machine). A multiple of SC_CHUNK and of any
+ * lanes count: a part is what run() gives one call, the same bits as one call over every row. */
+#define PART_ROWS 256
+
 typedef struct {
     const Bound *b;
     char **data;
-    npy_intp r0, r1;
     double *res;
-    int ok, started;
-    pthread_t id;
-} Part;
+    npy_intp N, next;   /* next: the first row not yet taken (atomic) */
+    int ok;             /* 1, or the first failing part's run() answer (atomic): the rest stop */
+} Parts;
 
-static void *run_part(void *arg)
+static void take_parts(Parts *s)
 {
-    Part *p = (Part *)arg;
-    p->ok = run(p->b, p->data, p->r0, p->r1, p->res);
+    for (;;) {
+        if (__atomic_load_n(&s->ok, __ATOMIC_RELAXED) != 1)
+            return;
+        npy_intp r0 = __atomic_fetch_add(&s->next, (npy_intp)PART_ROWS, __ATOMIC_RELAXED);
+        if (r0 >= s->N)
+            return;
+        int ok = run(s->b, s->data, r0, r0 + PART_ROWS < s->N ? r0 + PART_ROWS : s->N, s->res);
+        if (ok != 1) {
+            int one = 1;
+            __atomic_compare_exchange_n(&s->ok, &one, ok, 0, __ATOMIC_RELAXED, __ATOMIC_RELAXED);
+            return;
+        }
+    }
+}
+
+static void *helper_main(void *arg)
+{
+    take_parts((Parts *)arg);
     return NULL;
 }
 
-/* run on rows [0, N), cut into parts of at least thread_rows states on up to n_threads threads */
+/* run on rows [0, N): from 2 * thread_rows states, on up to n_threads threads (at least
+ * thread_rows states a thread), this one included, taking parts until none is left */
 static int run_all(const Bound *b, char **data, npy_intp N, double *res)
 {
     int T = n_threads;
@@ -257,31 +281,15 @@ static int run_all(const Bound *b, char **data, npy_intp N, double *res)
         T = (int)(N / thread_rows);
     if (T <= 1)
         return run(b, data, 0, N, res);
-    Part parts[64];
-    npy_intp step = (N + T - 1) / T;
-    step = (step + 7) / 8 * 8;   /* parts start on whole blocks of lanes */
-    for (int t = 0; t < T; ++t) {
-        Part *p = &parts[t];
-        p->b = b;
-        p->data = data;
-        p->r0 = t * step < N ? t * step : N;
-        p->r1 = (t + 1) * step < N ? (t + 1) * step : N;
-        p->res = res;
-        p->ok = 1;   /* a part that fails to start runs below, on this thread */
-        p->started = t > 0 && p->r0 < p->r1 && pthread_create(&p->id, NULL, run_part, p) == 0;
-    }
-    int ok = run(b, data, parts[0].r0, parts[0].r1, res);
-    for (int t = 1; t < T; ++t) {
-        if (parts[t].r0 >= parts[t].r1)
-            continue;
-        if (parts[t].started)
-            pthread_join(parts[t].id, NULL);
-        else
-            run_part(&parts[t]);
-        if (parts[t].ok != 1 && ok == 1)
-            ok = parts[t].ok;
-    }
-    return ok;
+    Parts s = {b, data, res, N, 0, 1};
+    pthread_t ids[64];
+    int started = 0;
+    for (int t = 1; t < T; ++t)   /* a helper that fails to start leaves its parts to the others */
+        started += pthread_create(&ids[started], NULL, helper_main, &s) == 0;
+    take_parts(&s);
+    for (int t = 0; t < started; ++t)
+        pthread_join(ids[t], NULL);   /* a barrier: every part's rows and answer are seen here */
+    return s.ok;
 }
 
 static int plain(PyObject *o, int nd_lo, int nd_hi)

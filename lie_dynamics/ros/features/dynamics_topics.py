@@ -122,9 +122,9 @@ class DynamicsTopics(Feature):
             except ValueError as exc:  # a new description without that link: the rest goes on
                 self.events.append(('error', 'dynamics:link', f'~/dynamics/jacobian off: {exc}'))
                 terms = tuple(t for t in terms if t != 'jacobian')
-        for t in terms:
+        for t in terms:   # published at every state: serialized through the handle (stop() releases it)
             if t not in self._pubs:
-                self._pubs[t] = interfaces.publisher(self._node, TOPICS[t])
+                self._pubs[t] = interfaces.serialized_publisher(self._node, TOPICS[t])
         if settings.dynamics.rate != self.rate:
             self.rate = settings.dynamics.rate
             self.gate = RateGate(self.rate)
@@ -185,15 +185,16 @@ class DynamicsTopics(Feature):
             self.events.append(('warn', f'dynamics:{term}', clip(
                 f'~/dynamics/{term} not published for the state at stamp {s.stamp * 1e-9:.9f} s: {why}', 300)))
             return
-        self._publish(term, value, s)
-
-    def _publish(self, term, value, s):
-        if term in ('gravity', 'coriolis'):
+        if term == 'gravity' or term == 'coriolis':
             data = self._writers[term].message((s.q, s.qd, value), s.stamp)
         else:
             data = self._writers[term].message((value,))
         self._pubs[term].publish(data)
         self.published[term] += 1
+
+    def stop(self):
+        for pub in self._pubs.values():
+            pub.close()
 
     def report(self, level, message):
         return level, message, self._values()
