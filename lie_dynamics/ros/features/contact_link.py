@@ -228,15 +228,17 @@ class ContactIsolation:
         time constants within MOVE_RAD of the current joints (the observer's lag corrected), held
         until the next checkpoint."""
         m = self._mean
-        if not self._settled or (m and np.any(np.abs(r - self._sum / len(m)) > ci.SETTLE_TOLERANCE * np.maximum(
-                np.abs(self._sum / len(m)), threshold))):   # a new stretch, or a drift the mean would lag
+        q = np.array(q, dtype=float)
+        if m:
+            prev = self._sum / len(m)
+        if not self._settled or (m and np.any(np.abs(r - prev) > ci.SETTLE_TOLERANCE * np.maximum(
+                np.abs(prev), threshold))):   # a new stretch, or a drift the mean would lag
             m.clear()
             self._sum = np.zeros_like(r)
             self._decided, self._start = False, t
             self._next = t + DECIDE_WINDOWS * self.settling.window
             self._all = [0, np.zeros_like(r), np.zeros_like(r)]
-            self._q_start = np.array(q, dtype=float)
-        q = np.array(q, dtype=float)
+            self._q_start = q
         # the trapezoid integral of r from the stretch's start (the lag correction needs the time mean)
         area = m[-1][3] + 0.5 * (t - m[-1][0]) * (r + m[-1][1]) if m else np.zeros_like(r)
         m.append((t, r, q, area))
@@ -249,9 +251,10 @@ class ContactIsolation:
         while t - m[0][0] > self._mean_span or np.abs(q - m[0][2]).max() > MOVE_RAD:
             self._sum -= m.popleft()[1]
         span = t - m[0][0]
-        mean = self._sum / len(m)
         if span > 0:   # the observer lags: mean tau_ext over [t0, t] = (integral of r + (r(t) - r(t0)) / K) / T
             mean = (area - m[0][3] + (r - m[0][1]) / self._gain) / span
+        else:
+            mean = self._sum / len(m)
         if not self._decided and t >= self._next - 1e-9:
             # on the plain mean of the whole stretch: its lag scales every joint alike, and a joint
             # a contact does not load stays unloaded as the arm yields; the least noisy mean

@@ -10,7 +10,8 @@ a message serialized once costs less than rclpy's conversion of a message object
 through interfaces.SerializedPublisher (rclpy's publish_raw without its per-call checks).
 
 With them, contact_link.py's ContactIsolation: ~/contact/wrench and ~/contact/tool_wrench
-(geometry_msgs/WrenchStamped, the joint_states stamp) and ~/contact/link (std_msgs/String).
+(geometry_msgs/WrenchStamped, the joint_states stamp; serialized here, published as above) and
+~/contact/link (std_msgs/String, a message object: it is published only when the link changes).
 """
 import struct
 
@@ -45,8 +46,8 @@ class ContactTopics(Feature):
         # published at every sample: serialized straight through the handle (stop() releases it)
         self._ext_pub = interfaces.serialized_publisher(node, '~/external_torques')
         self._flag_pub = interfaces.serialized_publisher(node, '~/collision')
-        self._wrench_pub = interfaces.publisher(node, '~/contact/wrench')
-        self._tool_pub = interfaces.publisher(node, '~/contact/tool_wrench')
+        self._wrench_pub = interfaces.serialized_publisher(node, '~/contact/wrench')
+        self._tool_pub = interfaces.serialized_publisher(node, '~/contact/tool_wrench')
         self._link_pub = interfaces.publisher(node, '~/contact/link')
         self._names = self._ext = None   # the layout of ~/external_torques, its cdr.Writer's message
 
@@ -98,8 +99,8 @@ class ContactTopics(Feature):
             self._link_pub.publish(String(data=pub.link))
 
     def stop(self):
-        self._ext_pub.close()
-        self._flag_pub.close()
+        for pub in (self._ext_pub, self._flag_pub, self._wrench_pub, self._tool_pub):
+            pub.close()
 
     def report(self, level, message):
         level, message, values = self.monitor.report(level, message, [], self.isolation.where())
