@@ -41,6 +41,9 @@ class _Recorder:
     def publish(self, data):
         self.sent.append((self.kind, bytes(data)))
 
+    def close(self):
+        pass
+
 
 @pytest.fixture(scope='module')
 def ctx():

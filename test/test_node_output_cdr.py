@@ -22,10 +22,21 @@ STAMPS = [0, 1, 999_999_999, 1_700_000_000 * 10 ** 9 + 123_456_789, -1_500_000_0
 
 
 class _Publisher:
+    """What Outputs asks of an rclpy publisher: its handle, held in use while it publishes raw bytes
+    (interfaces.SerializedPublisher), recorded."""
+
     def __init__(self):
         self.sent = []
+        self.handle, self.in_use = self, 0
 
-    def publish(self, data):
+    def __enter__(self):
+        self.in_use += 1
+
+    def __exit__(self, *exc):
+        self.in_use -= 1
+
+    def publish_raw(self, data):
+        assert self.in_use == 1
         self.sent.append(data)
 
 
@@ -95,9 +106,12 @@ def test_command_and_commanded_efforts_are_rclpys_bytes(names):
     out.command(tau, other, 5)
     assert same_bytes(cmd.sent[-1], Float64MultiArray(data=tau.tolist()))
     assert same_bytes(js.sent[-1], _joint_state(other, tau, 5))
-    out.joint_state(False)   # off: the command alone
+    out.joint_state(False)   # off: the command alone, the other publisher released and destroyed
     out.command(tau, other, 6)
-    assert len(cmd.sent) == len(js.sent) + 1 and '~/commanded_efforts' not in node.publishers
+    assert len(cmd.sent) == len(js.sent) + 1 and '~/commanded_efforts' not in node.publishers and js.in_use == 0
+    out.close()   # before the node goes: the command's handle released, once
+    out.close()
+    assert cmd.in_use == 0
 
 
 def test_multi_array_with_a_layout_is_rclpys_bytes():

@@ -31,8 +31,10 @@ def run(rounds=31, joints=7):
                                                effort=tau.tolist())))
     rclpy.init()
     node = Node('command_publish_bench')
+    outputs = []
     try:
         serialized, with_js = Outputs(node, '/command_publish_bench/a'), Outputs(node, '/command_publish_bench/b')
+        outputs += [serialized, with_js]
         with_js.joint_state(True)
         pub = node.create_publisher(Float64MultiArray, '/command_publish_bench/c', 10)
         js_pub = node.create_publisher(JointState, '/command_publish_bench/d', 10)
@@ -61,6 +63,8 @@ def run(rounds=31, joints=7):
                'echo node callback (deserialize, new message, publish)': echo}
         times = time_interleaved(fns, rounds, 0.02, rotate=True, pause_gc=True)
     finally:
+        for out in outputs:   # their publishers' handles, before the node goes
+            out.close()
         node.destroy_node()
         rclpy.try_shutdown()
     base = {k: times['command, message object'] for k in list(fns)[:2]}

@@ -47,6 +47,7 @@ def run(rounds=5, lines=200):
         os.dup2(saved, 2)
         os.close(null)
         os.close(saved)
+        outputs.close()
         node.destroy_node()
         rclpy.try_shutdown()
     rows = []

@@ -87,6 +87,7 @@ class DynamicsNode(Node):
         super().__init__(node_name, **kwargs)
         self.background = None
         self.features = None
+        self.outputs = None
         # the features' work after each command, in steps (_after_command): [(feature, step)]
         self._later = collections.deque()
         self._executor = None      # the executor whose tasks run them (defer_to); None: at once
@@ -191,6 +192,8 @@ class DynamicsNode(Node):
             except Exception:  # noqa: BLE001 - best effort: the node is going
                 self._later.clear()
             self.features.stop()
+        if self.outputs is not None:
+            self.outputs.close()
         if self.background is not None:   # lines still held back are said before the node goes
             self.event_log.close()
         done = super().destroy_node()

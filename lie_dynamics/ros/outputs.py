@@ -3,7 +3,8 @@
 core/log.py, through the node's one event queue). The command and ~/commanded_efforts are published
 serialized: their bytes written by a `cdr.Writer` (the message's constant bytes, made once per
 layout, joined with the stamp and the efforts), as the joint_states input is read serialized; rclpy
-then neither builds a message object nor converts and serializes it (`python -m bench.node_callback`)."""
+then neither builds a message object nor converts and serializes it (`python -m bench.node_callback`),
+and they go through interfaces.SerializedPublisher (publish_raw without rclpy's per-call checks)."""
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.duration import Duration
 from rclpy.impl.implementation_singleton import rclpy_implementation as rclpy_c
@@ -20,7 +21,8 @@ class Outputs:
 
     def __init__(self, node, command_topic):
         self.node = node
-        self._cmd_pub = interfaces.publisher(node, '<command_topic>', command_topic)
+        # published at every state: serialized through the handle (close() releases it)
+        self._cmd_pub = interfaces.serialized_publisher(node, '<command_topic>', command_topic)
         self._js_pub = None
         self._diag_pub = interfaces.publisher(node, '/diagnostics')
         self._cmd_writer = self._js_writer = None   # cdr.Writers, made for the first command's layout
@@ -30,10 +32,17 @@ class Outputs:
     def joint_state(self, on):
         """~/commanded_efforts on or off."""
         if on and self._js_pub is None:
-            self._js_pub = interfaces.publisher(self.node, '~/commanded_efforts')
+            self._js_pub = interfaces.serialized_publisher(self.node, '~/commanded_efforts')
         elif not on and self._js_pub is not None:
-            self.node.destroy_publisher(self._js_pub)
+            self._js_pub.close()
+            self.node.destroy_publisher(self._js_pub.publisher)
             self._js_pub = None
+
+    def close(self):
+        """Release the command publishers' handles (before the node is destroyed); idempotent."""
+        for pub in (self._cmd_pub, self._js_pub):
+            if pub is not None:
+                pub.close()
 
     def writers(self, n, names):
         """(command Writer, ~/commanded_efforts Writer or None while it is off) of n efforts in the
@@ -86,7 +95,7 @@ class Outputs:
 
     def wait_for_command_acked(self, seconds):
         try:
-            self._cmd_pub.wait_for_all_acked(Duration(seconds=seconds))
+            self._cmd_pub.publisher.wait_for_all_acked(Duration(seconds=seconds))
         except Exception:  # best effort: the process is exiting
             pass
 
