@@ -335,7 +335,8 @@ def bind(lib, params, result, gil_rows):
 def set_threads(n=None, min_rows=None):
     """Threads for the native batches (process-wide): a batch of at least `min_rows` states per
     thread (default THRESHOLDS['native_thread_rows']) runs on up to n threads at once in C, the
-    GIL released, which take its rows 256 at a time (a thread that starts late takes fewer);
+    GIL released, which take its rows a part at a time (large parts first, small ones at the
+    end; a thread that starts late takes fewer);
     results are identical to one thread (each state's outputs depend on that state alone).
     n None: LIE_DYNAMICS_THREADS, else 1. Returns the previous count; None when the backend is
     off."""

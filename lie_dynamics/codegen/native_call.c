@@ -12,8 +12,8 @@
  * A batch runs in blocks of LANES states through the kernel's form across states (clanes.py)
  * when it has one, the rest state by state; each state's outputs equal the one-state kernel's
  * to the bit. From 2 * thread_rows states it runs on up to n_threads POSIX threads (set_threads;
- * native.set_threads), which take its rows PART_ROWS at a time, each writing its own: the same
- * results.
+ * native.set_threads), which take its rows a part at a time (take_parts), each writing its own:
+ * the same results.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -234,18 +234,21 @@ static int run(const Bound *b, char **data, npy_intp r0, npy_intp r1, double *re
     return ok;
 }
 
-/* A threaded batch's rows, handed out PART_ROWS at a time to whichever thread asks next: a thread
+/* A threaded batch's rows, handed out a part at a time to whichever thread asks next: a thread
  * that starts late (a core woken from idle, a machine shared with other jobs) takes fewer parts,
  * instead of the others waiting for its equal share at the end (bench.calls: 2 threads read
- * 1.0-1.5x one thread with equal halves on the quiet machine). A multiple of SC_CHUNK and of any
- * lanes count: a part is what run() gives one call, the same bits as one call over every row. */
-#define PART_ROWS 256
+ * 1.0-1.5x one thread with equal halves on the quiet machine). A part is the rows left over twice
+ * the threads (guided scheduling: large parts first, small ones at the end, so the threads finish
+ * together), at least MIN_PART, in whole blocks of lanes; run() gives each state the same bits
+ * whatever part it falls in. */
+#define MIN_PART 64
 
 typedef struct {
     const Bound *b;
     char **data;
     double *res;
     npy_intp N, next;   /* next: the first row not yet taken (atomic) */
+    int threads;
     int ok;             /* 1, or the first failing part's run() answer (atomic): the rest stop */
 } Parts;
 
@@ -254,10 +257,15 @@ static void take_parts(Parts *s)
     for (;;) {
         if (__atomic_load_n(&s->ok, __ATOMIC_RELAXED) != 1)
             return;
-        npy_intp r0 = __atomic_fetch_add(&s->next, (npy_intp)PART_ROWS, __ATOMIC_RELAXED);
-        if (r0 >= s->N)
-            return;
-        int ok = run(s->b, s->data, r0, r0 + PART_ROWS < s->N ? r0 + PART_ROWS : s->N, s->res);
+        npy_intp r0 = __atomic_load_n(&s->next, __ATOMIC_RELAXED), size;
+        do {
+            if (r0 >= s->N)
+                return;
+            size = (s->N - r0) / (2 * s->threads) / 8 * 8;
+            if (size < MIN_PART)
+                size = MIN_PART;
+        } while (!__atomic_compare_exchange_n(&s->next, &r0, r0 + size, 1, __ATOMIC_RELAXED, __ATOMIC_RELAXED));
+        int ok = run(s->b, s->data, r0, r0 + size < s->N ? r0 + size : s->N, s->res);
         if (ok != 1) {
             int one = 1;
             __atomic_compare_exchange_n(&s->ok, &one, ok, 0, __ATOMIC_RELAXED, __ATOMIC_RELAXED);
@@ -281,7 +289,7 @@ static int run_all(const Bound *b, char **data, npy_intp N, double *res)
         T = (int)(N / thread_rows);
     if (T <= 1)
         return run(b, data, 0, N, res);
-    Parts s = {b, data, res, N, 0, 1};
+    Parts s = {b, data, res, N, 0, T, 1};
     pthread_t ids[64];
     int started = 0;
     for (int t = 1; t < T; ++t)   /* a helper that fails to start leaves its parts to the others */
