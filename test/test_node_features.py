@@ -341,12 +341,12 @@ def test_a_new_feature_is_one_class_and_one_registration_line():
             self.active = model is not None
 
         def on_sample(self, s):
-            self.samples += 1
             e = np.abs(s.effort)
             k = int(np.argmax(e))
             if e[k] > self.peak:
                 self.peak, self.joint = float(e[k]), s.names[k]
                 self.events.append(('info', 'peak_effort', f'new peak effort {self.peak:g} N m at {self.joint}'))
+            self.samples += 1   # last: the test's thread waits for it, then reads the peak
 
         def report(self, level, message):
             return level, message, [('peak_effort', f'{self.peak:g}'), ('peak_effort_joint', self.joint)]
