@@ -20,7 +20,8 @@ def run(tmp_path_factory):
     out = tmp_path_factory.mktemp('calibration_demo')
     # the demo domain conftest.py reserved for this worker
     res = calibration_demo.run(DURATION, out=str(out), domain=int(os.environ['LIE_DYNAMICS_TEST_DEMO_DOMAIN']),
-                               iterations=10)   # a shorter excitation design: the test's time
+                               iterations=40)   # a shorter design than the demo's 100 iterations: the test's time
+    # (at 10 the calibrated hold error sat at 0.90-0.98 N m against the bound of 0.96; at 40, 0.18)
     return res, out
 
 

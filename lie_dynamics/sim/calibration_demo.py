@@ -143,7 +143,10 @@ def run(duration, rate=1000.0, out='demo_out', log_dir=None, domain=None, iterat
                                          iterations=iterations)
     csv = os.path.join(folder, 'excitation.csv')
     write_csv(csv, t, q, qd, qdd, urdf.joint_names)
-    rec = phase('excitation', {'mode': 'feedforward'}, EXCITATION * duration, {'file': csv}, record=True)
+    # `joints` given: the node knows its layout before the first state, so ~/record starts before
+    # the simulator steps and the recording holds the whole excitation, however slow the machine
+    rec = phase('excitation', {'mode': 'feedforward', 'joints': '[' + ','.join(urdf.joint_names) + ']'},
+                EXCITATION * duration, {'file': csv}, record=True)
     if not rec.get('recording'):
         raise RuntimeError(f"~/record gave no recording: {rec.get('record_message')}")
     data = read_recording(rec['recording'])
@@ -243,6 +246,9 @@ def _phase(domain, log_dir, node_params, seconds, rate, sim_extra, traj=None, re
                 if not wait(lambda: node.count_subscribers('joint_states') >= 2 and (
                         client is None or client.service_is_ready()), 30.0, stack):
                     raise RuntimeError('dynamics_node did not come up')
+                answers = []   # ~/record before the simulator starts, once the node has its model: no state missed
+                if record and not wait(lambda: answers.append(call(True, stack)) or answers[-1].success, 60.0, stack):
+                    raise RuntimeError(f'{RECORD_SERVICE} refused for 60 s: {answers[-1].message}')
                 if traj is not None:
                     stack.start('trajectory_source', 'lie_dynamics.sim.trajectory_source',
                                 dict(traj, min_subscribers='1'))
@@ -253,9 +259,6 @@ def _phase(domain, log_dir, node_params, seconds, rate, sim_extra, traj=None, re
                     lockstep_timeout=f'{LOCKSTEP_TIMEOUT:.1f}', min_subscribers=str(2 + (traj is not None)),
                     max_steps=str(steps), **({'lockstep_stamped_topic': DESIRED_TOPIC} if traj is not None else {})),
                     ends_by_itself=True)
-                if record:
-                    wait(lambda: rec['t'] and rec['t'][-1] > 0, 60.0, stack)
-                    call(True, stack)
                 # the simulator ends by itself; its last states reach this reader within seconds
                 wait(lambda: rec['t'] and rec['t'][-1] >= seconds - 0.5 / rate, 600.0, stack)
                 if record:
