@@ -237,10 +237,10 @@ static int run(const Bound *b, char **data, npy_intp r0, npy_intp r1, double *re
 /* A threaded batch's rows, handed out a part at a time to whichever thread asks next: a thread
  * that starts late (a core woken from idle, a machine shared with other jobs) takes fewer parts,
  * instead of the others waiting for its equal share at the end (bench.calls: 2 threads read
- * 1.0-1.5x one thread with equal halves on the quiet machine). A part is the rows left over twice
- * the threads (guided scheduling: large parts first, small ones at the end, so the threads finish
- * together), at least MIN_PART, in whole blocks of lanes; run() gives each state the same bits
- * whatever part it falls in. */
+ * 1.0-1.5x one thread with equal halves on an otherwise quiet machine). A part is the rows left
+ * over twice the threads (guided scheduling: large parts first, small ones at the end, so the
+ * threads finish together), at least MIN_PART, in whole blocks of lanes; run() gives each state
+ * the same bits whatever part it falls in. */
 #define MIN_PART 64
 
 typedef struct {

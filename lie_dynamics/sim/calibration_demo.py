@@ -246,8 +246,12 @@ def _phase(domain, log_dir, node_params, seconds, rate, sim_extra, traj=None, re
                 if not wait(lambda: node.count_subscribers('joint_states') >= 2 and (
                         client is None or client.service_is_ready()), 30.0, stack):
                     raise RuntimeError('dynamics_node did not come up')
-                answers = []   # ~/record before the simulator starts, once the node has its model: no state missed
-                if record and not wait(lambda: answers.append(call(True, stack)) or answers[-1].success, 60.0, stack):
+                answers = []
+
+                def recording():   # ~/record refuses until the node has its model
+                    answers.append(call(True, stack))
+                    return answers[-1].success
+                if record and not wait(recording, 60.0, stack):   # before the simulator starts: no state missed
                     raise RuntimeError(f'{RECORD_SERVICE} refused for 60 s: {answers[-1].message}')
                 if traj is not None:
                     stack.start('trajectory_source', 'lie_dynamics.sim.trajectory_source',

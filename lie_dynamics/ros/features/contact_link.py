@@ -229,10 +229,11 @@ class ContactIsolation:
         until the next checkpoint."""
         m = self._mean
         q = np.array(q, dtype=float)
-        if m:
+        new = not self._settled
+        if not new and m:   # a drift the mean would lag starts a new stretch too
             prev = self._sum / len(m)
-        if not self._settled or (m and np.any(np.abs(r - prev) > ci.SETTLE_TOLERANCE * np.maximum(
-                np.abs(prev), threshold))):   # a new stretch, or a drift the mean would lag
+            new = np.any(np.abs(r - prev) > ci.SETTLE_TOLERANCE * np.maximum(np.abs(prev), threshold))
+        if new:
             m.clear()
             self._sum = np.zeros_like(r)
             self._decided, self._start = False, t

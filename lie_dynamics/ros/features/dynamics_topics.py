@@ -185,7 +185,7 @@ class DynamicsTopics(Feature):
             self.events.append(('warn', f'dynamics:{term}', clip(
                 f'~/dynamics/{term} not published for the state at stamp {s.stamp * 1e-9:.9f} s: {why}', 300)))
             return
-        if term == 'gravity' or term == 'coriolis':
+        if term in ('gravity', 'coriolis'):
             data = self._writers[term].message((s.q, s.qd, value), s.stamp)
         else:
             data = self._writers[term].message((value,))
