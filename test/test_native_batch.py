@@ -1,10 +1,12 @@
 """Native batches across states (codegen/clanes.py), their threads, and `out` buffers."""
+import concurrent.futures
 import copy
 import glob
 import inspect
 import math
 import os
 import sys
+import time
 import warnings
 
 import numpy as np
@@ -124,6 +126,40 @@ def test_threads_give_identical_results():
         native.set_threads(previous)
     with pytest.raises(ValueError, match='threads'):
         native.set_threads(0)
+
+
+def test_kept_helpers_serve_batches_in_turn_at_once_and_in_a_forked_child():
+    """The helpers a threaded batch starts are kept (native_call.c run_pooled): batches back to
+    back, after the helpers went to sleep, from several Python threads at once (one holds the
+    helpers, the others start their own threads) and in a forked child (which has none of its
+    parent's threads) all equal the one-thread batch, bit for bit."""
+    model, _ = _model('arm7')
+    q, qd, qdd = _states(model, 1500, seed=4)
+    previous = native.set_threads(1)
+    try:
+        one = model.inverse_dynamics(q, qd, qdd)
+        native.set_threads(2, min_rows=64)
+        for k in range(20):
+            assert np.array_equal(model.inverse_dynamics(q, qd, qdd), one)
+            if k % 5 == 4:
+                time.sleep(0.002)   # past the helpers' spin: they sleep, and are woken
+        native.set_threads(3, min_rows=64)   # one more helper joins the kept one
+        with concurrent.futures.ThreadPoolExecutor(4) as pool:
+            got = list(pool.map(lambda _: [model.inverse_dynamics(q, qd, qdd) for _ in range(10)], range(4)))
+        assert all(np.array_equal(r, one) for rs in got for r in rs)
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore', DeprecationWarning)   # fork() with threads running
+            pid = os.fork()
+        if pid == 0:   # the child: exit 0 only with the same results
+            code = 1
+            try:
+                code = 0 if all(np.array_equal(model.inverse_dynamics(q, qd, qdd), one) for _ in range(3)) else 3
+            finally:
+                os._exit(code)
+        _, status = os.waitpid(pid, 0)
+        assert os.waitstatus_to_exitcode(status) == 0
+    finally:
+        native.set_threads(previous)
 
 
 def test_a_failing_state_in_a_threaded_batch_falls_back_to_the_checked_path():

@@ -337,8 +337,10 @@ def set_threads(n=None, min_rows=None):
     thread (default THRESHOLDS['native_thread_rows']) runs on up to n threads at once in C, the
     GIL released, which take its rows a part at a time (large parts first, small ones at the
     end; a thread that starts late takes fewer); results are identical to one thread (each
-    state's outputs depend on that state alone). n None: LIE_DYNAMICS_THREADS, else 1. Returns
-    the previous count; None when the backend is off."""
+    state's outputs depend on that state alone). The helper threads are started by the first
+    threaded batch and kept: after a batch each spins up to 200 us, then sleeps until the next
+    (native_call.c run_pooled). n None: LIE_DYNAMICS_THREADS, else 1. Returns the previous
+    count; None when the backend is off."""
     if n is None:
         env = os.environ.get('LIE_DYNAMICS_THREADS', '').strip()
         n = int(env) if env.isdigit() else 1
