@@ -288,7 +288,7 @@ def tool_summary(rows):
     return out
 
 
-def _cost_messages(model, n, push):
+def cost_messages(model, n, push):
     """n joint_states messages of the bundled arm held at HOME-like q0, pushed from 50 ms at the tool
     (push 'tool'), or on link4 through joint 4's axis at 1.5x threshold (push 'weak': the weak tier's
     strict decisions, ambiguous, decided anew as the mean grows), or never (None: free motion, the
@@ -336,7 +336,7 @@ def node_cost(rounds, per_round):
     cases = ('isolation stubbed (peer)', 'isolation on', 'isolation on + tool wrench')
     rows = []
     for flag, push in (('down', None), ('up', 'tool'), ('up, weak', 'weak')):
-        msgs = _cost_messages(model, rounds * per_round + 100, push)
+        msgs = cost_messages(model, rounds * per_round + 100, push)
         ctx = rclpy.Context()
         rclpy.init(context=ctx)
         nodes = {}

@@ -98,6 +98,10 @@ TOLERANCE = 0.05
 RADIUS = 0.1
 # Settling: every joint changed by at most this fraction of max(|r_j|, th_j) over one time constant.
 SETTLE_TOLERANCE = 0.05
+# Settling's checkpoints, every this fraction of a time constant: the observer's output is filtered
+# over one, so its verdict needs no more, and each checkpoint costs the node's callback tens of us
+# (bench.contact's cost table: at a quarter, the flag-up callback read 1.15-1.26x the peer's).
+SETTLE_STEP = 0.5
 # With the residual's measured noise (std of r as given, per joint): tol_j = NOISE_SIGMAS x noise_j,
 # within [NOISE_FLOOR x, 1 x] tolerance x th_j (the floor: model and integration error, which no
 # average removes; the ceiling: the fixed tolerance). At 6 sigma a quiet joint reads as felt about
@@ -579,8 +583,8 @@ def _point_forces(model, q, r, tol, bodies, radius):
 class Settling:
     """Whether the residual has stopped changing (module docstring): `update(t, r, threshold)`
     returns True once every joint changed by at most tolerance x max(|r_j|, th_j) since a
-    checkpoint one to one and a quarter `window` old (one observer time constant, 1 / K).
-    Checkpoints are taken, and the verdict renewed, every quarter window (`quarter`); in between
+    checkpoint one to 1 + SETTLE_STEP `window`s old (one observer time constant, 1 / K).
+    Checkpoints are taken, and the verdict renewed, every SETTLE_STEP window (`step`); in between
     a sample costs one comparison (`checked`: the time of the last checkpoint). `reset()` forgets
     the history. The r given are kept as they are (not copied): give a new array each time, as
     the observer does."""
@@ -589,7 +593,7 @@ class Settling:
         if not (math.isfinite(window) and window > 0 and math.isfinite(tolerance) and tolerance > 0):
             raise ValueError(f'settling window and tolerance must be finite and > 0, got {window!r}, {tolerance!r}')
         self.window, self.tolerance = float(window), float(tolerance)
-        self.quarter = 0.25 * self.window
+        self.step = SETTLE_STEP * self.window
         self.reset()
 
     def reset(self):
@@ -597,7 +601,7 @@ class Settling:
         self.checked, self._verdict = -math.inf, False
 
     def update(self, t, r, threshold):
-        if self.checked <= t < self.checked + self.quarter:   # a clock that jumps back checks anew
+        if self.checked <= t < self.checked + self.step:   # a clock that jumps back checks anew
             return self._verdict
         self.checked = t
         h = self._history

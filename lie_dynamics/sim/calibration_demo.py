@@ -149,7 +149,7 @@ def run(duration, rate=1000.0, out='demo_out', log_dir=None, domain=None, iterat
                 EXCITATION * duration, {'file': csv}, record=True)
     if not rec.get('recording'):
         raise RuntimeError(f"~/record gave no recording: {rec.get('record_message')}")
-    data = read_recording(rec['recording'])
+    data = _stepped(read_recording(rec['recording']))
     cols = [data.joint_names.index(j) for j in urdf.joint_names]
     started = time.monotonic()
     result = identify_dynamics(urdf, data.t, data.q[:, cols], data.effort[:, cols],
@@ -186,6 +186,21 @@ def torque_prediction(model, calibration, rec):
     for tag, p in (('before', prior_parameters(model)), ('after', calibration.parameters)):
         out[f'torque_error_{tag}'] = float(np.sqrt(np.mean((Y @ p - s.effort) ** 2)) / scale)
     return out
+
+
+def _stepped(data):
+    """The recording from the simulator's first step on. ~/record starts before the simulator, which
+    holds its initial state on its brakes, re-sent until the first command, at simulated time 0: a
+    zero stamp, which the recording replaces by the receive time (read_recording), so those states
+    come first, ahead of the stepped ones by the wall clock's epoch, and their efforts are no
+    dynamics (a long hold made them the longest run the filter's band was estimated from)."""
+    back = np.flatnonzero(np.diff(data.t) < 0)
+    if not len(back):
+        return data
+    k = int(back[-1]) + 1
+    return data._replace(t=data.t[k:] - data.t[k], q=data.q[k:], effort=data.effort[k:],
+                         qd=None if data.qd is None else data.qd[k:], dropped=data.dropped + k,
+                         t0_ns=data.t0_ns + int(round(data.t[k] * 1e9)))
 
 
 def _phase(domain, log_dir, node_params, seconds, rate, sim_extra, traj=None, record=False):

@@ -7,8 +7,8 @@ ContactMonitor: the estimate r, its time t in s, the debounced flag), returns wh
 
   * the wrench of the isolated link (link name, (fx fy fz mx my mz) at its origin in its axes)
     while the flag is up and a link is isolated: at every sample while the residual changes, and
-    while it is settled at every checkpoint (a quarter time constant), the wrench of its mean over
-    the last MEAN_WINDOWS time constants at the current configuration (MOVE_RAD), corrected for
+    while it is settled at every checkpoint (half a time constant, ci.SETTLE_STEP), the wrench of
+    its mean over the last MEAN_WINDOWS time constants at the current configuration (MOVE_RAD), corrected for
     the observer's lag (the effort noise averaged out; unchanged in between, so not sent again);
     one zero wrench (the last link's, '' if none was) when the flag falls;
   * the tool wrench (`contact.wrench_frame`, all contact at that link) at every sample, when set
@@ -52,10 +52,10 @@ DECIDE_WINDOWS = 5.0
 # (contact.strict_below) costs a few ms on the node's thread (bench.probes.isolation_decision).
 REDECIDE_GROWTH = 1.25
 # The residual's noise with the flag down: a running mean square over FREE_WINDOWS time constants
-# (checkpoints every quarter), used once it has FREE_MIN checkpoints, from FREE_WAIT time constants
+# (a checkpoint every half), used once it has FREE_MIN checkpoints, from FREE_WAIT time constants
 # after the flag falls or the observer starts (the decay of a contact's residual, the observer's
 # start, are no noise).
-FREE_WINDOWS, FREE_MIN, FREE_WAIT = 50.0, 16, 5.0
+FREE_WINDOWS, FREE_MIN, FREE_WAIT = 50.0, 8, 5.0
 # The mean keeps the checkpoints whose joints lie within MOVE_RAD (rad or m) of the current ones:
 # J^T F of a fixed wrench changes by about that fraction of itself.
 MOVE_RAD = 2e-3
@@ -117,6 +117,8 @@ class ContactIsolation:
         self._next = 0.0            # the time of its next decision
         self._q_start = None        # the joints then (the stretch's mean spans the motion from there)
         self._gain = 1.0            # the observer's gain K (1/s, one or per joint)
+        self._between = None        # the sum of r over the samples since the last checkpoint, and their count
+        self._count = 0
         self._free_ms, self._free_n, self._free_next = None, 0, None   # the flag-down noise (_free)
         self._mean_span = 0.0
         self._held = None           # (link wrench, tool wrench, mean r) of the last checkpoint
@@ -183,7 +185,9 @@ class ContactIsolation:
             self.flag, self.residual = False, r   # the flag down and nothing owed: nothing to decide
             return _NOTHING
         st = self.settling
-        if collision and self._settled and st.checked < t < st.checked + st.quarter:   # held (cost)
+        if collision and self._settled and st.checked < t < st.checked + st.step:   # held (cost)
+            self._between += r   # for the integral of r (_checkpoint): one operation a sample
+            self._count += 1
             return Published(None, self._held[1], None)
         self.flag = collision
         wrench = tool = None
@@ -220,8 +224,8 @@ class ContactIsolation:
         return Published(wrench, tool, changed)
 
     def _checkpoint(self, t, q, r, threshold):
-        """A checkpoint of a settled stretch (every quarter time constant; samples closer than a
-        time constant carry little more: the observer's filter). The decision once the stretch
+        """A checkpoint of a settled stretch (every half time constant: the samples in between only
+        add to the integral of r, in update). The decision once the stretch
         spans DECIDE_WINDOWS time constants, on the mean of its checkpoints with that mean's noise
         (`_noise`; an ambiguous one decided anew at later checkpoints, the mean longer). The
         wrenches of the external torque's time mean over the checkpoints of the last MEAN_WINDOWS
@@ -240,8 +244,13 @@ class ContactIsolation:
             self._next = t + DECIDE_WINDOWS * self.settling.window
             self._all = [0, np.zeros_like(r), np.zeros_like(r)]
             self._q_start = q
-        # the trapezoid integral of r from the stretch's start (the lag correction needs the time mean)
-        area = m[-1][3] + 0.5 * (t - m[-1][0]) * (r + m[-1][1]) if m else np.zeros_like(r)
+        # the integral of r from the stretch's start, a trapezoid over every sample (the held ones summed
+        # in update, equally spaced), as the observer's own integral: the lag correction needs it
+        if m:
+            area = m[-1][3] + (t - m[-1][0]) / (self._count + 1) * (self._between + 0.5 * (r + m[-1][1]))
+        else:
+            area = np.zeros_like(r)
+        self._between, self._count = np.zeros_like(r), 0
         m.append((t, r, q, area))
         self._sum += r
         a = self._all   # the whole stretch (isolation: which joints feel r does not change as the arm yields)
@@ -268,7 +277,7 @@ class ContactIsolation:
             self.isolation = iso
             # an ambiguous answer is decided anew while the mean grows (its noise falls), once the
             # stretch has grown REDECIDE_GROWTH times since, and at the end of the mean's span
-            last = self._mean_span - self.settling.quarter
+            last = self._mean_span - self.settling.step
             self._decided = iso.status != 'ambiguous' or t - self._start >= last
             self._next = self._start + min(REDECIDE_GROWTH * (t - self._start), last)
             if iso.link:
@@ -282,12 +291,12 @@ class ContactIsolation:
                       self.tool.inverse @ mean if self.frame else None, mean)
 
     def _free(self, t, r):
-        """Every quarter time constant with the flag down: the residual's mean square per joint,
+        """Every half time constant with the flag down: the residual's mean square per joint,
         a running mean over the last FREE_WINDOWS time constants (noise and free-motion model
         error, what a quiet joint reads)."""
-        self._free_next = t + self.settling.quarter
+        self._free_next = t + self.settling.step
         self._free_n += 1
-        a = max(1.0 / self._free_n, 0.25 / FREE_WINDOWS)
+        a = max(1.0 / self._free_n, ci.SETTLE_STEP / FREE_WINDOWS)
         self._free_ms = (1 - a) * self._free_ms + a * (r * r) if self._free_ms is not None else r * r
 
     def _noise(self, mean, square, span):
@@ -299,7 +308,7 @@ class ContactIsolation:
         var = np.maximum(square - mean * mean, 0.0)
         if self._free_ms is not None and self._free_n >= FREE_MIN:   # a longer record: fewer chance lows
             var = np.maximum(var, self._free_ms)
-        x = max(span + self.settling.quarter, self.settling.quarter) / self.settling.window
+        x = max(span + self.settling.step, self.settling.step) / self.settling.window
         return np.sqrt(var * min(1.0, 2.0 / (x * x) * (x - 1.0 + np.exp(-x))))
 
     def flush(self):
