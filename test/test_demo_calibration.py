@@ -50,3 +50,20 @@ def test_the_plant_is_the_documented_one_and_the_files_are_written(run):
     assert (folder / 'calibration.yaml').is_file() and (folder / 'report' / 'report.txt').is_file()
     assert len(list((folder / 'recordings').iterdir())) == 1
     assert calibration_demo.table(res)[2].strip().startswith('hold torque error')
+
+
+def test_the_identification_reads_the_recording_from_the_simulators_first_step():
+    """The simulator's held initial states (zero stamps: the recording gives them their receive
+    time, a wall-clock epoch ahead) are cut off; a recording without them is kept whole."""
+    from lie_dynamics.calibration.recordings import Recording
+    held, steps = 5, 40
+    t = np.concatenate([0.01 * np.arange(held), 1e-3 * np.arange(1, steps + 1) - 1.8e9])
+    q = np.arange(held + steps, dtype=float)[:, None] * np.ones((1, 2))
+    rec = Recording(t, ['a', 'b'], q, None, -q, 0, held + steps, 1_800_000_000_000_000_000, 'x')
+    cut = calibration_demo.stepped(rec)
+    assert len(cut.t) == steps and cut.t[0] == 0.0 and cut.dropped == held
+    np.testing.assert_allclose(np.diff(cut.t), 1e-3, rtol=1e-3)
+    assert np.array_equal(cut.q, q[held:]) and np.array_equal(cut.effort, -q[held:]) and cut.qd is None
+    assert abs(cut.t0_ns - 1_000_000) < 1_000   # the first step's own stamp, 1 ms
+    whole = rec._replace(t=1e-3 * np.arange(held + steps))
+    assert calibration_demo.stepped(whole) is whole

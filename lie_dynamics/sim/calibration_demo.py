@@ -149,7 +149,7 @@ def run(duration, rate=1000.0, out='demo_out', log_dir=None, domain=None, iterat
                 EXCITATION * duration, {'file': csv}, record=True)
     if not rec.get('recording'):
         raise RuntimeError(f"~/record gave no recording: {rec.get('record_message')}")
-    data = _stepped(read_recording(rec['recording']))
+    data = stepped(read_recording(rec['recording']))
     cols = [data.joint_names.index(j) for j in urdf.joint_names]
     started = time.monotonic()
     result = identify_dynamics(urdf, data.t, data.q[:, cols], data.effort[:, cols],
@@ -188,7 +188,7 @@ def torque_prediction(model, calibration, rec):
     return out
 
 
-def _stepped(data):
+def stepped(data):
     """The recording from the simulator's first step on. ~/record starts before the simulator, which
     holds its initial state on its brakes, re-sent until the first command, at simulated time 0: a
     zero stamp, which the recording replaces by the receive time (read_recording), so those states
