@@ -336,7 +336,7 @@ static void *helper_main(void *arg)
                 break;
             relax();
         }
-        if (g == seen) {   /* the gen and sleepers pair (seq_cst) is what offer() reads: no lost wake-up */
+        if (g == seen) {   /* gen, then sleepers (seq_cst), as run_pooled writes and reads them: no lost wake-up */
             pthread_mutex_lock(&pool.m);
             __atomic_fetch_add(&pool.sleepers, 1, __ATOMIC_SEQ_CST);
             while ((g = __atomic_load_n(&pool.gen, __ATOMIC_SEQ_CST)) == seen)
@@ -385,17 +385,19 @@ static int run_pooled(Parts *s, int T)
 {
     if (pthread_mutex_trylock(&pool.busy) != 0)
         return -2;
-    pthread_attr_t attr;
-    pthread_attr_init(&attr);
-    pthread_attr_setdetachstate(&attr, PTHREAD_CREATE_DETACHED);
     unsigned gen = __atomic_load_n(&pool.gen, __ATOMIC_RELAXED);
-    while (pool.started < T - 1) {
-        pthread_t id;
-        if (pthread_create(&id, &attr, helper_main, (void *)(uintptr_t)gen) != 0)
-            break;   /* fewer helpers: the others take their parts */
-        ++pool.started;
+    if (pool.started < T - 1) {   /* the first batch with this many threads: start the helpers missing */
+        pthread_attr_t attr;
+        pthread_attr_init(&attr);
+        pthread_attr_setdetachstate(&attr, PTHREAD_CREATE_DETACHED);
+        while (pool.started < T - 1) {
+            pthread_t id;
+            if (pthread_create(&id, &attr, helper_main, (void *)(uintptr_t)gen) != 0)
+                break;   /* fewer helpers: the others take their parts */
+            ++pool.started;
+        }
+        pthread_attr_destroy(&attr);
     }
-    pthread_attr_destroy(&attr);
     pool.job = s;
     __atomic_store_n(&pool.limit, T - 1, __ATOMIC_RELAXED);
     __atomic_store_n(&pool.word, 0, __ATOMIC_RELEASE);   /* open: job and limit are seen by who joins */

@@ -117,8 +117,7 @@ class ContactIsolation:
         self._next = 0.0            # the time of its next decision
         self._q_start = None        # the joints then (the stretch's mean spans the motion from there)
         self._gain = 1.0            # the observer's gain K (1/s, one or per joint)
-        self._between = None        # the sum of r over the samples since the last checkpoint, and their count
-        self._count = 0
+        self._between, self._count = 0.0, 0   # the sum of r over the samples since the last checkpoint, their count
         self._free_ms, self._free_n, self._free_next = None, 0, None   # the flag-down noise (_free)
         self._mean_span = 0.0
         self._held = None           # (link wrench, tool wrench, mean r) of the last checkpoint
@@ -250,7 +249,7 @@ class ContactIsolation:
             area = m[-1][3] + (t - m[-1][0]) / (self._count + 1) * (self._between + 0.5 * (r + m[-1][1]))
         else:
             area = np.zeros_like(r)
-        self._between, self._count = np.zeros_like(r), 0
+        self._between, self._count = 0.0, 0
         m.append((t, r, q, area))
         self._sum += r
         a = self._all   # the whole stretch (isolation: which joints feel r does not change as the arm yields)
