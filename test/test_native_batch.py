@@ -312,6 +312,33 @@ def test_mass_matrix_forward_dynamics_and_derivatives_run_from_c(name):
         model.mass_matrix(np.full(n, np.nan))
 
 
+@pytest.mark.parametrize('name', ['arm7', 'tree30'])
+def test_coriolis_term_runs_its_own_kernel_from_c(name):
+    """C(q, qd) qd has its own kernel (the traced RNEA at qdd = 0 without gravity) behind a C
+    method: equal to inverse dynamics at qdd = 0 without gravity (to rounding: the zeros are
+    folded), its batch rows to its single states to the bit, and to Pinocchio's C(q, qd) qd;
+    out= good and bad; a bad state still refused by name."""
+    xml = _xml('arm7') if name == 'arm7' else __import__('robots').random_urdf(30, 30, tree=True)
+    model = load_urdf(xml)
+    oracle = Oracle(xml)
+    n = model.n
+    q, qd, _ = _states(model, 4, seed=12)
+    zeros = np.zeros_like(qd)
+    got = model.coriolis_term(q, qd)
+    assert _rel(got, model.inverse_dynamics(q, qd, zeros, with_gravity=False)) <= 1e-15
+    assert type(inspect.getattr_static(model, 'coriolis_term')).__name__ == 'Method'
+    for i in range(len(q)):
+        one = model.coriolis_term(q[i], qd[i])
+        assert np.array_equal(one, got[i])
+        assert _rel(one, oracle.coriolis_matrix(q[i], qd[i]) @ qd[i]) <= TOL
+    good = np.full(n, np.nan)
+    assert model.coriolis_term(q[0], qd[0], out=good) is good and np.array_equal(good, got[0])
+    with pytest.raises(ValueError, match='^out must be'):
+        model.coriolis_term(q[0], qd[0], out=np.empty(n + 1))
+    with pytest.raises(ValueError, match='qd'):
+        model.coriolis_term(q[0], np.full(n, np.inf))
+
+
 def test_methods_hold_several_models():
     """A C method holds the kernels of up to four models (native_method.c HELD): models called in
     turn each get their own kernel, a setter on one of them is seen, a fifth model and a model

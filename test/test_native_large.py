@@ -25,8 +25,9 @@ ROOT = next(iter(glob.glob(os.path.join(sys.prefix, 'lib', 'python3*', 'site-pac
                                         'example-robot-data', 'robots'))), None)
 REAL = {'pr2': 'pr2_description/urdf/pr2.urdf', 'talos_reduced': 'talos_data/robots/talos_reduced.urdf'}
 TOL = 1e-12
-SPECS = [t_rnea.INVERSE_DYNAMICS, t_rnea.GRAVITY, t_crba.MASS_MATRIX, t_chol.FORWARD_DYNAMICS, t_aba.ABA,
-         t_der.INVERSE_DYNAMICS_DERIVATIVES, t_der.CORIOLIS, t_der.FORWARD_DYNAMICS_DERIVATIVES, t_reg.REGRESSOR]
+SPECS = [t_rnea.INVERSE_DYNAMICS, t_rnea.GRAVITY, t_rnea.CORIOLIS_TERM, t_crba.MASS_MATRIX, t_chol.FORWARD_DYNAMICS,
+         t_aba.ABA, t_der.INVERSE_DYNAMICS_DERIVATIVES, t_der.CORIOLIS,
+         t_der.FORWARD_DYNAMICS_DERIVATIVES, t_reg.REGRESSOR]
 
 pytestmark = pytest.mark.skipif(native.module() is None, reason='no working C compiler')
 
@@ -85,6 +86,7 @@ def robot(request):
 def _family_calls(m, q, qd, qdd, tau):
     """Every family through the Model's methods (ABA only without mimic joints: PR2 has them)."""
     calls = {'inverse_dynamics': lambda: m.inverse_dynamics(q, qd, qdd), 'gravity': lambda: m.gravity(q),
+             'coriolis_term': lambda: m.coriolis_term(q, qd),
             'mass_matrix': lambda: m.mass_matrix(q), 'forward_dynamics': lambda: m.forward_dynamics(q, qd, tau),
             'aba': lambda: m.forward_dynamics(q, qd, tau, method='aba'),
             'inverse_dynamics_derivatives': lambda: m.inverse_dynamics_derivatives(q, qd, qdd),
@@ -98,6 +100,7 @@ def _family_calls(m, q, qd, qdd, tau):
 
 def _oracle_calls(o, q, qd, qdd, tau):
     return {'inverse_dynamics': lambda: o.rnea(q, qd, qdd), 'gravity': lambda: o.gravity(q),
+            'coriolis_term': lambda: o.coriolis_matrix(q, qd) @ qd,
             'mass_matrix': lambda: o.crba(q), 'forward_dynamics': lambda: o.aba(q, qd, tau),
             'aba': lambda: o.aba(q, qd, tau),
             'inverse_dynamics_derivatives': lambda: o.rnea_derivatives(q, qd, qdd),

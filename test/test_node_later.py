@@ -134,7 +134,7 @@ def test_a_newer_state_replaces_queued_terms_not_estimates(held):
     assert node.core.count.accepted == 1 and len(ex.tasks) == 1   # the command is out, its work queued
     assert sum(dyn.published.values()) == 0 and monitor.samples == 0
     node.on_joint_state(sent[1])   # before the first state's work ran
-    assert node.dropped_steps == 4 and len(ex.tasks) == 1
+    assert node.dropped_steps == 1 and len(ex.tasks) == 1   # the terms' one step
     ex.run()
     assert dyn.published == {t: 1 for t in TERMS}   # only the newer state's terms
     assert monitor.samples == 2   # both estimates
@@ -161,7 +161,7 @@ def test_a_backlog_is_run_in_the_callback(held):
     node.defer_to(ex)
     monitor = node.contact_monitor
     from lie_dynamics.ros.node import LATER_MAX_STEPS
-    first = LATER_MAX_STEPS - len(TERMS)   # queued: one observer step per state, the newest state's terms
+    first = LATER_MAX_STEPS - 1   # queued: one observer step per state, the newest state's terms (one step)
     for k, s in enumerate(states(node.core.model, first + 3, 9)):   # the tasks never run
         node.on_joint_state(bytes(serialize_message(message(*s))))
         assert monitor.samples == (0 if k < first else first + 1)   # all run in the callback once, then queued

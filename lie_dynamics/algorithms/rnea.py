@@ -91,6 +91,24 @@ def gravity_validated(model, arrs):
 _GRAVITY = runtime.Entry(('q',), joint_vector, gravity_validated)
 
 
+def coriolis_term(model, q, qd, out=None):
+    """C(q, qd) qd: eqs 16-21 at qdd = 0 without gravity; (n,) or (N, n). out: as inverse_dynamics."""
+    tau = runtime.fast(model, traced.CORIOLIS_TERM)(q, qd, out)   # the fast path: the result, or None
+    return runtime.call(model, _CORIOLIS_TERM, (q, qd), out) if tau is None else tau
+
+
+def coriolis_term_validated(model, arrs):
+    """coriolis_term on validated (N, n) arrays [q, qd] -> (N, n): its kernel, else inverse
+    dynamics at qdd = 0 without gravity."""
+    tau = runtime.run(model, traced.CORIOLIS_TERM, arrs, c_order=True)
+    if tau is None:
+        tau = inverse_dynamics_validated(model, [arrs[0], arrs[1], np.zeros_like(arrs[1])], None, False)
+    return tau
+
+
+_CORIOLIS_TERM = runtime.Entry(('q', 'qd'), joint_vector, coriolis_term_validated)
+
+
 def external_body_wrenches(model, wrenches, N):
     """{link: wrench (m, f) acting on the link, in the link frame} -> (N, nb, 6) body-frame wrenches.
 

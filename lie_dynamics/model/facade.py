@@ -65,11 +65,12 @@ class Algorithms:
         """Gravity compensation torques g(q) (RNEA with V = 0, Vdot_0 = (0, -g)); out: as inverse_dynamics."""
         return rnea.gravity(self, q, out)
 
+    @runtime.native_first(traced_rnea.CORIOLIS_TERM, 2)   # (q, qd[, out=]) straight from C
     @_jointless(('q', 'qd'), (0,))
-    def coriolis_term(self, q, qd):
-        """C(q, qd) qd = inverse_dynamics(q, qd, 0) without gravity."""
-        return rnea.inverse_dynamics(self, q, qd, np.zeros_like(np.asarray(qd, dtype=float)), None,
-                                     with_gravity=False)
+    def coriolis_term(self, q, qd, out=None):
+        """C(q, qd) qd = inverse_dynamics(q, qd, 0) without gravity (its own kernel: the RNEA
+        at qdd = 0, g = 0); out: as inverse_dynamics."""
+        return rnea.coriolis_term(self, q, qd, out)
 
     @runtime.native_keyed(functools.partial(_jacobian_kernel, 'jacobian'), 1)   # (q, link[, frame]) from C
     def jacobian(self, q, link, frame='world_aligned', point=None):

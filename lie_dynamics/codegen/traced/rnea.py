@@ -221,6 +221,16 @@ def build_inverse_dynamics(fr, wrench):
     return Trace(g, 'inverse_dynamics_kernel', args, with_armature(joint_torques(fr, tau_b), arm, qdd))
 
 
+def build_coriolis_term(fr):
+    """k(Q, QD, P, E0) -> C(q, qd) qd tuple: the traced RNEA (trace_inverse_dynamics) at qdd = 0
+    without gravity, the zeros constants (folded away: no qdd or g argument to pass)."""
+    g = Graph()
+    co, cs = _coordinates(fr, g, 1)
+    parg, params = fr.trace_params(g)
+    tau_b = trace_inverse_dynamics(fr, cs, co['x'], co['xd'], [0.0] * fr.nb, params, (0.0, 0.0, 0.0))
+    return Trace(g, 'coriolis_term_kernel', co['args'] + [parg, co['offset_args']], joint_torques(fr, tau_b))
+
+
 def trace_gravity(fr, cs, x, params, ga):
     """Body torques of g(q), traced: params per body (subtree mass, first moment: 4 symbols,
     Frames.subtree_params), ga = -g (3 symbols), cs = trig(fr, g, x).
@@ -280,4 +290,6 @@ INVERSE_DYNAMICS_WRENCH = Spec('inverse_dynamics_wrench', lambda fr: build_inver
                                pooled=True)
 MOMENTUM = Spec('momentum', build_momentum, ('inertia', 'offsets', 'armature'), 'inverse_dynamics',
                 rows_arrays=True, pooled=True)
+CORIOLIS_TERM = Spec('coriolis_term', build_coriolis_term, ('inertia', 'offsets'), 'inverse_dynamics',
+                     rows_arrays=True, pooled=True)
 GRAVITY = Spec('gravity', build_gravity, ('subtree', 'gravity', 'offsets'), 'gravity', rows_arrays=True, pooled=True)

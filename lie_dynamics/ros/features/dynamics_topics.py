@@ -134,7 +134,9 @@ class DynamicsTopics(Feature):
 
     def _label(self, names):
         """The messages' writers for this joint order (published as bytes: a cdr.Writer per term,
-        the template's constant pieces joined with the stamp and the arrays)."""
+        the template's constant pieces joined with the stamp and the arrays), and one buffer that
+        holds every term's value (`_views`: views into it, written with out=) so that one
+        finiteness test covers them all."""
         self._names = names
         joined = ','.join(names)
         n = len(names)
@@ -148,13 +150,20 @@ class DynamicsTopics(Feature):
                                              f'cols: {joined}', 6, n))):
             writers[term] = t.writer(slots)
         self._writers = writers
+        self._buffer = np.zeros(2 * n + n * n + 6 * n)   # a term not published keeps zeros
+        cuts = np.cumsum([0, n, n, n * n])
+        self._views = {'gravity': self._buffer[:n], 'coriolis': self._buffer[n:2 * n],
+                        'mass_matrix': self._buffer[cuts[2]:cuts[3]].reshape(n, n),
+                        'jacobian': self._buffer[cuts[3]:].reshape(6, n)}
 
     def on_sample(self, s):
         for step in self.steps(s):
             step()
 
     def steps(self, s):
-        """One step per term to publish for sample s (none when the rate gate holds it back)."""
+        """One step publishing every term for sample s (none when the rate gate holds it back):
+        the terms together cost less than one executor task's slice, and each step more is a
+        dispatch and a colder cache."""
         t = self.time.seconds(s.stamp)
         if self.time.switched:  # another time base: a new stream
             self.gate.next = None
@@ -162,35 +171,41 @@ class DynamicsTopics(Feature):
             return ()
         if s.names is not self._names:
             self._label(s.names)
-        return tuple(functools.partial(self._term, term, s) for term in self.terms)
+        return (functools.partial(self._publish, s),)
 
-    def _term(self, term, s):
-        """Compute one term at sample s and publish it (a non-finite value: skipped, said once)."""
-        model, q = s.model, s.q
-        try:
-            if term == 'gravity':
-                value = model.gravity(q)
-            elif term == 'coriolis':
-                value = model.coriolis_term(q, s.qd)
-            elif term == 'mass_matrix':
-                value = model.mass_matrix(q)
+    def _publish(self, s):
+        """Compute every term at sample s into its view of the buffer and publish each; a term
+        that raised or has a non-finite value is skipped (said once), the others published."""
+        model, q, values = s.model, s.q, self._views
+        failed = {}
+        for term in self.terms:
+            try:
+                if term == 'gravity':
+                    model.gravity(q, out=values[term])
+                elif term == 'coriolis':
+                    model.coriolis_term(q, s.qd, out=values[term])
+                elif term == 'mass_matrix':
+                    model.mass_matrix(q, out=values[term])
+                else:
+                    values[term][...] = model.jacobian(q, self.link, self.frame)
+            except (ValueError, ArithmeticError) as exc:
+                failed[term] = f'{type(exc).__name__}: {exc}'
+        if not np.isfinite(self._buffer).all():   # rare: which term (the others are published)
+            failed.update((t, 'non-finite values') for t in self.terms
+                          if t not in failed and not np.isfinite(values[t]).all())
+        for term in self.terms:
+            if term in failed:
+                self.skipped += 1
+                self.events.append(('warn', f'dynamics:{term}', clip(
+                    f'~/dynamics/{term} not published for the state at stamp {s.stamp * 1e-9:.9f} s: '
+                    f'{failed[term]}', 300)))
+                continue
+            if term in ('gravity', 'coriolis'):
+                data = self._writers[term].message((q, s.qd, values[term]), s.stamp)
             else:
-                value = model.jacobian(q, self.link, self.frame)
-        except (ValueError, ArithmeticError) as exc:
-            value, why = None, f'{type(exc).__name__}: {exc}'
-        else:
-            why = 'non-finite values'
-        if value is None or not np.isfinite(value).all():
-            self.skipped += 1
-            self.events.append(('warn', f'dynamics:{term}', clip(
-                f'~/dynamics/{term} not published for the state at stamp {s.stamp * 1e-9:.9f} s: {why}', 300)))
-            return
-        if term in ('gravity', 'coriolis'):
-            data = self._writers[term].message((s.q, s.qd, value), s.stamp)
-        else:
-            data = self._writers[term].message((value,))
-        self._pubs[term].publish(data)
-        self.published[term] += 1
+                data = self._writers[term].message((values[term],))
+            self._pubs[term].publish(data)
+            self.published[term] += 1
 
     def stop(self):
         for pub in self._pubs.values():
