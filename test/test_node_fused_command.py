@@ -2,10 +2,10 @@
 two nodes in one process, one with it and one without (node.fused = None), fed the same
 serialized joint_states and desired states. The command's and ~/commanded_efforts' bytes are
 the same bit for bit, and so is what the core keeps (counters, q, stamp, result, law) for every
-mode it covers, on the bundled arm and on a 30-joint tree with locked joints; and each case it
-does not cover (a layout change, a non-finite or an out-of-range position, the clamp, a mode
-change, a stale desired state, an older stamp, no native kernel) is declined, then decided by the
-Python path as without it."""
+mode it covers, on the bundled arm and on a 30-joint tree with locked joints, clamped commands
+included; and each case it does not cover (a layout change, a non-finite or an out-of-range
+position, a ramp, a mode change, a stale desired state, an older stamp, no native kernel) is
+declined, then decided by the Python path as without it."""
 import re
 import time
 
@@ -138,6 +138,12 @@ class Pair:
         for name in type(ca.count).__slots__:
             assert getattr(ca.count, name) == getattr(cb.count, name), name
         assert (ca.last_stamp, ca.law, ca.clamped) == (cb.last_stamp, cb.law, cb.clamped)
+        assert (ca.last_cmd is None) == (cb.last_cmd is None)
+        if ca.last_cmd is not None:
+            assert ca.last_cmd.tobytes() == cb.last_cmd.tobytes()
+        assert (ca.ramp.last is None) == (cb.ramp.last is None)
+        if ca.ramp.last is not None:
+            assert ca.ramp.last.tobytes() == cb.ramp.last.tobytes()
         assert (ca.last_q is None) == (cb.last_q is None)
         if ca.last_q is not None:
             assert ca.last_q.tobytes() == cb.last_q.tobytes()
@@ -264,13 +270,28 @@ def test_a_layout_that_never_repeats_makes_no_fused_command(arm):
     assert [p.feed(p.state()) for _ in range(3)] == [False, False, True] and made == [1]
 
 
-def test_the_clamp_and_the_ramp_are_the_python_paths(arm):
+def test_clamped_commands_are_fused_and_the_ramp_is_the_python_paths(arm):
+    """A clamped command (every joint, or some) is the fused path's too: the same bytes, the same
+    count, names and log line; the ramp stays the Python path's."""
     p = arm()
+    said = ([], [])
+    for node, lines in zip(p.nodes, said, strict=True):   # the core's log lines, as queued
+        event = node.core.event
+        node.core.event = lambda *a, event=event, lines=lines: lines.append(a) or event(*a)
     assert [p.feed(p.state()) for _ in range(3)] == [False, False, True]
     p.set(effort_limit_scale=1e-3)   # every command clamped
-    assert not any(p.feed(p.state()) for _ in range(3))
-    assert p.on.core.count.clamp_count == 3 and p.on.core.clamped
-    p.set(effort_limit_scale=1.0, ramp_time=0.5)
+    assert all(p.feed(p.state()) for _ in range(3))   # (new settings: a new Command, at once)
+    assert p.on.core.count.clamp_count == 3 and p.on.core.clamped == ARM_JOINTS
+    clamp_lines = [[a for a in lines if a[1] == 'clamp'] for lines in said]
+    assert len(clamp_lines[0]) == 3 and clamp_lines[0] == clamp_lines[1]
+    g = np.abs(p.on.core.model.gravity(np.zeros(7)))
+    p.set(effort_limit_scale=float(np.median(g[g > 0] / p.on.core.model.effort_limits[g > 0])))
+    took = [p.feed(p.state(q=np.zeros(7))) for _ in range(3)]   # some joints clamped, the others not
+    assert all(took) and 0 < len(p.on.core.clamped) < 7
+    assert p.on.core.count.clamp_count == 6
+    p.set(effort_limit_scale=1.0)
+    assert p.feed(p.state()) and p.on.core.clamped is None
+    p.set(ramp_time=0.5)
     p.set(gravity_scale=0.99)   # a blend under way, shaped by the Python path
     assert not p.feed(p.state())
     assert not p.on.core.ramp.idle

@@ -1,7 +1,7 @@
 """bench.probes.tail_trace's analysis on a hand-written run: a reply above the threshold is split
 into its parts and the node's work that overlapped its wait for the callback is named by kind;
 a gap between replies is reported with what the driver sent and what the node ran in it."""
-from bench.probes.tail_trace import gaps, tails
+from bench.probes.tail_trace import gaps, hook_steps, tails
 
 US, MS = 1_000, 1_000_000
 STALL = range(9, 28)   # states sent while the node is stopped: never answered
@@ -42,3 +42,26 @@ def test_a_gap_between_replies_says_which_side_stopped():
     assert line.startswith('  gap 20.9 ms at 5 ms: 21 states sent (longest send gap 1.0 ms); '
                            "node spans > 1 ms [('callback', 0.8, 20.1)]; sampler late [(1.7, 19.0)]; "
                            'machine: steal 10 ms')
+
+
+def test_the_step_hooks_wrap_the_features_steps_and_come_off():
+    """The probe's spans of the work after the command wrap the features' step methods as they
+    are now (a renamed step would otherwise fail only when the probe's node starts)."""
+    from lie_dynamics.ros.features.contact_topics import ContactTopics
+    from lie_dynamics.ros.features.dynamics_topics import DynamicsTopics
+    before = (DynamicsTopics._publish, ContactTopics.on_sample)
+    seen = []
+
+    class Recorder:
+        def step(self, kind, fn, *args):
+            seen.append((kind, fn, args))
+
+    undo = hook_steps(Recorder())
+    try:
+        DynamicsTopics._publish('feature', 'sample')
+        ContactTopics.on_sample('feature', 'sample')
+    finally:
+        undo()
+    assert seen == [('step:dynamics', before[0], ('feature', 'sample')),
+                    ('step:observer', before[1], ('feature', 'sample'))]
+    assert (DynamicsTopics._publish, ContactTopics.on_sample) == before

@@ -19,9 +19,9 @@ callback or task had been running for more than --stall-ms. The driver notes the
 steal time and pressure every 10 ms and, once no reply came for 50 ms, the system call and wait
 channel of each thread of the node and its children (/proc). Every gap of --stall-ms or more
 between two replies is printed with what each side did in it, and per run the median length of
-each kind of span, the steps of the work after the command among them (the observer, each
-dynamics term). --no-trajectories: the dynamics node without its trajectory process (an
-experiment: ros/node.py, TRAJECTORIES_JOIN_S). --out keeps the raw timelines (JSON per run).
+each kind of span, the steps of the work after the command among them (the observer; the
+dynamics terms, one step per state). --no-trajectories: the dynamics node without its trajectory
+process (an experiment: ros/node.py, TRAJECTORIES_JOIN_S). --out keeps the raw timelines (JSON per run).
 The probe's own records cost each callback a few µs and two reads of /proc, the echo's too, so
 its ratios are not bench.node_latency's: read the parts. A benchmark probe, not a test.
 """
@@ -122,6 +122,20 @@ class Timeline:
             json.dump({'spans': self.spans, 'late': self.late, 'stacks': self.stacks}, fh)
 
 
+def hook_steps(tl):
+    """Time the steps of the work after the command, each a span 'step:<what>' inside its task:
+    the observer's sample and the dynamics terms of a state (one step). Returns the undo."""
+    from lie_dynamics.ros.features.contact_topics import ContactTopics
+    from lie_dynamics.ros.features.dynamics_topics import DynamicsTopics
+    terms, observe = DynamicsTopics._publish, ContactTopics.on_sample
+    DynamicsTopics._publish = lambda self, s: tl.step('step:dynamics', terms, self, s)
+    ContactTopics.on_sample = lambda self, s: tl.step('step:observer', observe, self, s)
+
+    def undo():
+        DynamicsTopics._publish, ContactTopics.on_sample = terms, observe
+    return undo
+
+
 def serve_dynamics():
     from lie_dynamics.ros import node as node_module
     from lie_dynamics.ros.outputs import Outputs
@@ -152,12 +166,7 @@ def serve_dynamics():
     def timed_timer(self):
         tl.span('timer', on_timer, self)
     cls.on_joint_state, cls._run_later, cls._on_timer = timed_callback, timed_task, timed_timer
-    # the steps of the work after the command, each a span 'step:<what>' inside its task
-    from lie_dynamics.ros.features.contact_topics import ContactTopics
-    from lie_dynamics.ros.features.dynamics_topics import DynamicsTopics
-    term, observe = DynamicsTopics._term, ContactTopics.on_sample
-    DynamicsTopics._term = lambda self, t, s: tl.step('step:' + t, term, self, t, s)
-    ContactTopics.on_sample = lambda self, s: tl.step('step:observer', observe, self, s)
+    hook_steps(tl)
     if os.environ.get(NO_CHILD_ENV):   # no trajectory process (an experiment)
         node_module.child_config = lambda node: None
     Outputs.command, Outputs.publish = timed_command, timed_publish

@@ -9,11 +9,14 @@
  * columns, the range check that also fails NaN, the locked joints in range and unchanged), the law
  * (laws.py: gravity by the model's native kernel, feedforward as its precomputed model term plus
  * the feedback, computed torque by the native inverse dynamics; the operations in numpy's order,
- * -ffp-contract=off: the same bits), the clamp's fast test (|tau| <= bound, laws.clamp) and the
- * command's and ~/commanded_efforts' bytes (cdr.Writer's constant parts joined with the stamp and
- * the efforts). It returns (stamp ns, q, tau, command bytes, joint-state bytes or None), or None
- * whenever anything differs from that case: the caller's Python path then decides, counts and
- * logs as without it. It never raises about its input, and runs with the GIL held (one state). */
+ * -ffp-contract=off: the same bits), the clamp (laws.clamp: within +-bound as computed, else a
+ * finite limit exceeded clipped to it, as np.clip) and the command's and ~/commanded_efforts'
+ * bytes (cdr.Writer's constant parts joined with the stamp and the clamped efforts). It returns
+ * (stamp ns, q, tau as the law computed it, command bytes, joint-state bytes or None, clamped:
+ * bool), or None whenever anything differs from that case (a NaN, or an unlimited joint's
+ * infinite torque): the caller's Python path then decides, counts and logs as without it; a
+ * clamped command is counted and logged by the caller (Compensator.on_fast_command, through
+ * laws.clamp itself). It never raises about its input, and runs with the GIL held (one state). */
 enum { LAW_GRAVITY = 0, LAW_FEEDFORWARD = 1, LAW_COMPUTED_TORQUE = 2 };
 
 typedef struct {
@@ -26,7 +29,7 @@ typedef struct {
     double locked;                 /* locked joints' bound; NaN: finite is enough */
     const char *key;               /* bytes 12 .. key_end of the layout */
     const npy_intp *cols, *lock_cols;
-    const double *lower, *upper, *last_locked, *bound, *base, *q_d, *qd_d, *qdd_d, *kp, *kd;
+    const double *lower, *upper, *last_locked, *bound, *limit, *base, *q_d, *qd_d, *qdd_d, *kp, *kd;
     const double *viscous, *coulomb;   /* friction at the measured velocity (gravity, computed torque) */
     double eps;
     PyUFuncGenericFunction tanh_loop;  /* numpy's own float64 tanh loop: np.tanh's bits */
@@ -196,8 +199,21 @@ static PyObject *command_call(PyObject *self, PyObject *const *args, size_t narg
             tau[i] = tau[i] + f;
         }
     }
-    for (Py_ssize_t i = 0; i < n && ok; ++i)   /* laws.clamp's fast test: finite and within the limit */
-        ok = fabs(tau[i]) <= c->bound[i];
+    /* laws.clamp into tmp (free by now): within the bound as computed; a finite limit exceeded
+     * (an infinite torque too) clipped to +-limit; a NaN, or an unlimited joint's infinite
+     * torque, declined (the Python path refuses it) */
+    int clamped = 0;
+    for (Py_ssize_t i = 0; i < n && ok; ++i) {
+        double t = tau[i], lim = c->limit[i];
+        if (fabs(t) <= c->bound[i]) {
+            tmp[i] = t;
+        } else if (fabs(t) > lim && lim == c->bound[i]) {   /* lim finite (bound = min(lim, DBL_MAX)) */
+            tmp[i] = t > 0 ? lim : -lim;
+            clamped = 1;
+        } else {
+            ok = 0;
+        }
+    }
     if (!ok)
         goto done;
     int32_t sec;
@@ -215,8 +231,8 @@ static PyObject *command_call(PyObject *self, PyObject *const *args, size_t narg
     memcpy(stamp + 4, &n32, 4);
     npy_intp dims[1] = {n};
     PyObject *qa = PyArray_SimpleNew(1, dims, NPY_DOUBLE), *ta = PyArray_SimpleNew(1, dims, NPY_DOUBLE);
-    PyObject *cmd = qa && ta ? join(c->cmd_parts, c->cmd_len, 3, 1, -1, tau, n, NULL) : NULL;
-    PyObject *js = cmd && c->js ? join(c->js_parts, c->js_len, 5, 3, 1, tau, n, stamp) : NULL;
+    PyObject *cmd = qa && ta ? join(c->cmd_parts, c->cmd_len, 3, 1, -1, tmp, n, NULL) : NULL;
+    PyObject *js = cmd && c->js ? join(c->js_parts, c->js_len, 5, 3, 1, tmp, n, stamp) : NULL;
     PyObject *st = cmd && (js || !c->js) ? PyLong_FromLongLong(ns) : NULL;
     if (st) {
         memcpy(PyArray_DATA((PyArrayObject *)qa), q, sizeof(double) * n);
@@ -225,7 +241,7 @@ static PyObject *command_call(PyObject *self, PyObject *const *args, size_t narg
             Py_INCREF(Py_None);
             js = Py_None;
         }
-        res = PyTuple_Pack(5, st, qa, ta, cmd, js);
+        res = PyTuple_Pack(6, st, qa, ta, cmd, js, clamped ? Py_True : Py_False);
     }
     Py_XDECREF(qa);
     Py_XDECREF(ta);
@@ -294,7 +310,7 @@ static PyTypeObject CommandType = {
     .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_VECTORCALL,
     .tp_methods = command_methods,
     .tp_doc = "The node's fused command path: call(joint_states bytes) -> (stamp, q, tau, command, "
-              "joint state) or None (fused.py)",
+              "joint state, clamped) or None (fused.py)",
 };
 
 /* a float64 vector of n values (or None where allowed: *out NULL) */
@@ -342,7 +358,8 @@ static int parts_arg(PyObject *t, int count, const char **parts, Py_ssize_t *len
 
 /* command_path(length, head, key, v_at, v_count, e_at, e_count, pos_at, vel_at, n_msg, cols, lower, upper,
  *              lock_cols, last_locked, locked, law, need_v, method, model, base, q_d, qd_d, qdd_d, kp, kd,
- *              bound, cmd_parts, js_parts, keep, viscous, coulomb, eps, np.tanh, its float64 loop's index):
+ *              bound, limit, cmd_parts, js_parts, keep, viscous, coulomb, eps, np.tanh, its float64 loop's
+ *              index):
  * every offset absolute in the message; fused.py */
 static PyObject *command_path(PyObject *mod, PyObject *args)
 {
@@ -353,13 +370,13 @@ static PyObject *command_path(PyObject *mod, PyObject *args)
     const char *head, *key;
     Py_ssize_t head_len, key_len;
     PyObject *cols, *lower, *upper, *lock_cols, *last_locked, *method, *model, *base, *q_d, *qd_d, *qdd_d, *kp, *kd;
-    PyObject *bound, *cmd_parts, *js_parts, *keep;
+    PyObject *bound, *limit, *cmd_parts, *js_parts, *keep;
     double locked, c_eps;
     int law, need_v;
-    if (!PyArg_ParseTuple(args, "ny#y#nInInnnOOOOOdiiOOOOOOOOOOOOOOdOn", &length, &head, &head_len, &key, &key_len, &v_at,
+    if (!PyArg_ParseTuple(args, "ny#y#nInInnnOOOOOdiiOOOOOOOOOOOOOOOdOn", &length, &head, &head_len, &key, &key_len, &v_at,
                           &v_count, &e_at, &e_count, &pos_at, &vel_at, &n_msg, &cols, &lower, &upper, &lock_cols,
                           &last_locked, &locked, &law, &need_v, &method, &model, &base, &q_d, &qd_d, &qdd_d, &kp, &kd,
-                          &bound, &cmd_parts, &js_parts, &keep, &viscous, &coulomb, &c_eps,
+                          &bound, &limit, &cmd_parts, &js_parts, &keep, &viscous, &coulomb, &c_eps,
                           &tanh_ufunc, &tanh_index))
         return NULL;
     Command *c = PyObject_New(Command, &CommandType);
@@ -390,7 +407,7 @@ static PyObject *command_path(PyObject *mod, PyObject *args)
              vector_arg(lower, n, 1, &c->lower) && vector_arg(upper, n, c->lower == NULL, &c->upper) &&
              (c->lower == NULL) == (c->upper == NULL) &&
              vector_arg(last_locked, c->n_lock, c->n_lock == 0, &c->last_locked) &&
-             vector_arg(bound, n, 0, &c->bound) && vector_arg(base, n, law != LAW_FEEDFORWARD, &c->base) &&
+             vector_arg(bound, n, 0, &c->bound) && vector_arg(limit, n, 0, &c->limit) && vector_arg(base, n, law != LAW_FEEDFORWARD, &c->base) &&
              vector_arg(q_d, n, law == LAW_GRAVITY, &c->q_d) && vector_arg(qd_d, n, law == LAW_GRAVITY, &c->qd_d) &&
              vector_arg(qdd_d, n, law == LAW_GRAVITY, &c->qdd_d) && vector_arg(kp, n, 1, &c->kp) &&
              vector_arg(kd, n, 1, &c->kd) && (!c->kd || need_v) &&

@@ -236,15 +236,18 @@ class Compensator(Configuration):
         the input is live?"""
         return stamp and stamp < self.last_stamp and not self.watchdog.stale
 
-    def on_fast_command(self, law, stamp, q, tau, velocity, effort, now):
+    def on_fast_command(self, law, stamp, q, tau, velocity, effort, now, clamped=False):
         """A command the fused command path computed by law `law` (fast_law at `now`) from a
-        joint_states message whose stamp is not refused (refuses_stamp), whose positions q passed
-        the checks and whose tau passed the clamp unchanged: the bookkeeping of on_joint_state's
+        joint_states message whose stamp is not refused (refuses_stamp) and whose positions q
+        passed the checks; tau as the law computed it, `clamped` if the command is tau clamped
+        (the fused path wrote what laws.clamp gives): the bookkeeping of on_joint_state's
         accepted state (after the command went out: nothing in it changes the command)."""
         self.clamped = None
         self.count.received += 1
         self.law = law
         self.ramp.note(tau)
+        if clamped:   # counted and logged, and kept, as the Python path does
+            tau = self._limit(tau)
         self._accepted(stamp, q, tau, velocity, effort, now)
 
     def _accepted(self, stamp, q, tau, velocity, effort, now):

@@ -7,11 +7,13 @@ Python calls (decode, map, check, law, clamp, encode) costs several times its wa
 second set of rules: for a message repeating the last layout the decoder read (cdr.JointStateDecoder's
 fast path), whose used positions pass the reader's range check, under the mode's own law
 (gravity without velocity terms or friction, feedforward, computed torque without friction; a fresh
-desired state) computed by the model's native kernel, with no clamp, ramp or silence in force,
-the native Command (codegen/native_command.c) computes the same bits, and the core keeps the same
-state (Compensator.on_fast_command). Anything else declines (None) and the Python path decides,
-counts, logs and publishes as without it: a layout change, a check failing, a mode or an option
-it does not cover, no native kernel, no C compiler.
+desired state) computed by the model's native kernel, with no ramp or silence in force, the
+native Command (codegen/native_command.c) computes the same bits, clamped to the effort limits
+as laws.clamp clamps them, and the core keeps the same state (Compensator.on_fast_command: a
+clamped command counted and logged by laws.clamp itself, as on the Python path). Anything else
+declines (None) and the Python path decides, counts, logs and publishes as without it: a layout
+change, a check failing, a non-finite torque, a mode or an option it does not cover, no native
+kernel, no C compiler.
 
 A Command is made for one key (the law, settings, model and its version, the reader's map and
 locked values, the layout, the writers); a change of any makes the next. A new desired state is
@@ -94,11 +96,11 @@ class FusedCommand:
     def accepted(self):
         """After the command of `command` went out: the core keeps its state as on_sample would
         (Compensator.on_fast_command; nothing in it changes the command)."""
-        law, buf, (stamp, q, tau, _, _), now = self._pending
+        law, buf, (stamp, q, tau, _, _, clamped), now = self._pending
         self._pending = None
         (n1, o1), (n2, o2) = self._views
         self.core.on_fast_command(law, stamp, q, tau, np.frombuffer(buf, _F8_LE, n1, o1),
-                                  np.frombuffer(buf, _F8_LE, n2, o2), now)
+                                  np.frombuffer(buf, _F8_LE, n2, o2), now, clamped)
         self.taken += 1
 
     def _make(self, law, model, reader, layout, writers):
@@ -140,17 +142,19 @@ class FusedCommand:
         gains = [None if g is None else np.ascontiguousarray(np.broadcast_to(g, (n,)), dtype=float)
                  for g in (core.kp, core.kd)]
         bound = np.ascontiguousarray(core.limits.bound, dtype=float)
+        limit = np.ascontiguousarray(core.limits.limit, dtype=float)
         friction = core.friction if law != 'feedforward' else None   # (feedforward's is at qd_d: in base)
         viscous = coulomb = None
         if friction is not None:
             viscous, coulomb = [None if f is None else np.ascontiguousarray(np.broadcast_to(f, (n,)), dtype=float)
                                 for f in (friction.viscous, friction.coulomb)]
-        arrays = (cols, lower, upper, lock_idx, last_locked, base, q_d, qd_d, qdd_d, *gains, bound, viscous, coulomb)
+        arrays = (cols, lower, upper, lock_idx, last_locked, base, q_d, qd_d, qdd_d, *gains, bound, limit, viscous,
+                  coulomb)
         try:
             path = mod.command_path(
                 layout.length, layout.head, layout.key, v_at, layout.counts[0], e_at, layout.counts[1], o0, o1, n0,
                 cols, lower, upper, lock_idx, last_locked, float(b.locked) if b is not None else float('nan'),
-                _LAW[law], int(need_v), method, model, base, q_d, qd_d, qdd_d, *gains, bound,
+                _LAW[law], int(need_v), method, model, base, q_d, qd_d, qdd_d, *gains, bound, limit,
                 tuple(cmd_w.parts), None if js_w is None else tuple(js_w.parts), arrays, viscous, coulomb,
                 float(friction.eps) if friction is not None else 1.0, np.tanh, _TANH)
         except ValueError:   # a form it does not take (an index out of the message): the Python path
