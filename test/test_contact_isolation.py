@@ -581,3 +581,15 @@ def test_the_point_force_search_finds_every_fit_a_dense_sampling_finds(name):
                 off = (near - x) - np.outer((near - x) @ d, d)
                 assert np.linalg.norm(off, axis=1).min() <= ci.RADIUS * (1 + 1e-6) + 5e-3
     assert checked >= 20 and 0 < found < checked, (checked, found)
+
+
+def test_within_is_the_one_settling_test():
+    """|r - ref| <= tolerance x max(|scale|, th) on every joint; the scale is the caller's side
+    (Settling: the newer r; the node's drift test: the mean); a NaN never passes."""
+    th = np.array([1.0, 1.0])
+    assert ci.within(np.array([10.0, 0.0]), np.array([10.4, 0.04]), np.array([10.0, 0.0]), th)
+    assert not ci.within(np.array([10.0, 0.0]), np.array([10.6, 0.0]), np.array([10.0, 0.0]), th)
+    # the same pair passes with the larger side as the scale only
+    r, ref = np.array([20.0]), np.array([21.5])
+    assert ci.within(r, ref, ref, th[:1], tolerance=0.07) and not ci.within(r, ref, r, th[:1], tolerance=0.07)
+    assert not ci.within(np.array([np.nan]), np.array([0.0]), np.array([0.0]), th[:1])

@@ -580,6 +580,13 @@ def _point_forces(model, q, r, tol, bodies, radius):
     return {b: found[i] for i, b in enumerate(bodies) if i in found}
 
 
+def within(r, ref, scale, threshold, tolerance=SETTLE_TOLERANCE):
+    """Is every joint of r within tolerance x max(|scale_j|, th_j) of ref (a NaN: not)? The one
+    settling test: Settling's (ref an older checkpoint, scale r) and the node's drift test of a
+    settled stretch (ref and scale the stretch's mean, contact_link.ContactIsolation)."""
+    return bool(np.all(np.abs(r - ref) <= tolerance * np.maximum(np.abs(scale), threshold)))
+
+
 class Settling:
     """Whether the residual has stopped changing (module docstring): `update(t, r, threshold)`
     returns True once every joint changed by at most tolerance x max(|r_j|, th_j) since a
@@ -610,6 +617,5 @@ class Settling:
             h.popleft()
         t0, r0 = h[0]
         rn = np.asarray(r, dtype=float)
-        self._verdict = bool(t - t0 >= self.window - 1e-9 and np.all(
-            np.abs(rn - r0) <= self.tolerance * np.maximum(np.abs(rn), threshold)))
+        self._verdict = t - t0 >= self.window - 1e-9 and within(rn, r0, rn, threshold, self.tolerance)
         return self._verdict

@@ -235,7 +235,7 @@ class ContactIsolation:
         new = not self._settled
         if not new and m:   # a drift the mean would lag starts a new stretch too
             prev = self._sum / len(m)
-            new = np.any(np.abs(r - prev) > ci.SETTLE_TOLERANCE * np.maximum(np.abs(prev), threshold))
+            new = not ci.within(r, prev, prev, threshold)
         if new:
             m.clear()
             self._sum = np.zeros_like(r)
