@@ -294,6 +294,20 @@ def test_command_publish_probe_times_every_path():
     assert len(rows) == 5 and rows[0].endswith('| 1.00 |') and rows[2].endswith('| 1.00 |')
 
 
+def test_node_steps_probe_times_each_feature_and_the_fused_command():
+    """bench.probes.node_steps runs (its own process: it starts rclpy): every feature's steps and the
+    callback timed, every command of its stream made by the fused command path."""
+    import subprocess
+    import sys
+    done = subprocess.run([sys.executable, '-m', 'bench.probes.node_steps', '--states', '60'],
+                          capture_output=True, text=True, timeout=180)
+    assert done.returncode == 0, done.stderr
+    rows = {ln.split('|')[1].strip() for ln in done.stdout.splitlines() if ln.startswith('| ') and 'µs' not in ln}
+    assert {'contact', 'dynamics', 'callback, all of it'} <= rows, done.stdout
+    assert 'fused command path: 60 of 60 commands; clamped: 0' in done.stdout
+    assert 'coriolis_term: ' in done.stdout
+
+
 def test_observer_node_probe_times_both_input_forms():
     """bench.probes.observer_node runs (its own process: it starts rclpy), times the four ways a message
     reaches the node, and the peer's ratio to itself is 1."""
