@@ -47,6 +47,30 @@ CMD = '/effort_controller/commands'
 TRAJECTORY_IN = '/dynamics_node/trajectory_in'   # the dynamics node's trajectory process subscribes it
 
 
+def streamed_robot(name):
+    """(URDF path, controlled joints, model, the node's extra parameters) of the robot streamed:
+    the bundled arm ('arm7': the node's own configuration) or example-robot-data's Talos reduced
+    without its two grippers ('talos_reduced', 30 joints)."""
+    from lie_dynamics import load_urdf
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore')   # vendor inertias are warned about
+        if name == 'talos_reduced':
+            from bench.robots import robot_dir
+            path = os.path.join(robot_dir(), TALOS)
+            joints = [j for j in load_urdf(path).joint_names if 'gripper' not in j]
+            base = {'urdf_path': path, 'joints': '[' + ','.join(joints) + ']'}
+        else:
+            path, joints, base = os.path.join(ROOT, 'config', 'arm7.urdf'), JOINTS, {}
+        return path, joints, load_urdf(path, joints=joints), base
+
+
+def postures(model, count, seed=0):
+    """count random postures (count, n) within the joint limits and +-2.5 rad: the streamed states."""
+    rng = np.random.default_rng(seed)
+    lo, hi = np.maximum(model.position_lower, -2.5), np.minimum(model.position_upper, 2.5)
+    return lo + (hi - lo) * rng.random((count, model.n))
+
+
 def ros_env():
     from lie_dynamics.sim.domains import reserve_domains
 
@@ -471,23 +495,12 @@ def main(argv=None):
 
 def measure_all(args):
     from bench import common
-    from lie_dynamics import load_urdf
     from lie_dynamics.laws import clamp, effort_limits
 
     ros_env()
     rates = [float(x) for x in args.rates.split(',')]
-    joints, base = JOINTS, {}
-    with warnings.catch_warnings():
-        warnings.simplefilter('ignore')   # vendor inertias are warned about
-        if args.robot == 'talos_reduced':
-            from bench.robots import robot_dir
-            path = os.path.join(robot_dir(), TALOS)
-            joints = [j for j in load_urdf(path).joint_names if 'gripper' not in j]
-            base = {'urdf_path': path, 'joints': '[' + ','.join(joints) + ']'}
-        model = load_urdf(base.get('urdf_path', os.path.join(ROOT, 'config', 'arm7.urdf')), joints=joints)
-    rng = np.random.default_rng(0)
-    lo, hi = np.maximum(model.position_lower, -2.5), np.minimum(model.position_upper, 2.5)
-    Q = lo + (hi - lo) * rng.random((max(int(args.seconds * max(rates)) + int(max(rates)), 12000), model.n))
+    _, joints, model, base = streamed_robot(args.robot)
+    Q = postures(model, max(int(args.seconds * max(rates)) + int(max(rates)), 12000))
     # the node's answer: g(q) clamped to the effort limits (laws.clamp; the bundled arm never reaches them)
     expected = {'echo': Q, 'dynamics': clamp(model.gravity(Q), effort_limits(model.effort_limits, 1.0))[0]}
     assert args.robot != 'arm7' or np.all(np.abs(expected['dynamics']) < model.effort_limits)

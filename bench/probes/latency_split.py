@@ -188,20 +188,11 @@ def stream_setup(robot, seconds, rate):
     ('echo': Q, 'dynamics': the clamped g(Q)), N, W, the CPU left to the node or None, the driver);
     this process is pinned to the first CPU when there are two."""
     from bench import node_latency as nl
-    from lie_dynamics import load_urdf
     from lie_dynamics.laws import clamp, effort_limits
     nl.ros_env()
-    joints, base = nl.JOINTS, {}
-    if robot == 'talos_reduced':
-        from bench.robots import robot_dir
-        path = os.path.join(robot_dir(), nl.TALOS)
-        joints = [j for j in load_urdf(path).joint_names if 'gripper' not in j]
-        base = {'urdf_path': path, 'joints': '[' + ','.join(joints) + ']'}
-    model = load_urdf(base.get('urdf_path', os.path.join(nl.ROOT, 'config', 'arm7.urdf')), joints=joints)
-    rng = np.random.default_rng(0)
-    lo, hi = np.maximum(model.position_lower, -2.5), np.minimum(model.position_upper, 2.5)
+    _, joints, model, base = nl.streamed_robot(robot)
     N, W = int(seconds * rate), int(nl.WARMUP_S * rate)
-    Q = lo + (hi - lo) * rng.random((N + W + 1, model.n))
+    Q = nl.postures(model, N + W + 1)
     g = clamp(model.gravity(Q), effort_limits(model.effort_limits, 1.0))[0]
     keys = {'echo': {nl.reply_key(x): k for k, x in enumerate(Q)}}
     keys['dynamics'] = {nl.reply_key(x): k for k, x in enumerate(g)}

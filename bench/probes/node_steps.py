@@ -20,48 +20,26 @@ import os
 import sys
 import time
 import timeit
-import warnings
 
 import numpy as np
 
 
-def _robot(name):
-    """(urdf path, controlled joints) as bench.node_latency streams them."""
-    from lie_dynamics import default_urdf_path, load_urdf
-    if name == 'arm7':
-        return default_urdf_path(), [f'joint{i}' for i in range(1, 8)]
-    from bench.node_latency import TALOS
-    from bench.robots import robot_dir
-    path = os.path.join(robot_dir(), TALOS)
-    with warnings.catch_warnings():
-        warnings.simplefilter('ignore')
-        return path, [j for j in load_urdf(path).joint_names if 'gripper' not in j]
-
-
-def _messages(model, joints, count, seed=0):
-    """Serialized joint_states, one layout with fixed padding (cdr.joint_state_template, as the
-    fused command path's test writes them): random postures within +-2.5 rad, at rest."""
+def _messages(model, joints, count):
+    """Serialized joint_states of bench.node_latency's postures, one layout with fixed padding
+    (cdr.joint_state_template, as the fused command path's test writes them), at rest."""
+    from bench.node_latency import postures
     from lie_dynamics.ros.core.cdr import joint_state_template
-    rng = np.random.default_rng(seed)
-    lo, hi = np.maximum(model.position_lower, -2.5), np.minimum(model.position_upper, 2.5)
     t, stamp_at, slots = joint_state_template(joints)
-    out = []
-    for _ in range(count):
-        q = lo + (hi - lo) * rng.random(model.n)
-        out.append(t.fill(slots, (q, np.zeros(model.n), model.gravity(q)), stamp_at, 0))
-    return out
+    return [t.fill(slots, (q, np.zeros(model.n), model.gravity(q)), stamp_at, 0) for q in postures(model, count)]
 
 
 def run(robot='arm7', states=3000, defaults=False):
     import rclpy
     from rclpy.parameter import Parameter
 
-    from lie_dynamics import load_urdf
+    from bench.node_latency import streamed_robot
     from lie_dynamics.ros.node import DynamicsNode
-    path, joints = _robot(robot)
-    with warnings.catch_warnings():
-        warnings.simplefilter('ignore')
-        model = load_urdf(path, joints=joints)
+    path, joints, model, _ = streamed_robot(robot)
     msgs = _messages(model, joints, 300)
     params = {'urdf_path': path, 'joints': joints, 'stale_timeout': 60.0}
     if not defaults:

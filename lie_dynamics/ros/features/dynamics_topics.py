@@ -151,10 +151,8 @@ class DynamicsTopics(Feature):
             writers[term] = t.writer(slots)
         self._writers = writers
         self._buffer = np.zeros(2 * n + n * n + 6 * n)   # a term not published keeps zeros
-        cuts = np.cumsum([0, n, n, n * n])
-        self._views = {'gravity': self._buffer[:n], 'coriolis': self._buffer[n:2 * n],
-                        'mass_matrix': self._buffer[cuts[2]:cuts[3]].reshape(n, n),
-                        'jacobian': self._buffer[cuts[3]:].reshape(6, n)}
+        g, c, m, j = np.split(self._buffer, np.cumsum([n, n, n * n]))
+        self._views = {'gravity': g, 'coriolis': c, 'mass_matrix': m.reshape(n, n), 'jacobian': j.reshape(6, n)}
 
     def on_sample(self, s):
         for step in self.steps(s):
